@@ -1,0 +1,337 @@
+"""Device description: the YAML file in ``config/`` that says what an MMD is made of.
+
+The file keeps the paper's units and says them in every key (``*_mm``, ``*_ppm_per_c``,
+``*_deg``); :class:`DeviceDescription` holds SI values. A malformed or inconsistent file is
+refused with a :class:`ConfigError` naming the key and the problem.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+from numpy.typing import NDArray
+
+from mmd_ros.core.errors import ConfigError
+from mmd_ros.core.kinematics import Geometry
+from mmd_ros.core.units import M_PER_MM, M_PER_NM, PPM
+
+__all__ = [
+    'Channel', 'DeviceDescription', 'ReferencePair', 'find_config', 'load_device',
+    'parse_device',
+]
+
+ROLES = ('measuring', 'reference', 'unused')
+N_CHANNELS = 8
+#: How far a reference distance may lie outside the nominal bar range [m].
+RANGE_SLACK_M = 1e-3
+
+
+@dataclass(frozen=True)
+class ReferencePair:
+    """A reference centre distance d_r^j on the reference plate (Table 2)."""
+
+    name: str
+    sockets: tuple[str, str]
+    design_m: float
+    measured_m: float
+    distance_m: float  # the one in use
+
+
+@dataclass(frozen=True)
+class Channel:
+    """One of the terminal's eight encoder channels."""
+
+    index: int
+    name: str
+    role: str  # measuring | reference | unused
+    bar: int | None = None  # 1..6 for a measuring bar
+    pair: str | None = None  # reference pair a reference bar rests on
+
+
+@dataclass(frozen=True)
+class DeviceDescription:
+    """An MMD: joints, reference plate, bars, limits and terminal channel map, in SI units."""
+
+    name: str
+    source: str
+    geometry: Geometry
+    design_geometry: Geometry
+    measured_geometry: Geometry
+    pairs: tuple[ReferencePair, ...]
+    bar_range_m: tuple[float, float]
+    encoder_resolution_m: float
+    scale_cte_per_c: float
+    rod_cte_per_c: float
+    plate_cte_per_c: float
+    reference_plate_cte_per_c: float
+    fixed_length_m: float
+    upper_tilt_rad: float
+    lower_tilt_rad: float
+    min_bar_separation_m: float
+    sample_rate_hz: float
+    counter_bits: int
+    channels: tuple[Channel, ...]
+    raw: dict[str, Any] = field(repr=False, compare=False)
+
+    @property
+    def reference_distances_m(self) -> NDArray[np.float64]:
+        """d_r^1..d_r^7 in use, shape (7,) [m]."""
+        return np.array([p.distance_m for p in self.pairs])
+
+    def pair(self, name: str) -> ReferencePair:
+        for p in self.pairs:
+            if p.name == name:
+                return p
+        raise KeyError(f'no reference pair {name!r}; pairs are {[p.name for p in self.pairs]}')
+
+    @property
+    def measuring_channels(self) -> list[int]:
+        """Channel index of bar 1..6, in bar order."""
+        by_bar = {c.bar: c.index for c in self.channels if c.role == 'measuring'}
+        return [by_bar[i] for i in range(1, 7)]
+
+    @property
+    def reference_channels(self) -> list[Channel]:
+        """Reference-bar channels, shortest reference distance first."""
+        refs = [c for c in self.channels if c.role == 'reference']
+        return sorted(refs, key=lambda c: self.pair(c.pair).distance_m)
+
+    @property
+    def channel_names(self) -> list[str]:
+        return [c.name for c in self.channels]
+
+    def to_yaml(self) -> str:
+        """The description as YAML (the mapping it was read from, inheritance resolved)."""
+        return yaml.safe_dump(self.raw, sort_keys=False)
+
+
+# -- parsing -----------------------------------------------------------------------------------
+class _Reader:
+    """Typed access to a YAML mapping that names the full key in every error."""
+
+    def __init__(self, source: str) -> None:
+        self.source = source
+
+    def fail(self, key: str, problem: str) -> ConfigError:
+        return ConfigError(self.source, key, problem)
+
+    def get(self, mapping: Any, key: str, path: str) -> Any:
+        if not isinstance(mapping, dict):
+            raise self.fail(path, 'must be a mapping')
+        if key not in mapping:
+            raise self.fail(f'{path}.{key}' if path else key, 'is missing')
+        return mapping[key]
+
+    def number(self, mapping: Any, key: str, path: str, *, low: float | None = None,
+               high: float | None = None, positive: bool = False) -> float:
+        full = f'{path}.{key}' if path else key
+        value = self.get(mapping, key, path)
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise self.fail(full, f'must be a finite number, got {value!r}')
+        if positive and value <= 0:
+            raise self.fail(full, f'must be > 0, got {value}')
+        if low is not None and value < low or high is not None and value > high:
+            raise self.fail(full, f'must be in [{low}, {high}], got {value}')
+        return float(value)
+
+    def choice(self, mapping: Any, key: str, path: str, options: tuple[str, ...]) -> str:
+        value = self.get(mapping, key, path)
+        if value not in options:
+            raise self.fail(f'{path}.{key}', f'must be one of {list(options)}, got {value!r}')
+        return value
+
+    def joints(self, mapping: Any, key: str, path: str) -> NDArray[np.float64]:
+        full = f'{path}.{key}'
+        value = self.get(mapping, key, path)
+        try:
+            arr = np.array(value, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise self.fail(full, 'must be six rows of [x, y, z] numbers') from None
+        if arr.shape != (6, 3):
+            raise self.fail(full, f'must be six rows of [x, y, z], got shape {arr.shape}')
+        if not np.all(np.isfinite(arr)):
+            raise self.fail(full, 'contains a non-finite value')
+        if np.max(np.abs(arr)) > 2000.0:
+            raise self.fail(full, 'has a coordinate beyond 2 m: is it in mm?')
+        return arr * M_PER_MM
+
+
+def _merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for key, value in override.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _merge(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
+def _load_mapping(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
+    source = str(path)
+    if path in seen:
+        raise ConfigError(source, 'inherit', 'inheritance loops back to this file')
+    try:
+        text = path.read_text(encoding='utf-8')
+    except OSError as exc:
+        raise ConfigError(source, '(file)', f'cannot be read: {exc.strerror}') from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ConfigError(source, '(file)', f'is not valid YAML: {exc}') from None
+    if not isinstance(data, dict):
+        raise ConfigError(source, '(file)', 'must hold a YAML mapping')
+    parent = data.pop('inherit', None)
+    if parent is not None:
+        if not isinstance(parent, str):
+            raise ConfigError(source, 'inherit', 'must be a file name')
+        base = _load_mapping((path.parent / parent).resolve(), seen + (path,))
+        data = _merge(base, data)
+    return data
+
+
+def load_device(path: str | os.PathLike[str]) -> DeviceDescription:
+    """Read and validate a device description file (``inherit:`` resolved relative to it)."""
+    p = Path(path).resolve()
+    return parse_device(_load_mapping(p), str(p))
+
+
+def parse_device(data: dict[str, Any], source: str = '<device>') -> DeviceDescription:
+    """Validate a device description mapping (as loaded from YAML)."""
+    r = _Reader(source)
+    if data.get('format_version') != 1:
+        raise r.fail('format_version', f'must be 1, got {data.get("format_version")!r}')
+    name = r.get(data, 'name', '')
+    if not isinstance(name, str) or not name:
+        raise r.fail('name', 'must be a non-empty string')
+
+    joints = r.get(data, 'joints', '')
+    use_joints = r.choice(joints, 'use', 'joints', ('measured', 'design'))
+    design = Geometry(r.joints(joints, 'upper_design_mm', 'joints'),
+                      r.joints(joints, 'lower_design_mm', 'joints'))
+    measured = Geometry(r.joints(joints, 'upper_measured_mm', 'joints'),
+                        r.joints(joints, 'lower_measured_mm', 'joints'))
+    for tag, geo in (('design', design), ('measured', measured)):
+        if np.max(np.abs(geo.upper - design.upper)) > 1e-3 or \
+                np.max(np.abs(geo.lower - design.lower)) > 1e-3:
+            raise r.fail(f'joints.{tag}', 'differs from the design joints by more than 1 mm')
+
+    bars = r.get(data, 'bars', '')
+    rng = r.get(bars, 'range_mm', 'bars')
+    if not (isinstance(rng, list) and len(rng) == 2 and all(isinstance(v, (int, float)) for v in rng)
+            and 0 < rng[0] < rng[1]):
+        raise r.fail('bars.range_mm', f'must be [shortest, longest] with 0 < shortest < longest, got {rng!r}')
+    bar_range = (rng[0] * M_PER_MM, rng[1] * M_PER_MM)
+
+    plate = r.get(data, 'reference_plate', '')
+    use_pairs = r.choice(plate, 'use', 'reference_plate', ('measured', 'design'))
+    raw_pairs = r.get(plate, 'pairs', 'reference_plate')
+    if not isinstance(raw_pairs, list) or len(raw_pairs) != 7:
+        raise r.fail('reference_plate.pairs', 'must list the seven reference pairs (Table 2)')
+    pairs = []
+    for j, item in enumerate(raw_pairs):
+        path = f'reference_plate.pairs[{j}]'
+        pname = r.get(item, 'name', path)
+        sockets = r.get(item, 'sockets', path)
+        if not (isinstance(sockets, list) and len(sockets) == 2 and sockets[0] != sockets[1]):
+            raise r.fail(f'{path}.sockets', 'must name two different sockets')
+        dm = r.number(item, 'design_mm', path, positive=True) * M_PER_MM
+        mm = r.number(item, 'measured_mm', path, positive=True) * M_PER_MM
+        if abs(dm - mm) > 1e-3:
+            raise r.fail(f'{path}.measured_mm', 'differs from design_mm by more than 1 mm')
+        dist = mm if use_pairs == 'measured' else dm
+        if not (bar_range[0] - RANGE_SLACK_M <= dist <= bar_range[1] + RANGE_SLACK_M):
+            raise r.fail(f'{path}', f'distance {dist / M_PER_MM:.4f} mm lies outside bars.range_mm')
+        pairs.append(ReferencePair(str(pname), (str(sockets[0]), str(sockets[1])), dm, mm, dist))
+    names = [p.name for p in pairs]
+    if len(set(names)) != 7:
+        raise r.fail('reference_plate.pairs', f'pair names must be unique, got {names}')
+    if any(b.distance_m <= a.distance_m for a, b in zip(pairs, pairs[1:])):
+        raise r.fail('reference_plate.pairs', 'distances must increase strictly from dr1 to dr7')
+
+    plates = r.get(data, 'plates', '')
+    limits = r.get(data, 'limits', '')
+    terminal = r.get(data, 'terminal', '')
+    raw_channels = r.get(terminal, 'channels', 'terminal')
+    if not isinstance(raw_channels, list) or len(raw_channels) != N_CHANNELS:
+        raise r.fail('terminal.channels', f'must list all {N_CHANNELS} terminal channels')
+    channels = []
+    for k, item in enumerate(raw_channels):
+        path = f'terminal.channels[{k}]'
+        cname = r.get(item, 'name', path)
+        role = r.choice(item, 'role', path, ROLES)
+        bar = pair = None
+        if role == 'measuring':
+            bar = r.get(item, 'bar', path)
+            if bar not in range(1, 7):
+                raise r.fail(f'{path}.bar', f'must be a bar number 1..6, got {bar!r}')
+        elif role == 'reference':
+            pair = r.get(item, 'pair', path)
+            if pair not in names:
+                raise r.fail(f'{path}.pair', f'must be one of {names}, got {pair!r}')
+        channels.append(Channel(k, str(cname), role, bar, pair))
+    cnames = [c.name for c in channels]
+    if len(set(cnames)) != N_CHANNELS:
+        raise r.fail('terminal.channels', f'channel names must be unique, got {cnames}')
+    bar_numbers = sorted(c.bar for c in channels if c.bar is not None)
+    if bar_numbers != [1, 2, 3, 4, 5, 6]:
+        raise r.fail('terminal.channels', f'must map bars 1..6 once each, got {bar_numbers}')
+    refs = [c for c in channels if c.role == 'reference']
+    if not 1 <= len(refs) <= 2:
+        raise r.fail('terminal.channels', f'needs one or two reference bars, got {len(refs)}')
+    if len(refs) == 2 and refs[0].pair == refs[1].pair:
+        raise r.fail('terminal.channels', 'the two reference bars must rest on different pairs')
+
+    bits = r.get(terminal, 'counter_bits', 'terminal')
+    if bits not in (16, 24, 32, 48, 64):
+        raise r.fail('terminal.counter_bits', f'must be 16, 24, 32, 48 or 64, got {bits!r}')
+
+    return DeviceDescription(
+        name=name,
+        source=source,
+        geometry=measured if use_joints == 'measured' else design,
+        design_geometry=design,
+        measured_geometry=measured,
+        pairs=tuple(pairs),
+        bar_range_m=bar_range,
+        encoder_resolution_m=r.number(bars, 'encoder_resolution_nm', 'bars', positive=True) * M_PER_NM,
+        scale_cte_per_c=r.number(bars, 'scale_cte_ppm_per_c', 'bars', low=-50, high=50) * PPM,
+        rod_cte_per_c=r.number(bars, 'rod_cte_ppm_per_c', 'bars', low=-50, high=50) * PPM,
+        plate_cte_per_c=r.number(plates, 'position_layer_cte_ppm_per_c', 'plates', low=-50, high=50) * PPM,
+        reference_plate_cte_per_c=r.number(plate, 'cte_ppm_per_c', 'reference_plate', low=-50, high=50) * PPM,
+        fixed_length_m=r.number(bars, 'fixed_length_mm', 'bars', positive=True) * M_PER_MM,
+        upper_tilt_rad=math.radians(r.number(limits, 'upper_tilt_deg', 'limits', low=0, high=90)),
+        lower_tilt_rad=math.radians(r.number(limits, 'lower_tilt_deg', 'limits', low=0, high=90)),
+        min_bar_separation_m=r.number(limits, 'min_bar_separation_mm', 'limits', low=0) * M_PER_MM,
+        sample_rate_hz=r.number(terminal, 'sample_rate_hz', 'terminal', positive=True),
+        counter_bits=int(bits),
+        channels=tuple(channels),
+        raw=data,
+    )
+
+
+def find_config(name: str) -> Path:
+    """Locate a file shipped in ``config/``: next to the source tree (a checkout or an editable
+    install), or under ``share/mmd_ros/config`` of a colcon/ament prefix or of this Python's
+    prefix. ``MMD_CONFIG_DIR`` is searched first. A path that exists is returned as is."""
+    direct = Path(name)
+    if direct.exists():
+        return direct
+    candidates = []
+    if os.environ.get('MMD_CONFIG_DIR'):
+        candidates.append(Path(os.environ['MMD_CONFIG_DIR']))
+    candidates.append(Path(__file__).resolve().parents[2] / 'config')
+    for prefix in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep) + [sys.prefix]:
+        if prefix:
+            candidates.append(Path(prefix) / 'share' / 'mmd_ros' / 'config')
+    for folder in candidates:
+        if (folder / name).is_file():
+            return folder / name
+    raise FileNotFoundError(
+        f'config file {name!r} not found; looked in {[str(c) for c in candidates]}')

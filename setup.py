@@ -1,0 +1,31 @@
+"""ament_python build of mmd_ros: ``colcon build`` installs executables into lib/mmd_ros."""
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = 'mmd_ros'
+
+# Console scripts: the ``mmd`` offline tool and one executable per ROS node.
+CONSOLE_SCRIPTS = [
+    'mmd = mmd_ros.cli.main:main',
+]
+
+setup(
+    name=PACKAGE,
+    version='0.1.0',
+    packages=find_packages(exclude=['test', 'test.*', 'bench']),
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + PACKAGE]),
+        ('share/' + PACKAGE, ['package.xml']),
+        ('share/' + PACKAGE + '/config', sorted(glob('config/*'))),
+        ('share/' + PACKAGE + '/msg_docs', sorted(glob('msg_docs/*'))),
+    ],
+    install_requires=['setuptools'],
+    zip_safe=True,
+    maintainer='mmd_ros developers',
+    maintainer_email='dev@mmd.example',
+    description='Six-dimensional Motion Measuring Device: driver, compensation, kinematics, tools.',
+    license='Apache-2.0',
+    tests_require=['pytest'],
+    entry_points={'console_scripts': CONSOLE_SCRIPTS},
+)
