@@ -1,0 +1,53 @@
+"""The ``mmd`` command-line tool for offline work.
+
+Each subcommand lives in its own module under :mod:`mmd_ros.cli` with
+``register(subparsers)``, which adds an argparse parser whose ``func(args)`` returns the exit
+status. Errors of the metrology core are printed as one line, without a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from mmd_ros.core.errors import MmdError
+
+__all__ = ['build_parser', 'main']
+
+#: Subcommand modules, in the order ``mmd --help`` lists them.
+COMMAND_MODULES = [
+    'mmd_ros.cli.cmd_simulate',
+    'mmd_ros.cli.cmd_process',
+]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog='mmd',
+        description='Offline tools of the six-dimensional Motion Measuring Device (MMD).')
+    sub = parser.add_subparsers(dest='command', metavar='COMMAND')
+    sub.required = True
+    for name in COMMAND_MODULES:
+        importlib.import_module(name).register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except MmdError as exc:
+        print(f'mmd {args.command}: error: {exc}', file=sys.stderr)
+        return 2
+    except FileNotFoundError as exc:
+        print(f'mmd {args.command}: error: {exc}', file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f'mmd {args.command}: interrupted', file=sys.stderr)
+        return 130
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,256 @@
+"""Bar calibration on the reference plate (section 3.2) and the centre distance function, Eq. (10).
+
+A :class:`Calibration` holds, for every bar channel (measuring and reference bars), the seven
+calibration points (q_i^j, d_r^j): the averaged encoder count with the bar on socket pair j and
+that pair's reference distance. It is saved as YAML, atomically, with the previous file kept as
+a backup; a corrupt file is refused with its name.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+from numpy.typing import ArrayLike, NDArray
+
+from mmd_ros.core.errors import CalibrationError, ConfigError
+from mmd_ros.core.units import M_PER_MM
+
+__all__ = ['BarCalibration', 'Calibration', 'CdfBank', 'CentreDistanceFunction', 'load_calibration']
+
+FloatArray = NDArray[np.float64]
+
+
+class CentreDistanceFunction:
+    """Eq. (10): piecewise-linear map from encoder counts to centre distance.
+
+    Built from calibration points (q^j, d_r^j), j = 1..n (n = 7 on the prototype); between two
+    adjacent points the distance is interpolated linearly. Counts must be strictly monotonic
+    in the distance (increasing or decreasing: a bar may count down as it lengthens), or the
+    points are refused.
+
+    Outside the calibrated span Eq. (10) clamps to d_r^1 or d_r^7. We extrapolate with the end
+    segment instead, which keeps the measurement continuous and usable a little beyond the
+    span, and flag the sample as out of range so that it is never taken for a calibrated one.
+    """
+
+    def __init__(self, counts: ArrayLike, distances_m: ArrayLike) -> None:
+        q = np.asarray(counts, dtype=np.float64).ravel()
+        d = np.asarray(distances_m, dtype=np.float64).ravel()
+        if q.shape != d.shape or q.size < 2:
+            raise CalibrationError(
+                f'need at least two (count, distance) points of equal number, got {q.size} and {d.size}')
+        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(d))):
+            raise CalibrationError('calibration points must be finite')
+        order = np.argsort(d)
+        q, d = q[order], d[order]
+        if np.any(np.diff(d) <= 0):
+            raise CalibrationError(f'reference distances must be distinct, got {d.tolist()}')
+        dq = np.diff(q)
+        if not (np.all(dq > 0) or np.all(dq < 0)):
+            raise CalibrationError(
+                'counts are not strictly monotonic in the reference distance '
+                f'(counts {q.astype(np.int64).tolist()} for distances {np.round(d / M_PER_MM, 4).tolist()} mm): '
+                'a bar was misplaced or moved during a capture; repeat those placements')
+        if dq[0] < 0:
+            q, d = q[::-1], d[::-1]
+        self.counts = q
+        self.distances_m = d
+        self._slope = np.diff(d) / np.diff(q)
+
+    @property
+    def span_counts(self) -> tuple[float, float]:
+        return float(self.counts[0]), float(self.counts[-1])
+
+    def __call__(self, counts: ArrayLike) -> tuple[FloatArray, NDArray[np.bool_]]:
+        """Centre distances [m] and an out-of-range flag for each count.
+
+        counts : array_like, any shape — encoder counts
+        returns : (distances_m, out_of_range), both of the shape of ``counts``
+        """
+        c = np.asarray(counts, dtype=np.float64)
+        idx = np.clip(np.searchsorted(self.counts, c, side='right') - 1, 0, self.counts.size - 2)
+        dist = self.distances_m[idx] + self._slope[idx] * (c - self.counts[idx])
+        out = (c < self.counts[0]) | (c > self.counts[-1])
+        return dist, out
+
+    def inverse(self, distances_m: ArrayLike) -> FloatArray:
+        """Counts (real-valued) that map to the given distances; the inverse of ``__call__``."""
+        x = np.asarray(distances_m, dtype=np.float64)
+        d, q = self.distances_m, self.counts
+        if d[0] > d[-1]:  # a bar that counts down as it lengthens
+            d, q = d[::-1], q[::-1]
+        idx = np.clip(np.searchsorted(d, x, side='right') - 1, 0, q.size - 2)
+        return q[idx] + (x - d[idx]) * (q[idx + 1] - q[idx]) / (d[idx + 1] - d[idx])
+
+
+@dataclass(frozen=True)
+class BarCalibration:
+    """Calibration points of one bar channel: ``counts[j]`` read on ``pairs[j]`` at ``distances_m[j]``."""
+
+    channel: str
+    pairs: tuple[str, ...]
+    counts: tuple[float, ...]
+    distances_m: tuple[float, ...]
+
+    def cdf(self) -> CentreDistanceFunction:
+        return CentreDistanceFunction(self.counts, self.distances_m)
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """The calibration of a whole device.
+
+    bars : per channel name (measuring and reference bars)
+    thermal_zero_m : per reference channel, the offset of Eq. (11) at the thermal zero,
+        f_ref(q_ref) - d_r when the zero was set; Eq. (11) subtracts it
+    ambient_c : ambient temperature when calibrated [°C] (entered by the user; the plates'
+        expansion is counted from the CMM's 20 °C), or None when not known
+    created : free text time stamp (ISO 8601)
+    valid : False after a terminal counter reset until the bars are re-referenced
+    """
+
+    device: str
+    bars: dict[str, BarCalibration]
+    thermal_zero_m: dict[str, float] = field(default_factory=dict)
+    ambient_c: float | None = None
+    created: str = ''
+    valid: bool = True
+    quality: dict[str, Any] = field(default_factory=dict)
+
+    def cdfs(self, channels: list[str]) -> list[CentreDistanceFunction]:
+        missing = [c for c in channels if c not in self.bars]
+        if missing:
+            raise CalibrationError(f'calibration of {self.device!r} has no points for {missing}')
+        return [self.bars[c].cdf() for c in channels]
+
+    # -- files ---------------------------------------------------------------------------------
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            'format_version': 1,
+            'device': self.device,
+            'created': self.created,
+            'valid': self.valid,
+            'ambient_c': self.ambient_c,
+            'thermal_zero_um': {k: v / 1e-6 for k, v in self.thermal_zero_m.items()},
+            'bars': {
+                name: {
+                    'pairs': list(b.pairs),
+                    'counts': [int(c) if float(c).is_integer() else float(c) for c in b.counts],
+                    'distances_mm': [d / M_PER_MM for d in b.distances_m],
+                } for name, b in self.bars.items()
+            },
+            'quality': self.quality,
+        }
+
+    def to_yaml(self) -> str:
+        return yaml.safe_dump(self.to_dict(), sort_keys=False)
+
+    @classmethod
+    def from_dict(cls, data: Any, source: str = '<calibration>') -> Calibration:
+        def fail(key: str, problem: str) -> ConfigError:
+            return ConfigError(source, key, problem)
+
+        if not isinstance(data, dict) or data.get('format_version') != 1:
+            raise fail('format_version', 'not a calibration file of format 1')
+        bars_raw = data.get('bars')
+        if not isinstance(bars_raw, dict) or not bars_raw:
+            raise fail('bars', 'must map channel names to calibration points')
+        bars = {}
+        for name, item in bars_raw.items():
+            try:
+                pairs = tuple(str(p) for p in item['pairs'])
+                counts = tuple(float(c) for c in item['counts'])
+                dist = tuple(float(d) * M_PER_MM for d in item['distances_mm'])
+            except (KeyError, TypeError, ValueError) as exc:
+                raise fail(f'bars.{name}', f'needs pairs, counts and distances_mm lists ({exc})') from None
+            if not (len(pairs) == len(counts) == len(dist)) or not all(map(math.isfinite, counts + dist)):
+                raise fail(f'bars.{name}', 'pairs, counts and distances_mm must be finite and of equal length')
+            bar = BarCalibration(str(name), pairs, counts, dist)
+            try:
+                bar.cdf()
+            except CalibrationError as exc:
+                raise fail(f'bars.{name}', str(exc)) from None
+            bars[str(name)] = bar
+        zero = data.get('thermal_zero_um') or {}
+        ambient = data.get('ambient_c')
+        return cls(
+            device=str(data.get('device', '')),
+            bars=bars,
+            thermal_zero_m={str(k): float(v) * 1e-6 for k, v in zero.items()},
+            ambient_c=None if ambient is None else float(ambient),
+            created=str(data.get('created', '')),
+            valid=bool(data.get('valid', True)),
+            quality=dict(data.get('quality') or {}),
+        )
+
+    @classmethod
+    def from_yaml(cls, text: str, source: str = '<calibration>') -> Calibration:
+        try:
+            data = yaml.safe_load(text)
+        except yaml.YAMLError as exc:
+            raise ConfigError(source, '(file)', f'is not valid YAML: {exc}') from None
+        return cls.from_dict(data, source)
+
+    def save(self, path: str | os.PathLike[str]) -> Path:
+        """Write atomically (temporary file, fsync, rename); an existing file becomes ``.bak``."""
+        target = Path(path)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=target.name + '.', suffix='.tmp', dir=target.parent)
+        try:
+            with os.fdopen(fd, 'w', encoding='utf-8') as handle:
+                handle.write(self.to_yaml())
+                handle.flush()
+                os.fsync(handle.fileno())
+            if target.exists():
+                os.replace(target, target.with_name(target.name + '.bak'))
+            os.replace(tmp, target)
+        except BaseException:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+            raise
+        return target
+
+
+def load_calibration(path: str | os.PathLike[str]) -> Calibration:
+    """Read a calibration file; a missing or corrupt one raises :class:`ConfigError` naming it."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding='utf-8')
+    except OSError as exc:
+        raise ConfigError(str(p), '(file)', f'cannot be read: {exc.strerror}') from None
+    return Calibration.from_yaml(text, str(p))
+
+
+class CdfBank:
+    """Several CDFs evaluated together: column k of the input through ``cdfs[k]``.
+
+    Equivalent to calling each :class:`CentreDistanceFunction` on its column, but one pass of
+    numpy for all bars, which matters for a single streaming sample as much as for a batch.
+    Every CDF must have the same number of points.
+    """
+
+    def __init__(self, cdfs: list[CentreDistanceFunction]) -> None:
+        sizes = {c.counts.size for c in cdfs}
+        if len(sizes) != 1:
+            raise CalibrationError(f'all bars need the same number of calibration points, got {sorted(sizes)}')
+        self.counts = np.stack([c.counts for c in cdfs])          # (k, n)
+        self.distances_m = np.stack([c.distances_m for c in cdfs])  # (k, n)
+        self.slopes = np.diff(self.distances_m, axis=1) / np.diff(self.counts, axis=1)
+        self._rows = np.arange(len(cdfs))
+
+    def __call__(self, counts: ArrayLike) -> tuple[FloatArray, NDArray[np.bool_]]:
+        """counts : array_like, shape (..., k) → (distances_m, out_of_range), shape (..., k)."""
+        c = np.asarray(counts, dtype=np.float64)
+        n = self.counts.shape[1]
+        idx = np.clip(np.sum(c[..., None] >= self.counts, axis=-1) - 1, 0, n - 2)
+        q0 = self.counts[self._rows, idx]
+        dist = self.distances_m[self._rows, idx] + self.slopes[self._rows, idx] * (c - q0)
+        out = (c < self.counts[:, 0]) | (c > self.counts[:, -1])
+        return dist, out

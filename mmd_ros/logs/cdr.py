@@ -1,0 +1,166 @@
+"""Vectorised CDR (little-endian, XCDR1 as ROS 2 uses it) for the fixed-layout messages of our logs.
+
+A log has hundreds of thousands of messages of one layout per topic (a JointState with the same
+eight names, a PoseStamped with the same frame). Their bytes differ only in the stamp and the
+numbers, so a batch is built as one (N, L) byte array from a template, and read back the same
+way after checking that every message matches the template. Anything that does not match (a
+message written by another tool, a different frame id) is decoded by the generic decoder of
+mcap-ros2-support instead; see :mod:`mmd_ros.logs.reader`.
+
+Alignment in CDR is relative to the first byte after the 4-byte encapsulation header.
+"""
+
+from __future__ import annotations
+
+import struct
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mmd_ros.core.rotation import angles_to_quaternion
+
+__all__ = [
+    'JointStateLayout', 'PoseLayout', 'decode_string', 'encode_string', 'split_stamps',
+]
+
+ENCAPSULATION = b'\x00\x01\x00\x00'  # CDR_LE
+
+
+class _Buffer:
+    """Appends CDR fields with alignment, counting offsets from after the encapsulation."""
+
+    def __init__(self) -> None:
+        self.data = bytearray()
+
+    def align(self, n: int) -> None:
+        self.data.extend(b'\x00' * (-len(self.data) % n))
+
+    def u32(self, value: int) -> None:
+        self.align(4)
+        self.data.extend(struct.pack('<I', value))
+
+    def string(self, text: str) -> None:
+        raw = text.encode('utf-8')
+        self.u32(len(raw) + 1)
+        self.data.extend(raw + b'\x00')
+
+
+def split_stamps(stamps_ns: NDArray[np.int64]) -> tuple[NDArray[np.int32], NDArray[np.uint32]]:
+    """Nanoseconds since the epoch to builtin_interfaces/Time (sec, nanosec)."""
+    s = np.asarray(stamps_ns, dtype=np.int64)
+    sec = np.floor_divide(s, 1_000_000_000)
+    return sec.astype(np.int32), (s - sec * 1_000_000_000).astype(np.uint32)
+
+
+def _stamps_from(rows: NDArray[np.uint8]) -> NDArray[np.int64]:
+    sec = rows[:, 4:8].copy().view('<i4')[:, 0].astype(np.int64)
+    nsec = rows[:, 8:12].copy().view('<u4')[:, 0].astype(np.int64)
+    return sec * 1_000_000_000 + nsec
+
+
+class _Layout:
+    """A fixed message layout: template bytes, where the float64 block starts, how many."""
+
+    def __init__(self, body_before: bytes, n_float: int, body_after: bytes) -> None:
+        # body_before: everything after the stamp up to (and including padding before) floats
+        self.prefix = ENCAPSULATION + b'\x00' * 8 + body_before
+        self.float_offset = len(self.prefix)
+        self.n_float = n_float
+        self.suffix = body_after
+        self.size = self.float_offset + 8 * n_float + len(body_after)
+        template = np.frombuffer(self.prefix + b'\x00' * (8 * n_float) + body_after, np.uint8)
+        self.template = template
+        fixed = np.ones(self.size, dtype=bool)
+        fixed[4:12] = False  # stamp
+        fixed[self.float_offset:self.float_offset + 8 * n_float] = False
+        self._fixed = fixed
+
+    def encode(self, stamps_ns: NDArray[np.int64], values: NDArray[np.float64]) -> NDArray[np.uint8]:
+        """(N, size) bytes of N messages. values : shape (N, n_float)."""
+        n = len(stamps_ns)
+        rows = np.empty((n, self.size), dtype=np.uint8)
+        rows[:] = self.template
+        sec, nsec = split_stamps(stamps_ns)
+        rows[:, 4:8] = sec.astype('<i4').view(np.uint8).reshape(n, 4)
+        rows[:, 8:12] = nsec.astype('<u4').view(np.uint8).reshape(n, 4)
+        block = np.ascontiguousarray(values, dtype='<f8').reshape(n, self.n_float)
+        rows[:, self.float_offset:self.float_offset + 8 * self.n_float] = block.view(np.uint8)
+        return rows
+
+    def decode(self, rows: NDArray[np.uint8]) -> tuple[NDArray[np.int64], NDArray[np.float64]] | None:
+        """Stamps (N,) and values (N, n_float) if every row matches this layout, else None."""
+        if rows.ndim != 2 or rows.shape[1] != self.size:
+            return None
+        if not np.array_equal(rows[:, self._fixed], np.broadcast_to(self.template[self._fixed],
+                                                                    (rows.shape[0], int(self._fixed.sum())))):
+            return None
+        block = rows[:, self.float_offset:self.float_offset + 8 * self.n_float].copy()
+        return _stamps_from(rows), block.view('<f8').reshape(rows.shape[0], self.n_float)
+
+
+class JointStateLayout(_Layout):
+    """sensor_msgs/msg/JointState with fixed ``name`` list, ``position`` of that length, empty
+    ``velocity`` and ``effort``."""
+
+    def __init__(self, names: list[str], frame_id: str = '') -> None:
+        buf = _Buffer()
+        buf.data.extend(b'\x00' * 8)  # stamp placeholder
+        buf.string(frame_id)
+        buf.u32(len(names))
+        for name in names:
+            buf.string(name)
+        buf.u32(len(names))
+        buf.align(8)
+        before = bytes(buf.data[8:])
+        after = _Buffer()
+        after.data.extend(b'\x00' * (len(buf.data) + 8 * len(names)))
+        after.u32(0)  # velocity
+        after.u32(0)  # effort
+        tail = bytes(after.data[len(buf.data) + 8 * len(names):])
+        super().__init__(before, len(names), tail)
+        self.names = list(names)
+        self.frame_id = frame_id
+
+
+class PoseLayout(_Layout):
+    """geometry_msgs/msg/PoseStamped, or PoseWithCovarianceStamped with ``covariance`` True.
+
+    Values are ``[px, py, pz, qx, qy, qz, qw]`` (+ 36 covariance entries, row-major, in the
+    message's x, y, z, rotation-about-x, -y, -z order).
+    """
+
+    def __init__(self, frame_id: str, covariance: bool = False) -> None:
+        buf = _Buffer()
+        buf.data.extend(b'\x00' * 8)
+        buf.string(frame_id)
+        buf.align(8)
+        super().__init__(bytes(buf.data[8:]), 7 + (36 if covariance else 0), b'')
+        self.frame_id = frame_id
+        self.covariance = covariance
+
+    @staticmethod
+    def values_from_poses(poses: NDArray[np.float64],
+                          covariance: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
+        """Pose vectors [x, y, z, phi, theta, psi] (N, 6) to message values (N, 7 or 43)."""
+        p = np.asarray(poses, dtype=np.float64)
+        parts = [p[:, :3], angles_to_quaternion(p[:, 3:])]
+        if covariance is not None:
+            parts.append(np.asarray(covariance, dtype=np.float64).reshape(len(p), 36))
+        return np.concatenate(parts, axis=1)
+
+
+def encode_string(text: str) -> bytes:
+    """std_msgs/msg/String."""
+    buf = _Buffer()
+    buf.string(text)
+    return ENCAPSULATION + bytes(buf.data)
+
+
+def decode_string(payload: bytes) -> str:
+    """std_msgs/msg/String; raises ValueError on a malformed payload."""
+    if len(payload) < 8 or payload[:2] != b'\x00\x01':
+        raise ValueError('not a little-endian CDR std_msgs/String')
+    (length,) = struct.unpack_from('<I', payload, 4)
+    if length == 0 or 8 + length > len(payload):
+        raise ValueError('std_msgs/String length runs past the message')
+    return payload[8:8 + length - 1].decode('utf-8')

@@ -1,0 +1,15 @@
+"""Errors of the log layer."""
+
+from __future__ import annotations
+
+from mmd_ros.core.errors import MmdError
+
+__all__ = ['LogError', 'LogFormatError']
+
+
+class LogError(MmdError):
+    """A log cannot be written or read."""
+
+
+class LogFormatError(LogError):
+    """A log holds something our layout does not allow (a wrong type on a topic, for example)."""

@@ -1,0 +1,74 @@
+"""Device description: Table 1 and 2 values, and refusal of bad files naming the key."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+import yaml
+
+from mmd_ros.core.device import find_config, load_device, parse_device
+from mmd_ros.core.errors import ConfigError
+
+PATH = find_config('mmd_prototype.yaml')
+RAW = yaml.safe_load(PATH.read_text())
+
+
+def test_prototype_values():
+    dev = load_device(PATH)
+    assert dev.geometry.upper[3] == pytest.approx(np.array([-64.2967, 76.5904, 0.0427]) * 1e-3)
+    assert dev.design_geometry.lower[1] == pytest.approx(np.array([89.9903, 107.2462, 0.0]) * 1e-3)
+    assert dev.reference_distances_m[3] == pytest.approx(0.3229806)
+    assert dev.pair('dr4').sockets == ('R3', 'R6')
+    assert dev.bar_range_m == pytest.approx((0.25, 0.376))
+    assert dev.encoder_resolution_m == pytest.approx(50e-9)
+    assert np.degrees(dev.upper_tilt_rad) == pytest.approx(38.58)
+    assert dev.measuring_channels == [0, 1, 2, 3, 4, 5]
+    assert [c.pair for c in dev.reference_channels] == ['dr4']
+    assert parse_device(yaml.safe_load(dev.to_yaml())).geometry.upper == pytest.approx(dev.geometry.upper)
+
+
+def test_second_reference_bar_file_inherits():
+    dev = load_device(find_config('mmd_two_reference_bars.yaml'))
+    assert [c.pair for c in dev.reference_channels] == ['dr1', 'dr7']
+    assert dev.reference_distances_m[0] == pytest.approx(0.2500105)
+
+
+def _set(data, path, value):
+    node = data
+    for key in path[:-1]:
+        node = node[key]
+    if value is KeyError:
+        del node[path[-1]]
+    else:
+        node[path[-1]] = value
+
+
+@pytest.mark.parametrize('path,value,key', [
+    (('joints', 'upper_measured_mm'), [[1, 2, 3]] * 5, 'joints.upper_measured_mm'),
+    (('joints', 'lower_design_mm'), KeyError, 'joints.lower_design_mm'),
+    (('joints', 'use'), 'cad', 'joints.use'),
+    (('reference_plate', 'pairs', 3, 'measured_mm'), 'x', 'reference_plate.pairs[3].measured_mm'),
+    (('reference_plate', 'pairs', 2, 'measured_mm'), 279.5, 'reference_plate.pairs[2].measured_mm'),
+    (('bars', 'encoder_resolution_nm'), -50, 'bars.encoder_resolution_nm'),
+    (('bars', 'range_mm'), [376, 250], 'bars.range_mm'),
+    (('terminal', 'channels', 6, 'pair'), 'dr9', 'terminal.channels[6].pair'),
+    (('terminal', 'channels', 2, 'bar'), 1, 'terminal.channels'),
+    (('terminal', 'counter_bits'), 31, 'terminal.counter_bits'),
+    (('format_version',), 2, 'format_version'),
+])
+def test_bad_files_are_refused_naming_the_key(path, value, key):
+    data = copy.deepcopy(RAW)
+    _set(data, path, value)
+    with pytest.raises(ConfigError) as info:
+        parse_device(data, 'bad.yaml')
+    assert info.value.key == key
+    assert 'bad.yaml' in str(info.value)
+
+
+def test_joints_given_in_metres_are_caught():
+    data = copy.deepcopy(RAW)
+    data['joints']['upper_measured_mm'] = (np.array(data['joints']['upper_measured_mm']) * 1e3).tolist()
+    with pytest.raises(ConfigError, match='in mm'):
+        parse_device(data, 'bad.yaml')
