@@ -1,0 +1,137 @@
+"""Plain-dict round trips of the twin's parameter dataclasses.
+
+The twin's parameters (:class:`~mmd_ros.twin.effects.Effects`, scenarios, ambient profiles)
+go into a log's metadata as plain JSON/YAML values and come back from there or from the
+command line as ``name=value`` assignments (``hysteresis_m=5e-7``, ``limits.speed_m_per_s=0.1``,
+``bump=6,0.3,0.005,1e-6``). Values are coerced to the field's declared type; an unknown name or
+a value of the wrong kind is refused with a :class:`TwinError` naming the parameter.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import types
+import typing
+from collections.abc import Iterable
+from typing import Any, TypeVar
+
+import numpy as np
+import yaml
+
+from mmd_ros.twin.errors import TwinError
+
+__all__ = ['assign', 'from_plain', 'to_plain']
+
+T = TypeVar('T')
+
+_TRUE = {'true', 'on', 'yes', '1'}
+_FALSE = {'false', 'off', 'no', '0'}
+
+
+def to_plain(obj: Any) -> Any:
+    """A dataclass (possibly nested) as dicts, lists and Python scalars."""
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return {f.name: to_plain(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, (tuple, list, np.ndarray)):
+        return [to_plain(v) for v in obj]
+    if isinstance(obj, np.generic):
+        return obj.item()
+    return obj
+
+
+def from_plain(cls: type[T], data: Any, path: str = '') -> T:
+    """Build dataclass ``cls`` from a mapping; missing fields keep their defaults."""
+    if isinstance(data, cls):
+        return data
+    names = [f.name for f in dataclasses.fields(cls)]
+    if isinstance(data, str):
+        data = [item.strip() for item in data.split(',')]
+    if isinstance(data, (list, tuple)):
+        if len(data) != len(names):
+            raise TwinError(f'{path or cls.__name__}: expected {len(names)} values '
+                            f'({", ".join(names)}), got {len(data)}')
+        data = dict(zip(names, data))
+    if not isinstance(data, dict):
+        raise TwinError(f'{path or cls.__name__}: expected a mapping of {names}, got {data!r}')
+    unknown = sorted(set(data) - set(names))
+    if unknown:
+        raise TwinError(f'{path}{unknown[0]}: unknown parameter of {cls.__name__}; '
+                        f'known are {", ".join(names)}')
+    missing = [f.name for f in dataclasses.fields(cls) if f.name not in data
+               and f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING]
+    if missing:
+        raise TwinError(f'{path or cls.__name__ + "."}{missing[0]}: required, not given')
+    hints = typing.get_type_hints(cls)
+    kwargs = {k: _coerce(hints[k], v, f'{path}{k}') for k, v in data.items()}
+    return cls(**kwargs)
+
+
+def assign(obj: T, assignments: Iterable[str]) -> T:
+    """A copy of dataclass ``obj`` with ``name=value`` assignments applied (dots reach into
+    nested parameters); values are read as YAML scalars or lists."""
+    plain = to_plain(obj)
+    for item in assignments:
+        name, sep, text = item.partition('=')
+        name = name.strip()
+        if not sep or not name:
+            raise TwinError(f'{item!r}: expected name=value')
+        try:
+            value = yaml.safe_load(text)
+        except yaml.YAMLError:
+            value = text
+        node = plain
+        keys = name.split('.')
+        for key in keys[:-1]:
+            if node.get(key) is None:
+                node[key] = {}
+            if not isinstance(node[key], dict):
+                raise TwinError(f'{name}: {key} is not a group of parameters')
+            node = node[key]
+        node[keys[-1]] = value
+        plain = to_plain(from_plain(type(obj), plain))  # validate now, and normalise text values
+    return from_plain(type(obj), plain)
+
+
+def _coerce(tp: Any, value: Any, path: str) -> Any:
+    origin = typing.get_origin(tp)
+    args = typing.get_args(tp)
+    if origin in (typing.Union, types.UnionType):
+        if value is None or (isinstance(value, str) and value.lower() in ('none', 'null', '')):
+            if type(None) in args:
+                return None
+        inner = [a for a in args if a is not type(None)]
+        return _coerce(inner[0], value, path)
+    if dataclasses.is_dataclass(tp):
+        return from_plain(tp, value, f'{path}.')
+    if origin is tuple:
+        if isinstance(value, str):
+            value = [v for v in value.strip('[]() ').split(',') if v.strip()]
+        if not isinstance(value, (list, tuple)):
+            raise TwinError(f'{path}: expected a list, got {value!r}')
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_coerce(args[0], v, f'{path}[{i}]') for i, v in enumerate(value))
+        if len(args) != len(value):
+            raise TwinError(f'{path}: expected {len(args)} values, got {len(value)}')
+        return tuple(_coerce(a, v, f'{path}[{i}]') for i, (a, v) in enumerate(zip(args, value)))
+    if tp is bool:
+        if isinstance(value, (bool, np.bool_)):
+            return bool(value)
+        text = str(value).strip().lower()
+        if text in _TRUE | _FALSE:
+            return text in _TRUE
+        raise TwinError(f'{path}: expected on/off (true/false), got {value!r}')
+    if tp in (int, float):
+        if isinstance(value, bool):
+            raise TwinError(f'{path}: expected a number, got {value!r}')
+        try:
+            number = float(value)
+        except (TypeError, ValueError):
+            raise TwinError(f'{path}: expected a number, got {value!r}') from None
+        if tp is int:
+            if not number.is_integer():
+                raise TwinError(f'{path}: expected an integer, got {value!r}')
+            return int(number)
+        return number
+    if tp is str:
+        return str(value)
+    raise TwinError(f'{path}: cannot read a value of type {tp}')  # pragma: no cover

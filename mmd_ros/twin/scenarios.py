@@ -1,0 +1,282 @@
+"""What the simulated device is made to do: the experiments of sections 4.1 and 5.
+
+- :class:`IsoLinear`: ISO 230-2 run along x, y or z of {L} (section 5.2): 11 targets over
+  200 mm (120 mm along z) around the start pose at 300 mm height, 5 bidirectional cycles.
+- :class:`IsoRotary`: ISO 230-2 run of a rotary axis (section 5.3): A (phi 0..15°) or
+  C (psi -40..+40°), about the origin of {U}.
+- :class:`RandomMotion`: random smooth 6-DOF moves inside the workspace, with dwells.
+- :class:`Hold`: the MMD standing still at one pose.
+- :class:`ThermalSoak`: the six measuring bars resting on reference pairs (section 4.1: all on
+  323 mm pairs of further reference plates) while the room temperature changes.
+
+Scenarios are frozen dataclasses in SI units that round-trip through plain dicts
+(:meth:`Scenario.to_dict`, :func:`scenario_from_dict`) and accept ``name=value`` assignments
+(:func:`make_scenario`). ``build(device)`` gives the motion: a
+:class:`~mmd_ros.twin.trajectories.Trajectory` or :class:`RestingBars`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import numpy as np
+
+from mmd_ros.core.device import DeviceDescription
+from mmd_ros.twin.codec import assign, from_plain, to_plain
+from mmd_ros.twin.errors import TwinError
+from mmd_ros.twin.mechanism import bar_legs, rotation_matrices, within_workspace
+from mmd_ros.twin.trajectories import (
+    AXES, MachineErrors, MotionLimits, Trajectory, TrajectoryBuilder, iso_cycle,
+)
+
+__all__ = ['HOME_POSE', 'SCENARIOS', 'Hold', 'IsoLinear', 'IsoRotary', 'RandomMotion',
+           'RestingBars', 'Scenario', 'ThermalSoak', 'make_scenario', 'scenario_from_dict']
+
+Pose = tuple[float, float, float, float, float, float]
+
+#: Start pose of the paper's runs: upper plate 300 mm above the lower one, no rotation.
+HOME_POSE: Pose = (0.0, 0.0, 0.3, 0.0, 0.0, 0.0)
+#: Workspace margins of random waypoints [m], [rad].
+_MARGIN_M = 1e-3
+_MARGIN_RAD = math.radians(1.0)
+
+
+@dataclass(frozen=True)
+class RestingBars:
+    """Bars lying on reference socket pairs instead of moving with the MMD.
+
+    pairs : names of the pairs the six measuring bars rest on, in bar order
+    duration_s : length of the run [s]
+    """
+
+    pairs: tuple[str, ...]
+    duration_s: float
+
+
+class Scenario:
+    """Base of the scenarios: serialisation and the reference instrument it uses by default."""
+
+    kind: ClassVar[str]
+
+    @property
+    def default_reference(self) -> str:
+        return 'pose6'
+
+    def build(self, device: DeviceDescription) -> Trajectory | RestingBars:
+        raise NotImplementedError
+
+    def to_dict(self) -> dict[str, Any]:
+        return {'kind': self.kind, **to_plain(self)}
+
+    def with_assignments(self, assignments: Iterable[str]) -> Scenario:
+        return assign(self, assignments)
+
+
+def _check_common(scenario: Any) -> None:
+    if scenario.n_targets < 2 or scenario.n_cycles < 1:
+        raise TwinError(f'{scenario.kind}: needs n_targets >= 2 and n_cycles >= 1, '
+                        f'got {scenario.n_targets} and {scenario.n_cycles}')
+    if scenario.dwell_s < 0 or scenario.lead_s < 0:
+        raise TwinError(f'{scenario.kind}: dwell_s and lead_s must be >= 0')
+
+
+@dataclass(frozen=True)
+class IsoLinear(Scenario):
+    """ISO 230-2 linear positioning run along ``axis`` of {L}, centred on the start pose.
+
+    travel_m : distance from first to last target; None gives 200 mm (x, y) or 120 mm (z)
+    target_jitter_m : irregular target spacing as ISO 230-2 recommends: interior targets move by
+        up to this much (uniform, drawn from ``seed``); 0 keeps them evenly spaced
+    overrun_m : travel beyond the end targets before reversing
+    machine : the machine's positioning errors (``MachineErrors.none()`` for a perfect one)
+    seed : draws target jitter and the machine's repeatability
+    """
+
+    kind: ClassVar[str] = 'iso_linear'
+    axis: str = 'x'
+    travel_m: float | None = None
+    n_targets: int = 11
+    n_cycles: int = 5
+    dwell_s: float = 0.5
+    lead_s: float = 1.0
+    overrun_m: float = 2e-3
+    target_jitter_m: float = 0.0
+    start_pose: Pose = HOME_POSE
+    limits: MotionLimits = MotionLimits()
+    machine: MachineErrors = MachineErrors()
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.axis not in AXES[:3]:
+            raise TwinError(f'iso_linear: axis must be x, y or z, got {self.axis!r}')
+        _check_common(self)
+
+    @property
+    def default_reference(self) -> str:
+        return f'laser_{self.axis}'
+
+    def build(self, device: DeviceDescription) -> Trajectory:
+        axis = AXES.index(self.axis)
+        travel = self.travel_m if self.travel_m is not None else (0.12 if self.axis == 'z' else 0.2)
+        positions = self.start_pose[axis] + np.linspace(-travel / 2, travel / 2, self.n_targets)
+        jitter = np.random.default_rng([self.seed, 1]).uniform(-1.0, 1.0, self.n_targets)
+        jitter[[0, -1]] = 0.0
+        positions = positions + self.target_jitter_m * jitter
+        if np.any(np.diff(positions) <= 0):
+            raise TwinError('iso_linear: target_jitter_m is too large for the target spacing')
+        return iso_cycle(self.start_pose, axis, positions, self.overrun_m, self.n_cycles,
+                         self.dwell_s, self.lead_s, self.limits, self.machine,
+                         np.random.default_rng([self.seed, 2]))
+
+
+_ROTARY_SPAN = {'phi': (0.0, 15.0), 'theta': (-10.0, 10.0), 'psi': (-40.0, 40.0)}
+
+
+@dataclass(frozen=True)
+class IsoRotary(Scenario):
+    """ISO 230-2 angular positioning run of ``axis`` (phi = A, theta = B, psi = C) about the
+    origin of {U}.
+
+    first_rad, last_rad : first and last target; None gives the paper's spans: phi 0..15°,
+        psi -40..+40° (theta -10..+10°)
+    """
+
+    kind: ClassVar[str] = 'iso_rotary'
+    axis: str = 'psi'
+    first_rad: float | None = None
+    last_rad: float | None = None
+    n_targets: int = 11
+    n_cycles: int = 5
+    dwell_s: float = 0.5
+    lead_s: float = 1.0
+    overrun_rad: float = math.radians(0.5)
+    start_pose: Pose = HOME_POSE
+    limits: MotionLimits = MotionLimits()
+    machine: MachineErrors = MachineErrors()
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.axis not in AXES[3:]:
+            raise TwinError(f'iso_rotary: axis must be phi, theta or psi, got {self.axis!r}')
+        _check_common(self)
+
+    @property
+    def default_reference(self) -> str:
+        return f'rotary_{self.axis}'
+
+    def build(self, device: DeviceDescription) -> Trajectory:
+        axis = AXES.index(self.axis)
+        first = self.first_rad if self.first_rad is not None else math.radians(_ROTARY_SPAN[self.axis][0])
+        last = self.last_rad if self.last_rad is not None else math.radians(_ROTARY_SPAN[self.axis][1])
+        if not last > first:
+            raise TwinError(f'iso_rotary: last_rad must exceed first_rad, got {first} and {last}')
+        return iso_cycle(self.start_pose, axis, np.linspace(first, last, self.n_targets),
+                         self.overrun_rad, self.n_cycles, self.dwell_s, self.lead_s, self.limits,
+                         self.machine, np.random.default_rng([self.seed, 2]))
+
+
+@dataclass(frozen=True)
+class Hold(Scenario):
+    """The MMD standing still at ``pose`` for ``duration_s``."""
+
+    kind: ClassVar[str] = 'hold'
+    duration_s: float = 10.0
+    pose: Pose = HOME_POSE
+
+    def build(self, device: DeviceDescription) -> Trajectory:
+        if not self.duration_s > 0:
+            raise TwinError(f'hold: duration_s must be > 0, got {self.duration_s}')
+        builder = TrajectoryBuilder(self.pose, MotionLimits())
+        builder.dwell(self.duration_s)
+        return builder.build()
+
+
+@dataclass(frozen=True)
+class RandomMotion(Scenario):
+    """Random smooth 6-DOF moves around ``centre_pose``, each followed by a random dwell.
+
+    radius_m : waypoints lie in a ball of this radius around the centre position
+    max_angle_rad : and within +-this of the centre angles, each angle independently
+    dwell_s : longest dwell after a move (each uniform in [0, dwell_s])
+    seed : draws the waypoints
+    """
+
+    kind: ClassVar[str] = 'random_motion'
+    duration_s: float = 60.0
+    centre_pose: Pose = HOME_POSE
+    radius_m: float = 0.05
+    max_angle_rad: float = math.radians(5.0)
+    dwell_s: float = 0.5
+    limits: MotionLimits = MotionLimits()
+    seed: int = 0
+
+    def build(self, device: DeviceDescription) -> Trajectory:
+        if not self.duration_s > 0:
+            raise TwinError(f'random_motion: duration_s must be > 0, got {self.duration_s}')
+        rng = np.random.default_rng(self.seed)
+        geo = device.measured_geometry
+        centre = np.array(self.centre_pose, dtype=np.float64)
+        path = np.linspace(0.0, 1.0, 17)[:, None]
+        builder = TrajectoryBuilder(centre, self.limits)
+        while builder.time_s < self.duration_s:
+            for _ in range(200):
+                direction = rng.standard_normal(3)
+                offset = direction / np.linalg.norm(direction) * self.radius_m * rng.uniform() ** (1 / 3)
+                angles = rng.uniform(-self.max_angle_rad, self.max_angle_rad, 3)
+                candidate = centre + np.concatenate([offset, angles])
+                poses = builder.pose + path * (candidate - builder.pose)
+                rot = rotation_matrices(poses)
+                if within_workspace(device, bar_legs(geo.upper, geo.lower, poses, rot), rot,
+                                    _MARGIN_M, _MARGIN_RAD).all():
+                    break
+            else:
+                raise TwinError('random_motion: no reachable waypoint in 200 draws; '
+                                'reduce radius_m or max_angle_rad, or move centre_pose')
+            builder.move(candidate)
+            builder.dwell(rng.uniform(0.0, self.dwell_s))
+        return builder.build(duration_s=self.duration_s)
+
+
+@dataclass(frozen=True)
+class ThermalSoak(Scenario):
+    """Section 4.1: the six measuring bars rest on reference pairs (``pairs``, in bar order)
+    while the room temperature changes; the reference bar rests on its own pair."""
+
+    kind: ClassVar[str] = 'thermal_soak'
+    duration_s: float = 20 * 3600.0
+    pairs: tuple[str, ...] = ('dr4',) * 6
+
+    @property
+    def default_reference(self) -> str:
+        return 'bar_lengths'
+
+    def build(self, device: DeviceDescription) -> RestingBars:
+        names = [p.name for p in device.pairs]
+        if len(self.pairs) != 6 or any(p not in names for p in self.pairs):
+            raise TwinError(f'thermal_soak: pairs must name six reference pairs of {names}, '
+                            f'got {list(self.pairs)}')
+        if not self.duration_s > 0:
+            raise TwinError(f'thermal_soak: duration_s must be > 0, got {self.duration_s}')
+        return RestingBars(tuple(self.pairs), float(self.duration_s))
+
+
+SCENARIOS: dict[str, type[Scenario]] = {
+    cls.kind: cls for cls in (Hold, IsoLinear, IsoRotary, RandomMotion, ThermalSoak)}
+
+
+def scenario_from_dict(data: Any) -> Scenario:
+    """The scenario a :meth:`Scenario.to_dict` mapping describes (``kind`` names the class)."""
+    if not isinstance(data, dict) or data.get('kind') not in SCENARIOS:
+        raise TwinError(f'a scenario needs kind: one of {sorted(SCENARIOS)}, got {data!r}')
+    params = {k: v for k, v in data.items() if k != 'kind'}
+    return from_plain(SCENARIOS[data['kind']], params, f'{data["kind"]}.')
+
+
+def make_scenario(kind: str, assignments: Iterable[str] = ()) -> Scenario:
+    """Scenario ``kind`` with its defaults changed by ``name=value`` assignments."""
+    if kind not in SCENARIOS:
+        raise TwinError(f'unknown scenario {kind!r}; choose one of {sorted(SCENARIOS)}')
+    return SCENARIOS[kind]().with_assignments(assignments)

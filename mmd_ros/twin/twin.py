@@ -1,0 +1,443 @@
+"""The digital twin: a simulated MMD that produces what the encoder terminal would count.
+
+One :class:`TwinDevice` is one physical device after power-on: its bars' count offsets,
+nonlinearities, thermal constants and so on are drawn once from its seed. It lives on one
+clock (seconds, the same clock as the :class:`~mmd_ros.twin.thermal.AmbientProfile`), on
+which it can be calibrated on the reference plate (section 3.2) and then run scenarios.
+
+Physical truth inside the twin: the CMM-measured joints (Table 1) and reference distances
+(Table 2), whatever the device description tells the software to use; plates expand from
+20 °C; the reference plate lies horizontally. A bar seated on a reference pair always sits with
+the same seating offset and friction state (fixed per bar and pair), so a reference bar left on
+its pair after calibration simply continues its last calibration placement.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from mmd_ros.core.calibration import BarCalibration, Calibration
+from mmd_ros.core.device import DeviceDescription
+from mmd_ros.twin.effects import Effects
+from mmd_ros.twin.errors import TwinError
+from mmd_ros.twin.mechanism import bar_legs, check_workspace, rotation_matrices
+from mmd_ros.twin.physics import BarPhysics, DahlState, dahl
+from mmd_ros.twin.reference import reference_names, reference_values
+from mmd_ros.twin.scenarios import RestingBars, Scenario
+from mmd_ros.twin.thermal import REFERENCE_TEMP_C, AmbientProfile
+from mmd_ros.twin.trajectories import Trajectory
+
+__all__ = ['IsoTargets', 'Placement', 'SimulatedRun', 'TwinDevice']
+
+FloatArray = NDArray[np.float64]
+
+#: Samples simulated at once inside a run (bounds the memory of long runs).
+BLOCK = 32768
+#: Rate of the workspace check done before a run starts [Hz] (every sample is checked again
+#: while simulating).
+CHECK_RATE_HZ = 100.0
+
+
+@dataclass(frozen=True)
+class Placement:
+    """A bar on a socket pair during calibration: seated ``settle_s`` before ``start_s``, its
+    counts averaged over [start_s, end_s) on the twin's clock [s]."""
+
+    channel: int
+    pair: str
+    start_s: float
+    end_s: float
+
+
+@dataclass
+class IsoTargets:
+    """ISO 230-2 targets of a run and where each sample stands in the test cycle.
+
+    axis : str — pose component moved
+    positions : ndarray, shape (n,) — commanded target coordinates [m or rad]
+    commanded_poses : ndarray, shape (n, 6)
+    index : ndarray of int16, shape (N,) — target approached or dwelt at, -1 for none
+    direction : ndarray of int8, shape (N,) — +1 / -1 approach direction, 0 for none
+    approach : ndarray of int16, shape (N,) — cycle number, -1 for none
+    in_dwell : ndarray of bool, shape (N,) — the machine stands at the target
+    """
+
+    axis: str
+    positions: FloatArray
+    commanded_poses: FloatArray
+    index: NDArray[np.int16]
+    direction: NDArray[np.int8]
+    approach: NDArray[np.int16]
+    in_dwell: NDArray[np.bool_]
+
+
+@dataclass
+class SimulatedRun:
+    """A simulated run, or one chunk of it.
+
+    times_s : ndarray, shape (N,) — time since the run's start [s]
+    counts : ndarray of int64, shape (N, 8) — unwrapped counts of the terminal's channels
+    true_poses : ndarray, shape (N, 6) — actual pose of {U} in {L} [m, rad]; NaN when the
+        bars rest on reference pairs
+    true_lengths : ndarray, shape (N, 6) — true centre distances of bars 1..6 [m]
+    ambient_c : ndarray, shape (N,) — room temperature [°C]
+    bar_temp_c : ndarray, shape (N, 8) — temperature of each channel's bar, NaN if unused [°C]
+    plate_temp_c : ndarray, shape (N,) — temperature of the plates [°C]
+    reference : ndarray, shape (N, 6) — reference instrument, NaN where it does not measure
+    reference_kind, reference_names : what the reference columns are
+    channel_names : the terminal's channel names
+    metadata : plain, JSON-serialisable description of the run (device, seed, effects, drawn
+        bar parameters, scenario, ambient profile, start, rate)
+    targets : IsoTargets of an ISO 230-2 run, else None
+    start_s : the twin's clock at the run's start [s]
+    start_sample : index of the first sample in the whole run
+    """
+
+    times_s: FloatArray
+    counts: NDArray[np.int64]
+    true_poses: FloatArray
+    true_lengths: FloatArray
+    ambient_c: FloatArray
+    bar_temp_c: FloatArray
+    plate_temp_c: FloatArray
+    reference: FloatArray
+    reference_kind: str
+    reference_names: list[str]
+    channel_names: list[str]
+    metadata: dict[str, Any]
+    targets: IsoTargets | None
+    start_s: float
+    start_sample: int = 0
+
+    #: Per-sample fields of a run and of its targets (what chunks concatenate along).
+    ARRAY_FIELDS: ClassVar[tuple[str, ...]] = (
+        'times_s', 'counts', 'true_poses', 'true_lengths', 'ambient_c', 'bar_temp_c',
+        'plate_temp_c', 'reference')
+    TARGET_ARRAY_FIELDS: ClassVar[tuple[str, ...]] = ('index', 'direction', 'approach', 'in_dwell')
+
+    @property
+    def n_samples(self) -> int:
+        return int(self.times_s.size)
+
+    @classmethod
+    def concatenate(cls, runs: list[SimulatedRun]) -> SimulatedRun:
+        """Join consecutive chunks into one run."""
+        if not runs:
+            raise TwinError('nothing to concatenate')
+        first = runs[0]
+        arrays = {name: np.concatenate([getattr(r, name) for r in runs]) for name in cls.ARRAY_FIELDS}
+        targets = None
+        if first.targets is not None:
+            targets = IsoTargets(
+                first.targets.axis, first.targets.positions, first.targets.commanded_poses,
+                **{name: np.concatenate([getattr(r.targets, name) for r in runs])
+                   for name in cls.TARGET_ARRAY_FIELDS})
+        return cls(**arrays, reference_kind=first.reference_kind,
+                   reference_names=first.reference_names, channel_names=first.channel_names,
+                   metadata=first.metadata, targets=targets, start_s=first.start_s,
+                   start_sample=first.start_sample)
+
+
+class TwinDevice:
+    """A simulated MMD (seeded, deterministic).
+
+    device : the device description (joints, reference plate, bars, channel map)
+    effects : error sources; ``Effects.ideal()`` if None
+    seed : non-negative integer; the same seed draws the same device
+    """
+
+    def __init__(self, device: DeviceDescription, effects: Effects | None = None, seed: int = 0) -> None:
+        if not (isinstance(seed, (int, np.integer)) and seed >= 0):
+            raise TwinError(f'seed must be a non-negative integer, got {seed!r}')
+        self.device = device
+        self.effects = Effects.ideal() if effects is None else effects
+        self.seed = int(seed)
+        self.physics = BarPhysics(device, self.effects, self.seed)
+        self._pair_index = {p.name: j for j, p in enumerate(device.pairs)}
+
+    def __repr__(self) -> str:
+        return f'TwinDevice({self.device.name!r}, seed={self.seed})'
+
+    # -- bars on the reference plate -----------------------------------------------------------
+    def _pair(self, pair: str) -> int:
+        if pair not in self._pair_index:
+            raise TwinError(f'no reference pair {pair!r}; pairs are {list(self._pair_index)}')
+        return self._pair_index[pair]
+
+    def _bar_channel(self, channel: int) -> int:
+        roles = {c.index: c.role for c in self.device.channels}
+        if roles.get(channel) not in ('measuring', 'reference'):
+            raise TwinError(f'channel {channel} has no bar (role {roles.get(channel)!r}); '
+                            f'bar channels are {[k for k, r in roles.items() if r != "unused"]}')
+        return channel
+
+    def _plate_growth(self, plate_temp_c: FloatArray, cte: float) -> FloatArray:
+        """1 + alpha dT of a plate, or 1 when plate expansion is off."""
+        if not self.effects.plate_expansion:
+            return np.ones_like(plate_temp_c)
+        return 1.0 + cte * (plate_temp_c - REFERENCE_TEMP_C)
+
+    def _temperatures(self, times_s: FloatArray, ambient: AmbientProfile) -> FloatArray:
+        """Bar temperatures of all channels and the plate temperature, shape (N, 9) [°C]."""
+        taus = np.append(self.physics.time_constant_s, self.effects.plate_time_constant_s)
+        return ambient.lagged(times_s, taus)
+
+    def _on_pairs(self, channels: list[int], pairs: list[str], times_s: FloatArray,
+                  sample_index: NDArray[np.int64], bar_temp_c: FloatArray,
+                  plate_temp_c: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Readings [m] and true lengths [m] of bars lying on reference pairs, (N, M) each."""
+        j = [self._pair(p) for p in pairs]
+        growth = self._plate_growth(plate_temp_c, self.device.reference_plate_cte_per_c)
+        true = growth[:, None] * np.array([self.device.pairs[k].measured_m for k in j])
+        seated = true + self.physics.seating_m[channels, j]
+        state = np.broadcast_to(self.physics.pair_state[channels, j], true.shape)
+        reading = self.physics.scale_reading_m(channels, seated, bar_temp_c, state, times_s,
+                                               sample_index)
+        return reading, seated
+
+    def _sample_index(self, times_s: FloatArray) -> NDArray[np.int64]:
+        return np.rint(times_s * self.device.sample_rate_hz).astype(np.int64)
+
+    def counts_on_pair(self, channel: int, pair: str, times_s: ArrayLike,
+                       ambient: AmbientProfile) -> NDArray[np.int64]:
+        """Counts of the bar on ``channel`` resting on reference ``pair``.
+
+        times_s : array_like, shape (N,) — on the twin's clock [s]
+        returns : ndarray of int64, shape (N,)
+        """
+        ch = self._bar_channel(channel)
+        t = np.atleast_1d(np.asarray(times_s, dtype=np.float64))
+        temps = self._temperatures(t, ambient)
+        reading, _ = self._on_pairs([ch], [pair], t, self._sample_index(t), temps[:, [ch]], temps[:, -1])
+        return self.physics.counts([ch], reading)[:, 0]
+
+    def counts_for_lengths(self, channel: int, lengths_m: ArrayLike, times_s: ArrayLike,
+                           ambient: AmbientProfile, *, axis_z: ArrayLike | None = None,
+                           friction_state: float | None = None) -> NDArray[np.int64]:
+        """Counts of the bar on ``channel`` held at given true centre distances, e.g. beside an
+        interferometer on a machine tool (section 4.2).
+
+        lengths_m : array_like, shape (N,) — true centre distance at each sample [m]
+        times_s : array_like, shape (N,) — on the twin's clock, increasing [s]
+        axis_z : array_like, shape (N,), optional — z-component of the bar axis; None: horizontal
+        friction_state : Dahl state at the first sample in [-1, 1]; None takes the bar's drawn
+            start state
+        returns : ndarray of int64, shape (N,)
+        """
+        ch = self._bar_channel(channel)
+        t = np.atleast_1d(np.asarray(times_s, dtype=np.float64))
+        d = np.asarray(lengths_m, dtype=np.float64).reshape(-1, 1)
+        if d.shape[0] != t.size:
+            raise TwinError(f'lengths_m and times_s must have equal length, got {d.shape[0]} and {t.size}')
+        s0 = self.physics.start_state[ch] if friction_state is None else friction_state
+        friction, _ = dahl(d, DahlState.start([s0]), self.effects.hysteresis_travel_m)
+        temps = self._temperatures(t, ambient)
+        z = None if axis_z is None else np.asarray(axis_z, dtype=np.float64).reshape(-1, 1)
+        reading = self.physics.scale_reading_m([ch], d, temps[:, [ch]], friction, t,
+                                               self._sample_index(t), z)
+        return self.physics.counts([ch], reading)[:, 0]
+
+    # -- calibration (section 3.2) -------------------------------------------------------------
+    def calibration_schedule(self, at_s: float, settle_s: float = 3.0,
+                             average_s: float = 2.0) -> list[Placement]:
+        """The order of the calibration routine starting at ``at_s``: each measuring bar (bar
+        order), then each reference bar, on the seven pairs in turn; a reference bar visits
+        its resting pair last and stays there. A placement takes ``settle_s`` to seat the bar,
+        then counts are averaged for ``average_s``."""
+        if settle_s < 0 or not average_s > 0:
+            raise TwinError(f'need settle_s >= 0 and average_s > 0, got {settle_s} and {average_s}')
+        names = [p.name for p in self.device.pairs]
+        visits = [(c, names) for c in self.device.measuring_channels]
+        for ref in self.device.reference_channels:
+            visits.append((ref.index, [p for p in names if p != ref.pair] + [ref.pair]))
+        out, t = [], float(at_s)
+        for channel, pairs in visits:
+            for pair in pairs:
+                out.append(Placement(channel, pair, t + settle_s, t + settle_s + average_s))
+                t += settle_s + average_s
+        return out
+
+    def calibrate(self, at_s: float, ambient: AmbientProfile, settle_s: float = 3.0,
+                  average_s: float = 2.0) -> Calibration:
+        """Run the calibration routine of section 3.2 (see :meth:`calibration_schedule`).
+
+        Each calibration point is the mean count over its averaging window, kept as a float
+        (sub-count resolution from the read noise). ``thermal_zero_m`` is 0 for every
+        reference bar: it rests, without being moved, on the pair it was last calibrated on,
+        so Eq. (11) computed from its own CDF reads 0 at that moment. ``ambient_c`` is the room
+        temperature at ``at_s``. No time stamp or quality figures are invented: ``created`` is
+        empty and ``quality`` is empty.
+        """
+        rate = self.device.sample_rate_hz
+        counts: dict[int, dict[str, float]] = {}
+        for p in self.calibration_schedule(at_s, settle_s, average_s):
+            times = p.start_s + np.arange(max(1, int(round((p.end_s - p.start_s) * rate)))) / rate
+            counts.setdefault(p.channel, {})[p.pair] = float(
+                np.mean(self.counts_on_pair(p.channel, p.pair, times, ambient)))
+        names = self.device.channel_names
+        bars = {}
+        for channel, by_pair in counts.items():
+            pairs = [p for p in self.device.pairs if p.name in by_pair]
+            bars[names[channel]] = BarCalibration(
+                channel=names[channel], pairs=tuple(p.name for p in pairs),
+                counts=tuple(by_pair[p.name] for p in pairs),
+                distances_m=tuple(p.distance_m for p in pairs))
+        return Calibration(
+            device=self.device.name, bars=bars,
+            thermal_zero_m={c.name: 0.0 for c in self.device.reference_channels},
+            ambient_c=float(ambient(at_s)), created='', valid=True, quality={})
+
+    # -- runs ----------------------------------------------------------------------------------
+    def simulate(self, scenario: Scenario, ambient: AmbientProfile, *, start_s: float = 0.0,
+                 reference: str | None = None, sample_rate_hz: float | None = None) -> SimulatedRun:
+        """Simulate a whole scenario starting at ``start_s`` on the twin's clock.
+
+        reference : reference instrument kind (:mod:`mmd_ros.twin.reference`); None takes the
+            scenario's own (laser along an ISO linear axis, rotary calibrator for a rotary axis,
+            bar lengths for a thermal soak, pose6 otherwise)
+        sample_rate_hz : None samples at the terminal's rate; a lower rate gives every k-th
+            sample of the full-rate run (for long soaks)
+        """
+        plan = _Plan(self, scenario, ambient, start_s, reference, sample_rate_hz)
+        return plan.run(0, plan.n_samples, plan.initial_state())[0]
+
+    def stream(self, scenario: Scenario, ambient: AmbientProfile, *, start_s: float = 0.0,
+               reference: str | None = None, sample_rate_hz: float | None = None,
+               chunk_samples: int = 1000) -> Iterator[SimulatedRun]:
+        """The run of :meth:`simulate` in consecutive chunks of ``chunk_samples`` samples, for a
+        simulated terminal streaming in real time. The chunks concatenate to exactly the
+        one-shot run. The scenario is checked before the first chunk is asked for."""
+        if chunk_samples < 1:
+            raise TwinError(f'chunk_samples must be >= 1, got {chunk_samples}')
+        plan = _Plan(self, scenario, ambient, start_s, reference, sample_rate_hz)
+
+        def chunks() -> Iterator[SimulatedRun]:
+            state = plan.initial_state()
+            for k0 in range(0, plan.n_samples, chunk_samples):
+                run, state = plan.run(k0, min(k0 + chunk_samples, plan.n_samples), state)
+                yield run
+
+        return chunks()
+
+
+class _Plan:
+    """A scenario prepared for simulation on one twin: motion built, workspace checked."""
+
+    def __init__(self, twin: TwinDevice, scenario: Scenario, ambient: AmbientProfile,
+                 start_s: float, reference: str | None, sample_rate_hz: float | None) -> None:
+        dev = twin.device
+        self.twin, self.scenario, self.ambient, self.start_s = twin, scenario, ambient, float(start_s)
+        self.rate = float(sample_rate_hz or dev.sample_rate_hz)
+        if not (self.rate > 0 and math.isfinite(self.rate)):
+            raise TwinError(f'sample_rate_hz must be > 0, got {sample_rate_hz}')
+        self.reference = reference or scenario.default_reference
+        self.measuring = dev.measuring_channels
+        self.names = reference_names(self.reference, [dev.channel_names[c] for c in self.measuring])
+        self.motion = scenario.build(dev)
+        if isinstance(self.motion, RestingBars) and self.reference != 'bar_lengths':
+            raise TwinError(f'{scenario.kind}: the bars rest on reference pairs, there is no '
+                            f'pose for a {self.reference!r} reference; use bar_lengths')
+        self.n_samples = int(math.floor(self.motion.duration_s * self.rate + 1e-9)) + 1
+        if isinstance(self.motion, Trajectory):
+            times = self.motion.check_times(min(self.rate, CHECK_RATE_HZ))
+            poses = self.motion.pose(times)
+            rot = rotation_matrices(poses)
+            geo = dev.measured_geometry
+            check_workspace(dev, times, bar_legs(geo.upper, geo.lower, poses, rot), rot, scenario.kind)
+        self.metadata = {
+            'device': dev.name,
+            'seed': twin.seed,
+            'effects': twin.effects.to_dict(),
+            'bars': twin.physics.summary(),
+            'scenario': scenario.to_dict(),
+            'ambient': ambient.to_dict(),
+            'start_s': self.start_s,
+            'sample_rate_hz': self.rate,
+            'n_samples': self.n_samples,
+            'reference': self.reference,
+        }
+
+    def initial_state(self) -> DahlState:
+        return DahlState.start(self.twin.physics.start_state[self.measuring])
+
+    def run(self, k0: int, k1: int, state: DahlState) -> tuple[SimulatedRun, DahlState]:
+        """Samples k0..k1-1 given the friction state before k0."""
+        parts = []
+        for b0 in range(k0, k1, BLOCK):
+            part, state = self._block(b0, min(b0 + BLOCK, k1), state)
+            parts.append(part)
+        arrays = {name: np.concatenate([p[name] for p in parts]) for name in parts[0]}
+        targets = None
+        spec = getattr(self.motion, 'targets', None)
+        if spec is not None:
+            targets = IsoTargets(spec.axis, spec.positions, spec.commanded_poses,
+                                 **{k: arrays.pop(k) for k in SimulatedRun.TARGET_ARRAY_FIELDS})
+        run = SimulatedRun(**arrays, reference_kind=self.reference, reference_names=self.names,
+                           channel_names=self.twin.device.channel_names, metadata=self.metadata,
+                           targets=targets, start_s=self.start_s, start_sample=k0)
+        return run, state
+
+    def _block(self, k0: int, k1: int, state: DahlState) -> tuple[dict[str, NDArray], DahlState]:
+        twin, dev, phys = self.twin, self.twin.device, self.twin.physics
+        meas = self.measuring
+        t = np.arange(k0, k1) / self.rate
+        clock = self.start_s + t
+        index = twin._sample_index(clock)
+        temps = twin._temperatures(clock, self.ambient)
+        plate_c = temps[:, -1]
+        counts = np.empty((t.size, len(dev.channels)), dtype=np.int64)
+        out: dict[str, NDArray] = {}
+
+        if isinstance(self.motion, Trajectory):
+            poses = self.motion.pose(t)
+            rot = rotation_matrices(poses)
+            geo = dev.measured_geometry
+            growth = twin._plate_growth(plate_c, dev.plate_cte_per_c)
+            legs = bar_legs(geo.upper, geo.lower, poses, rot, growth, growth)
+            lengths = np.linalg.norm(legs, axis=2)
+            check_workspace(dev, t, legs, rot, self.scenario.kind)
+            # Friction follows the machine's motion, not the plates' thermal growth.
+            driver = lengths if not twin.effects.plate_expansion else \
+                np.linalg.norm(bar_legs(geo.upper, geo.lower, poses, rot), axis=2)
+            friction, state = dahl(driver, state, twin.effects.hysteresis_travel_m)
+            read = lengths
+            skew = phys.skew_s[meas]
+            if np.any(skew > 0):
+                # Channel k latches at t + skew_k: interpolate between t and t + the largest skew
+                # (error at most largest^2 x acceleration / 8, far below a nanometre).
+                largest = float(skew.max())
+                later = np.linalg.norm(bar_legs(geo.upper, geo.lower, self.motion.pose(t + largest),
+                                                None, growth, growth), axis=2)
+                read = lengths + (skew / largest) * (later - lengths)
+            reading = phys.scale_reading_m(meas, read, temps[:, meas], friction, clock, index,
+                                           legs[:, :, 2] / lengths)
+            if self.motion.targets is not None:
+                out.update(self.motion.labels(t))
+        else:
+            poses = np.full((t.size, 6), np.nan)
+            reading, lengths = twin._on_pairs(meas, list(self.motion.pairs), clock, index,
+                                              temps[:, meas], plate_c)
+        counts[:, meas] = phys.counts(meas, reading)
+
+        refs = dev.reference_channels
+        ref_idx = [c.index for c in refs]
+        ref_reading, _ = twin._on_pairs(ref_idx, [c.pair for c in refs], clock, index,
+                                        temps[:, ref_idx], plate_c)
+        counts[:, ref_idx] = phys.counts(ref_idx, ref_reading)
+        bar_temp = temps[:, :-1].copy()
+        for c in dev.channels:
+            if c.role == 'unused':
+                counts[:, c.index] = phys.offsets_counts[c.index]
+                bar_temp[:, c.index] = np.nan
+
+        out.update(
+            times_s=t, counts=counts, true_poses=poses, true_lengths=lengths,
+            ambient_c=self.ambient(clock), bar_temp_c=bar_temp, plate_temp_c=plate_c,
+            reference=reference_values(self.reference, poses, lengths, twin.seed, index))
+        return out, state
