@@ -46,6 +46,7 @@ class SimulationSpec:
     calibrate_at_s: float = 0.0
     start_s: float = 600.0
     reference: str | None = None
+    sample_rate_hz: float | None = None
     epoch_s: int = EPOCH_S
 
 
@@ -85,7 +86,8 @@ def simulate_to_log(spec: SimulationSpec, out: Path, *, progress: bool = True
     calibration = twin.calibrate(spec.calibrate_at_s, room)
     scenario = make_scenario(spec.scenario, spec.scenario_params)
     chunks = twin.stream(scenario, room, start_s=spec.start_s, reference=spec.reference,
-                         chunk_samples=CHUNK)
+                         sample_rate_hz=spec.sample_rate_hz, chunk_samples=CHUNK)
+    rate = spec.sample_rate_hz or device.sample_rate_hz
     epoch_ns = int(spec.epoch_s) * 1_000_000_000
     total = 0
     bar = None
@@ -124,7 +126,7 @@ def simulate_to_log(spec: SimulationSpec, out: Path, *, progress: bool = True
         bar.close()
     assert first is not None
     summary = {
-        'log': str(out), 'samples': total, 'duration_s': total / device.sample_rate_hz,
+        'log': str(out), 'samples': total, 'duration_s': total / rate, 'sample_rate_hz': rate,
         'scenario': scenario.to_dict(), 'effects': effects.to_dict(), 'seed': spec.seed,
         'reference': first.reference_kind, 'ambient': spec.ambient,
         'ambient_at_calibration_c': calibration.ambient_c,
@@ -141,7 +143,8 @@ def run_command(args: argparse.Namespace) -> int:
     spec = SimulationSpec(
         scenario=args.scenario, scenario_params=tuple(args.param), effects=args.effects,
         effect_params=tuple(args.effect), seed=args.seed, device=args.device, ambient=args.ambient,
-        calibrate_at_s=args.calibrate_at, start_s=args.start, reference=args.reference)
+        calibrate_at_s=args.calibrate_at, start_s=args.start, reference=args.reference,
+        sample_rate_hz=args.rate)
     started = time.perf_counter()
     _, _, summary = simulate_to_log(spec, Path(args.out), progress=not (args.json or args.quiet))
     summary['seconds'] = time.perf_counter() - started
@@ -150,7 +153,7 @@ def run_command(args: argparse.Namespace) -> int:
         sys.stdout.write('\n')
     else:
         print(f'wrote {summary["log"]}: {summary["samples"]} samples ({summary["duration_s"]:.1f} s at '
-              f'1 kHz) of {args.scenario}, effects {args.effects}, seed {args.seed}, reference '
+              f'{summary["sample_rate_hz"]:g} Hz) of {args.scenario}, effects {args.effects}, seed {args.seed}, reference '
               f'{summary["reference"]}, in {summary["seconds"]:.1f} s')
     return 0
 
@@ -183,6 +186,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument('--reference', default=None,
                    help='reference instrument (pose6, laser_x/y/z, rotary_phi/theta/psi, '
                    'bar_lengths); default: the scenario\'s own')
+    p.add_argument('--rate', type=float, default=None,
+                   help='sample rate of the log [Hz]; default the terminal\'s (1 kHz); a lower '
+                   'rate keeps every k-th sample (for hours-long thermal soaks)')
     p.add_argument('--out', required=True, help='MCAP file to write')
     p.add_argument('--json', action='store_true', help='print a machine-readable summary on stdout')
     p.add_argument('--quiet', action='store_true', help='no progress on stderr')
