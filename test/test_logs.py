@@ -141,3 +141,24 @@ def test_not_an_mcap_file(tmp_path):
     p.write_bytes(b'hello world, not mcap')
     with pytest.raises(LogError, match='not an MCAP file'):
         LogReader(p)
+
+
+def test_logs_from_other_writers_read_through_the_generic_path(tmp_path):
+    """A log written by the mcap library (one message at a time, irregular sizes) reads the same."""
+    from mcap_ros2.writer import Writer as Ros2Writer
+    path = tmp_path / 'other.mcap'
+    with open(path, 'wb') as handle:
+        writer = Ros2Writer(handle)
+        from mmd_ros.logs.schemas import schema_text
+        schema = writer.register_msgdef('sensor_msgs/msg/JointState', schema_text('sensor_msgs/msg/JointState'))
+        for k in range(300):
+            names = NAMES if k % 2 else NAMES  # same names, values of varying size below
+            writer.write_message('/mmd/raw_counts', schema, {
+                'header': {'stamp': {'sec': 1, 'nanosec': k}, 'frame_id': 'x' * (k % 3)},
+                'name': names, 'position': [float(k)] * 8, 'velocity': [], 'effort': []},
+                log_time=1_000_000_000 + k, publish_time=1_000_000_000 + k)
+        writer.finish()
+    js = LogReader(path).joint_states('/mmd/raw_counts')
+    assert js.names == NAMES and js.values.shape == (300, 8)
+    assert np.array_equal(js.values[:, 0], np.arange(300.0))
+    assert np.array_equal(js.stamps_ns, 1_000_000_000 + np.arange(300))

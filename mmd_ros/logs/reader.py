@@ -30,6 +30,9 @@ __all__ = ['JointStates', 'LogReader', 'Topic']
 MAGIC = b'\x89MCAP0\r\n'
 OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK = 1, 2, 3, 4, 5, 6
 OP_METADATA, OP_DATA_END = 0x0C, 0x0F
+#: Longest repeating record pattern, and attempts per chunk, of the fast path.
+MAX_PATTERN = 32
+MAX_PATTERN_TRIES = 3
 
 
 @dataclass
@@ -57,12 +60,20 @@ class JointStates:
 
 @dataclass
 class _Channel:
+    """Messages of one channel, as loose payloads and/or blocks of equal-size rows."""
+
     topic: str
     schema_id: int
     encoding: str
     metadata: dict[str, str]
     log_times: list[int] = field(default_factory=list)
     payloads: list[bytes] = field(default_factory=list)
+    block_times: list[NDArray[np.int64]] = field(default_factory=list)
+    blocks: list[NDArray[np.uint8]] = field(default_factory=list)
+
+    @property
+    def count(self) -> int:
+        return len(self.payloads) + sum(len(b) for b in self.blocks)
 
 
 def _string(buf: Any, off: int) -> tuple[str, int]:
@@ -169,7 +180,12 @@ class LogReader:
         pos, stop = 0, len(records)
         unpack = struct.unpack_from
         channels = self._channels
+        tries = 0  # the fast path is tried on the first few messages only: no quadratic cost
         while pos + 9 <= stop:
+            if records[pos] == OP_MESSAGE and tries < MAX_PATTERN_TRIES:
+                tries += 1
+                if self._periodic(records, pos):
+                    return
             op = records[pos]
             (length,) = unpack('<Q', records, pos + 1)
             rs, re_ = pos + 9, pos + 9 + length
@@ -182,6 +198,34 @@ class LogReader:
             else:
                 self._parse_record(op, records, rs, re_)
             pos = re_
+
+    def _periodic(self, records: bytes, start: int) -> bool:
+        """Fast path for chunks whose messages repeat one pattern of fixed-size records (one
+        record per topic per sample, as our writer lays them out): check the pattern across the
+        whole rest of the chunk with numpy and slice out times and payloads in one pass.
+        Returns False, having taken nothing, when the chunk does not follow a pattern."""
+        pattern: list[tuple[int, int, int]] = []  # (offset in period, channel, record length)
+        pos, stop = start, len(records)
+        while pos + 31 <= stop and records[pos] == OP_MESSAGE and len(pattern) < MAX_PATTERN:
+            (length,) = struct.unpack_from('<Q', records, pos + 1)
+            (cid,) = struct.unpack_from('<H', records, pos + 9)
+            if pattern and cid == pattern[0][1] or cid not in self._channels or length < 22:
+                break
+            pattern.append((pos - start, cid, length))
+            pos += 9 + length
+        period = pos - start
+        if not pattern or period == 0 or (stop - start) % period or (stop - start) // period < 2:
+            return False
+        rows = np.frombuffer(records, dtype=np.uint8, offset=start).reshape(-1, period)
+        template = np.frombuffer(records, dtype=np.uint8, offset=start, count=period)
+        for off, _, _ in pattern:  # opcode, length and channel of every record must repeat
+            if not np.array_equal(rows[:, off:off + 11], np.broadcast_to(template[off:off + 11], (len(rows), 11))):
+                return False
+        for off, cid, length in pattern:
+            ch = self._channels[cid]
+            ch.block_times.append(rows[:, off + 15:off + 23].copy().view('<u8')[:, 0].astype(np.int64))
+            ch.blocks.append(rows[:, off + 31:off + 9 + length])
+        return True
 
     def _parse_record(self, op: int, buf: Any, start: int, end: int) -> None:
         if op == OP_SCHEMA:
@@ -215,33 +259,45 @@ class LogReader:
         for ch in self._channels.values():
             schema = self._schemas.get(ch.schema_id, ('', '', b''))
             if ch.topic in out:
-                out[ch.topic].count += len(ch.payloads)
+                out[ch.topic].count += ch.count
             else:
                 out[ch.topic] = Topic(ch.topic, schema[0], ch.metadata.get('offered_qos_profiles', ''),
-                                      len(ch.payloads))
+                                      ch.count)
         return out
 
-    def _collect(self, topic: str) -> tuple[NDArray[np.int64], list[bytes], str, int]:
-        chans = [(cid, ch) for cid, ch in self._channels.items() if ch.topic == topic]
+    def _collect(self, topic: str) -> tuple[NDArray[np.int64], list[bytes] | NDArray[np.uint8], str, int]:
+        """Stamps (log times) and payloads of ``topic`` in time order: an (N, size) byte array
+        when every message has the same size, else a list of bytes."""
+        chans = [ch for ch in self._channels.values() if ch.topic == topic]
         if not chans:
             raise LogFormatError(f'{self.path} has no topic {topic}; topics: {sorted(self.topics)}')
-        times: list[int] = []
-        payloads: list[bytes] = []
-        for _, ch in chans:
-            times.extend(ch.log_times)
-            payloads.extend(ch.payloads)
-        stamps = np.array(times, dtype=np.int64)
-        order = np.argsort(stamps, kind='stable')
-        if len(chans) > 1 or np.any(np.diff(stamps) < 0):
-            payloads = [payloads[k] for k in order]
+        times = [np.array(ch.log_times, dtype=np.int64) for ch in chans]
+        times += [t for ch in chans for t in ch.block_times]
+        stamps = np.concatenate(times) if times else np.zeros(0, dtype=np.int64)
+        loose = [p for ch in chans for p in ch.payloads]
+        blocks = [b for ch in chans for b in ch.blocks]
+        widths = {b.shape[1] for b in blocks} | {len(p) for p in loose}
+        payloads: list[bytes] | NDArray[np.uint8]
+        if len(widths) == 1 and stamps.size:
+            width = widths.pop()
+            parts = [np.frombuffer(b''.join(loose), np.uint8).reshape(-1, width)] if loose else []
+            payloads = np.concatenate(parts + blocks) if len(parts + blocks) > 1 else (parts + blocks)[0]
+        else:
+            payloads = loose + [r.tobytes() for b in blocks for r in b]
+        if np.any(np.diff(stamps) < 0):
+            order = np.argsort(stamps, kind='stable')
             stamps = stamps[order]
-        schema_name = self._schemas.get(chans[0][1].schema_id, ('',))[0]
-        return stamps, payloads, schema_name, chans[0][1].schema_id
+            payloads = payloads[order] if isinstance(payloads, np.ndarray) else [payloads[k] for k in order]
+        schema_name = self._schemas.get(chans[0].schema_id, ('',))[0]
+        return stamps, payloads, schema_name, chans[0].schema_id
 
     def has_topic(self, topic: str) -> bool:
         return any(ch.topic == topic for ch in self._channels.values())
 
-    def _rows(self, payloads: list[bytes]) -> NDArray[np.uint8] | None:
+    @staticmethod
+    def _rows(payloads: list[bytes] | NDArray[np.uint8]) -> NDArray[np.uint8] | None:
+        if isinstance(payloads, np.ndarray):
+            return payloads
         if not payloads:
             return None
         size = len(payloads[0])
@@ -258,16 +314,16 @@ class LogReader:
         decoder = DecoderFactory().decoder_for('cdr', Schema(id=sid, name=name, encoding=encoding, data=data))
         if decoder is None:
             raise LogFormatError(f'{topic}: cannot decode schema {schema_name} ({encoding})')
-        return [decoder(p) for p in payloads]
+        return [decoder(bytes(p)) for p in payloads]
 
     def joint_states(self, topic: str) -> JointStates:
         """A sensor_msgs/msg/JointState topic with the same names in every message."""
         stamps, payloads, schema_name, _ = self._collect(topic)
         if schema_name != 'sensor_msgs/msg/JointState':
             raise LogFormatError(f'{topic} has type {schema_name}, not sensor_msgs/msg/JointState')
-        if not payloads:
+        if len(payloads) == 0:
             return JointStates(stamps, [], np.zeros((0, 0)))
-        first = self.decode_one(topic, payloads[0])
+        first = self.decode_one(topic, bytes(payloads[0]))
         names = list(first.name)
         rows = self._rows(payloads)
         if rows is not None:
@@ -289,9 +345,9 @@ class LogReader:
         cov = schema_name == 'geometry_msgs/msg/PoseWithCovarianceStamped'
         if schema_name != 'geometry_msgs/msg/PoseStamped' and not cov:
             raise LogFormatError(f'{topic} has type {schema_name}, not a stamped pose')
-        if not payloads:
+        if len(payloads) == 0:
             return stamps, np.zeros((0, 43 if cov else 7)), ''
-        first = self.decode_one(topic, payloads[0])
+        first = self.decode_one(topic, bytes(payloads[0]))
         rows = self._rows(payloads)
         if rows is not None:
             decoded = PoseLayout(first.header.frame_id, cov).decode(rows)
@@ -322,7 +378,7 @@ class LogReader:
         out = []
         for t, p in zip(stamps.tolist(), payloads):
             try:
-                out.append((t, decode_string(p)))
+                out.append((t, decode_string(bytes(p))))
             except ValueError as exc:
                 raise LogFormatError(f'{topic}: a String message is malformed ({exc})') from None
         return out
