@@ -117,3 +117,17 @@ def test_pose_covariance_matches_monte_carlo():
     empirical = np.cov(sol.poses.T)
     assert np.allclose(np.sqrt(np.diag(empirical)), np.sqrt(np.diag(cov)), rtol=0.08)
     assert np.allclose(cov, cov.T)
+
+
+def test_series_solve_equals_batch_solve_on_a_motion():
+    t = np.arange(20000) * 1e-3
+    p = np.column_stack([0.1 * np.sin(t), 0.05 * np.cos(2 * t), 0.3 + 0 * t, 0.05 * np.sin(t), 0 * t, 0.6 * np.sin(0.5 * t)])
+    d = inverse_kinematics(GEOMETRY, p)
+    d[5000] = np.nan          # a broken sample in the middle must not spoil its neighbours
+    series = FK.solve_series(d)
+    batch = FK.solve_batch(d)
+    assert series.converged.sum() == len(t) - 1 and not series.converged[5000]
+    ok = series.converged
+    assert np.max(np.abs(series.poses[ok] - p[ok])) < 1e-12
+    assert np.max(np.abs(series.poses[ok] - batch.poses[ok])) < 1e-12
+    assert series.iterations[ok].mean() < batch.iterations[ok].mean()

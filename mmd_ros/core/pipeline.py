@@ -153,8 +153,8 @@ class Pipeline:
 
     def _solve_batch(self, comp: Compensated, with_inverse: bool, with_condition: bool):
         scale = comp.thermal.plate_scale
-        sol = self.fk.solve_batch(comp.lengths_m / scale[:, None], with_inverse=with_inverse,
-                                  with_condition=with_condition)
+        sol = self.fk.solve_series(comp.lengths_m / scale[:, None], with_inverse=with_inverse,
+                                   with_condition=with_condition)
         poses = sol.poses.copy()
         poses[:, :3] *= scale[:, None]
         return poses, sol.converged, sol.iterations, sol.residual_m, sol.condition, sol.jacobian_inverse
