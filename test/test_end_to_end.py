@@ -16,7 +16,7 @@ from mmd_ros.cli.cmd_simulate import SimulationSpec, ambient_profile, simulate_t
 from mmd_ros.cli.main import main
 from mmd_ros.core.accuracy import pose_error
 from mmd_ros.core.device import find_config, load_device
-from mmd_ros.core.kinematics import inverse_kinematics, jacobian, pose_covariance
+from mmd_ros.core.kinematics import jacobian
 from mmd_ros.core.rotation import quaternion_to_angles
 from mmd_ros.logs.reader import LogReader
 from mmd_ros.twin import Effects, TwinDevice, make_scenario

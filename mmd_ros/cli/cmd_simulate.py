@@ -11,12 +11,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from mmd_ros.cli.progress import Progress
 from mmd_ros.core.calibration import Calibration
 from mmd_ros.core.device import DeviceDescription, find_config, load_device
 from mmd_ros.core.errors import ConfigError
+from mmd_ros.core.yamlio import read_yaml
 from mmd_ros.logs.layout import (
     BAR_NAMES, FRAME_LOWER, REFERENCE_POSE_NAMES, RUN_METADATA, TOPIC_CALIBRATION, TOPIC_DEVICE,
     TOPIC_RAW, TOPIC_REF_LENGTHS, TOPIC_REF_POSE,
@@ -63,12 +63,8 @@ def ambient_profile(spec: str) -> AmbientProfile:
             pass
     elif spec.endswith(('.yaml', '.yml')):
         try:
-            text = Path(spec).read_text(encoding='utf-8')
-        except OSError as exc:
-            raise ConfigError(spec, '(file)', f'cannot be read: {exc.strerror}') from None
-        try:
-            return AmbientProfile.from_dict(yaml.safe_load(text))
-        except (yaml.YAMLError, TwinError) as exc:
+            return AmbientProfile.from_dict(read_yaml(spec))
+        except TwinError as exc:
             raise ConfigError(spec, '(file)', f'is not an ambient profile: {exc}') from None
     raise ConfigError('--ambient', spec, 'must be section_4_1, constant:T or a profile .yaml')
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import math
 import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -21,6 +20,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from mmd_ros.core.errors import CalibrationError, ConfigError
 from mmd_ros.core.units import M_PER_MM
+from mmd_ros.core.yamlio import atomic_write_text, parse_yaml, read_yaml
 
 __all__ = ['BarCalibration', 'Calibration', 'CdfBank', 'CentreDistanceFunction', 'load_calibration']
 
@@ -192,40 +192,16 @@ class Calibration:
 
     @classmethod
     def from_yaml(cls, text: str, source: str = '<calibration>') -> Calibration:
-        try:
-            data = yaml.safe_load(text)
-        except yaml.YAMLError as exc:
-            raise ConfigError(source, '(file)', f'is not valid YAML: {exc}') from None
-        return cls.from_dict(data, source)
+        return cls.from_dict(parse_yaml(text, source), source)
 
     def save(self, path: str | os.PathLike[str]) -> Path:
-        """Write atomically (temporary file, fsync, rename); an existing file becomes ``.bak``."""
-        target = Path(path)
-        target.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=target.name + '.', suffix='.tmp', dir=target.parent)
-        try:
-            with os.fdopen(fd, 'w', encoding='utf-8') as handle:
-                handle.write(self.to_yaml())
-                handle.flush()
-                os.fsync(handle.fileno())
-            if target.exists():
-                os.replace(target, target.with_name(target.name + '.bak'))
-            os.replace(tmp, target)
-        except BaseException:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-            raise
-        return target
+        """Write atomically; an existing file is kept as ``.bak``."""
+        return atomic_write_text(path, self.to_yaml(), backup=True)
 
 
 def load_calibration(path: str | os.PathLike[str]) -> Calibration:
     """Read a calibration file; a missing or corrupt one raises :class:`ConfigError` naming it."""
-    p = Path(path)
-    try:
-        text = p.read_text(encoding='utf-8')
-    except OSError as exc:
-        raise ConfigError(str(p), '(file)', f'cannot be read: {exc.strerror}') from None
-    return Calibration.from_yaml(text, str(p))
+    return Calibration.from_dict(read_yaml(path), str(path))
 
 
 class CdfBank:

@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 from mmd_ros.core.errors import ConfigError
 from mmd_ros.core.kinematics import Geometry
 from mmd_ros.core.units import M_PER_MM, M_PER_NM, PPM
+from mmd_ros.core.yamlio import read_yaml
 
 __all__ = [
     'Channel', 'DeviceDescription', 'ReferencePair', 'find_config', 'load_device',
@@ -177,14 +178,7 @@ def _load_mapping(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
     source = str(path)
     if path in seen:
         raise ConfigError(source, 'inherit', 'inheritance loops back to this file')
-    try:
-        text = path.read_text(encoding='utf-8')
-    except OSError as exc:
-        raise ConfigError(source, '(file)', f'cannot be read: {exc.strerror}') from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise ConfigError(source, '(file)', f'is not valid YAML: {exc}') from None
+    data = read_yaml(path)
     if not isinstance(data, dict):
         raise ConfigError(source, '(file)', 'must hold a YAML mapping')
     parent = data.pop('inherit', None)

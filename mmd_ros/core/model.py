@@ -32,6 +32,7 @@ from numpy.typing import NDArray
 
 from mmd_ros.core.errors import ConfigError, ModelError
 from mmd_ros.core.units import M_PER_UM
+from mmd_ros.core.yamlio import atomic_write_text, parse_yaml, read_yaml
 
 __all__ = [
     'HysteresisTerm', 'Model', 'ModelTerm', 'TERM_TYPES', 'TermContext', 'load_model',
@@ -197,12 +198,8 @@ class Model:
         return yaml.safe_dump(self.to_dict(), sort_keys=False)
 
     def save(self, path: str | os.PathLike[str]) -> Path:
-        p = Path(path)
-        p.parent.mkdir(parents=True, exist_ok=True)
-        tmp = p.with_name(p.name + '.tmp')
-        tmp.write_text(self.to_yaml(), encoding='utf-8')
-        os.replace(tmp, p)
-        return p
+        """Write atomically."""
+        return atomic_write_text(path, self.to_yaml())
 
     @classmethod
     def from_dict(cls, data: Any, source: str = '<model>') -> Model:
@@ -237,20 +234,11 @@ class Model:
 
     @classmethod
     def from_yaml(cls, text: str, source: str = '<model>') -> Model:
-        try:
-            data = yaml.safe_load(text)
-        except yaml.YAMLError as exc:
-            raise ConfigError(source, '(file)', f'is not valid YAML: {exc}') from None
-        return cls.from_dict(data, source)
+        return cls.from_dict(parse_yaml(text, source), source)
 
 
 def load_model(path: str | os.PathLike[str] | None) -> Model:
     """Read a model file; None gives the default model (CDF + thermal, no extra terms)."""
     if path is None:
         return Model()
-    p = Path(path)
-    try:
-        text = p.read_text(encoding='utf-8')
-    except OSError as exc:
-        raise ConfigError(str(p), '(file)', f'cannot be read: {exc.strerror}') from None
-    return Model.from_yaml(text, str(p))
+    return Model.from_dict(read_yaml(path), str(path))

@@ -19,8 +19,8 @@ from numpy.typing import NDArray
 
 from mmd_ros.core.calibration import Calibration
 from mmd_ros.core.device import DeviceDescription, parse_device
-from mmd_ros.core.errors import ConfigError
 from mmd_ros.core.model import Model
+from mmd_ros.core.yamlio import parse_yaml
 from mmd_ros.logs.errors import LogFormatError
 from mmd_ros.logs.reader import JointStates, LogReader
 from mmd_ros.logs.writer import LogWriter
@@ -123,11 +123,8 @@ def read_run(path: str | os.PathLike[str]) -> RunLog:
     if text is None:
         raise LogFormatError(f'{source} has no {TOPIC_DEVICE}: it is not an MMD log, or the '
                              'recording lost its start')
-    import yaml
-    try:
-        device = parse_device(yaml.safe_load(text), f'{source}:{TOPIC_DEVICE}')
-    except yaml.YAMLError as exc:
-        raise ConfigError(f'{source}:{TOPIC_DEVICE}', '(file)', f'is not valid YAML: {exc}') from None
+    where = f'{source}:{TOPIC_DEVICE}'
+    device = parse_device(parse_yaml(text, where), where)
     cal_text = reader.latest_string(TOPIC_CALIBRATION)
     calibration = (Calibration.from_yaml(cal_text, f'{source}:{TOPIC_CALIBRATION}')
                    if cal_text is not None else None)
