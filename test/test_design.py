@@ -1,0 +1,258 @@
+"""Design tools: the Monte Carlo error budget (section 2.2) and the workspace (section 2.3,
+Fig. 8) of Lei & Chen (2024). Known answers from the paper's own arithmetic, properties of the
+error model, and the reproduction of Eq. (9) with a small N."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+
+import numpy as np
+import pytest
+
+from mmd_ros.core.device import find_config, load_device
+from mmd_ros.core.kinematics import inverse_kinematics
+from mmd_ros.core.units import M_PER_MM, M_PER_UM
+from mmd_ros.design import (
+    PAPER_EQ9_UM, PAPER_POSITIONS_M, READINGS, DesignError, ErrorBudget, TopEdgeCylinder, Workspace,
+    WorkspaceLimits, fit_eq9, orientation_set, sample_unit_errors, tolerance_frontier)
+from mmd_ros.design.workspace import _segment_distance
+
+TOP = np.r_[PAPER_POSITIONS_M[0], 0.0, 0.0, 0.0]       # (100, 0, 323) mm, Fig. 3
+
+
+@pytest.fixture(scope='module')
+def device():
+    return load_device(find_config('mmd_prototype.yaml'))
+
+
+@pytest.fixture(scope='module')
+def geometry(device):
+    return device.design_geometry
+
+
+# -- known answers -----------------------------------------------------------------------------
+def _horizontal_offset_mm() -> float:
+    """|a_1 - b_1| in the plate plane from Table 1 (design): the same for every bar."""
+    return math.hypot(98.4808 - 89.9903, -17.3648 - (-107.2462))
+
+
+def test_home_pose_bar_length_is_the_table_1_arithmetic(geometry):
+    z = 285.5
+    expected = math.hypot(_horizontal_offset_mm(), z)          # 299.4345 mm
+    lengths = inverse_kinematics(geometry, [0, 0, z * M_PER_MM, 0, 0, 0]) / M_PER_MM
+    assert expected == pytest.approx(299.4345, abs=1e-4)
+    np.testing.assert_allclose(lengths, expected, atol=2e-5)   # Table 1 is rounded to 0.1 µm
+
+
+def test_z_range_is_set_by_the_bar_range_on_the_axis(device, geometry):
+    h = _horizontal_offset_mm()
+    expected = math.sqrt(376.0 ** 2 - h * h) - math.sqrt(250.0 ** 2 - h * h)   # 131.87 mm
+    ws = Workspace(geometry, WorkspaceLimits.from_device(device))
+    z = {e.axis: e for e in ws.extents(step_m=4 * M_PER_MM)}['z']
+    assert z.range_m / M_PER_MM == pytest.approx(expected, abs=0.1)
+    assert z.low_binding == ('bar_short',) and z.high_binding == ('bar_long',)
+    assert z.range_m >= 0.130                                  # the paper's 130 mm holds
+
+
+def test_whole_segments_never_keep_the_upper_joint_pairs_42_mm_apart(device, geometry):
+    # Upper joints 1-2, 3-4, 5-6 are 2 * 100 mm * sin(10°) = 34.73 mm apart: whole centre-line
+    # segments cannot satisfy 42 mm, hence the end clearance of the separation check.
+    limits = WorkspaceLimits.from_device(device, end_clearance_m=0.0)
+    home = Workspace(geometry, limits).margins([[0, 0, 0.2855]], np.eye(3))[0]
+    assert (home[4] + 0.042) / M_PER_MM == pytest.approx(200 * math.sin(math.radians(10)), abs=1e-3)
+    assert not Workspace(geometry, limits).inside([[0, 0, 0.2855]])[0]
+    assert Workspace(geometry, WorkspaceLimits.from_device(device)).inside([[0, 0, 0.2855]])[0]
+
+
+def test_tilt_margin_on_the_axis_is_atan_of_offset_over_height(device, geometry):
+    z = 300.0
+    ws = Workspace(geometry, WorkspaceLimits.from_device(device))
+    m = ws.margins([[0, 0, z * M_PER_MM]], np.eye(3))[0]
+    tilt = math.atan2(_horizontal_offset_mm(), z)
+    assert m[2] == pytest.approx(device.upper_tilt_rad - tilt, abs=1e-6)
+    assert m[3] == pytest.approx(device.lower_tilt_rad - tilt, abs=1e-6)
+
+
+def test_segment_distance_matches_brute_force():
+    rng = np.random.default_rng(4)
+    p1, d1, p2, d2 = (rng.normal(size=(100, 3)) for _ in range(4))
+    d2[:10] = d1[:10] * 0.5                                    # parallel pairs too
+    got = _segment_distance(list(p1.T), list(d1.T), list(p2.T), list(d2.T))
+    s = np.linspace(0, 1, 301)
+    a = p1[:, None, :] + s[None, :, None] * d1[:, None, :]
+    b = p2[:, None, :] + s[None, :, None] * d2[:, None, :]
+    brute = np.min(np.linalg.norm(a[:, :, None] - b[:, None, :], axis=-1), axis=(1, 2))
+    assert np.all(got <= brute + 1e-12)
+    np.testing.assert_allclose(got, brute, atol=1e-2)
+
+
+def test_orientation_sets():
+    assert orientation_set(0.0).shape == (1, 3)
+    cube = orientation_set(math.radians(12))
+    assert cube.shape == (27, 3) and np.max(np.abs(cube)) == pytest.approx(math.radians(12))
+    assert orientation_set(0.1, 5).shape == (125, 3)
+    assert orientation_set(0.1, 3, 'axes').shape == (7, 3)
+    with pytest.raises(DesignError):
+        orientation_set(0.1, mode='sphere')
+
+
+# -- error model -------------------------------------------------------------------------------
+@pytest.mark.parametrize('reading', sorted(READINGS))
+def test_readings_respect_their_bound(reading):
+    joint, dist = sample_unit_errors(reading, 500, np.random.default_rng(1))
+    assert joint.shape == (500, 2, 6, 3) and dist.shape == (500, 6)
+    if reading == 'ball':
+        assert np.all(np.linalg.norm(joint, axis=-1) <= 1.0 + 1e-12)
+    else:
+        bound = 0.5 if reading == 'band' else 1.0
+        assert np.all(np.abs(joint) <= bound) and np.all(np.abs(dist) <= bound)
+    if reading.startswith('onesided'):
+        assert np.all(joint >= 0) and np.all(dist >= 0)
+    if reading == 'onesided-max':
+        np.testing.assert_allclose(np.max(joint.reshape(500, -1), axis=1), 1.0)
+        np.testing.assert_allclose(np.max(dist, axis=1), 1.0)
+
+
+@pytest.mark.parametrize('method', ['newton', 'linear'])
+def test_zero_error_gives_zero_pose_error(geometry, method):
+    acc = ErrorBudget(geometry, method=method, samples=200).accuracy(TOP, 0.0, 0.0)
+    assert acc.position_m < 1e-13 and acc.rotation_rad < 1e-12
+
+
+def test_errors_scale_linearly_and_match_the_first_order_model(geometry):
+    pose = np.r_[PAPER_POSITIONS_M[2], 0.05, -0.08, 0.3]       # a rotated pose too
+    runs = {}
+    for method, scale in (('newton', 1.0), ('newton', 3.0), ('linear', 1.0)):
+        budget = ErrorBudget(geometry, reading='box', method=method, samples=500, seed=7)
+        runs[method, scale] = budget.errors(pose, scale * 0.5 * M_PER_UM, scale * 0.7 * M_PER_UM)
+    one, three, lin = runs['newton', 1.0], runs['newton', 3.0], runs['linear', 1.0]
+    np.testing.assert_allclose(three.position_m, 3 * one.position_m, rtol=1e-4)
+    np.testing.assert_allclose(three.rotation_rad, 3 * one.rotation_rad, rtol=1e-4)
+    np.testing.assert_allclose(lin.position_m, one.position_m, rtol=1e-4, atol=1e-12)
+    np.testing.assert_allclose(lin.rotation_rad, one.rotation_rad, rtol=1e-4, atol=1e-12)
+
+
+def test_fit_eq9_recovers_known_coefficients():
+    ej, ed = np.meshgrid(np.linspace(0, 1, 6), np.linspace(0, 1, 6), indexing='ij')
+    design = np.stack([np.ones(ej.size), ej.ravel(), ed.ravel(), ej.ravel() ** 2,
+                       (ej * ed).ravel(), ed.ravel() ** 2], axis=1)
+    np.testing.assert_allclose(fit_eq9(ej, ed, design @ PAPER_EQ9_UM), PAPER_EQ9_UM, atol=1e-12)
+
+
+def test_bad_requests_are_refused(geometry):
+    with pytest.raises(DesignError):
+        ErrorBudget(geometry, reading='gauss')
+    with pytest.raises(DesignError):
+        ErrorBudget(geometry, method='exact')
+    with pytest.raises(DesignError):
+        ErrorBudget(geometry).accuracy([0.1, 0.0], 1e-6, 1e-6)
+
+
+# -- reproduction of section 2.2 ---------------------------------------------------------------
+GRID = np.linspace(0.0, 1.0, 11) * M_PER_UM
+
+
+def test_onesided_max_reproduces_eq9_and_box_does_not(geometry):
+    paper = ErrorBudget(geometry, samples=2000, seed=11).surface(TOP, GRID, GRID)
+    # MC noise at N = 2000 moves the coefficients by a few hundredths.
+    tolerance = np.array([0.04, 0.12, 0.12, 0.12, 0.15, 0.12])
+    assert np.all(np.abs(paper.coefficients_um - PAPER_EQ9_UM) <= tolerance), paper.coefficients_um
+    assert paper.rms_um(PAPER_EQ9_UM) < 0.03
+    box = ErrorBudget(geometry, reading='box', method='linear', samples=2000,
+                      seed=11).surface(TOP, GRID, GRID)
+    assert box.rms_um(PAPER_EQ9_UM) > 1.0                      # twice the paper's errors
+
+
+def test_fig2_and_the_tolerances_of_the_paper(geometry):
+    budget = ErrorBudget(geometry, samples=3000, seed=5)
+    frontier = tolerance_frontier(budget, PAPER_POSITIONS_M, 2 * M_PER_UM,
+                                  angles_rad=[0.0, math.atan2(0.8, 0.4), math.pi / 2])
+    joint_only, ratio, dist_only = frontier
+    # Section 2.2: 2 µm needs eps_j <= 0.8 µm alone, eps_d <= 1 µm alone; slope about 2.
+    assert joint_only.eps_joint_m / M_PER_UM == pytest.approx(0.81, abs=0.04)
+    assert dist_only.eps_dist_m / M_PER_UM == pytest.approx(1.04, abs=0.05)
+    slope_joint = budget.accuracy(TOP, 1 * M_PER_UM, 0.0).position_m / M_PER_UM
+    slope_dist = budget.accuracy(TOP, 0.0, 1 * M_PER_UM).position_m / M_PER_UM
+    assert 2.2 < slope_joint < 2.7 and 1.75 < slope_dist < 2.1   # "an approximate slope of 2"
+    # The design bounds (0.4, 0.8) µm lie just inside the frontier on their own ratio.
+    assert 0.40 < ratio.eps_joint_m / M_PER_UM < 0.47
+    assert ratio.eps_dist_m == pytest.approx(2 * ratio.eps_joint_m)
+    assert tuple(ratio.worst_pose[:3]) == tuple(PAPER_POSITIONS_M[0])
+
+
+def test_fig4_design_bounds_keep_2_um_on_the_top_edge(geometry):
+    budget = ErrorBudget(geometry, samples=2000, seed=9)
+    cyl = TopEdgeCylinder()
+    top = budget.positions(cyl.top_edge(6), 0.4 * M_PER_UM, 0.8 * M_PER_UM)
+    inside = budget.positions(cyl.interior(4), 0.4 * M_PER_UM, 0.8 * M_PER_UM)
+    assert max(a.position_m for a in top) < 1.95 * M_PER_UM
+    assert max(a.position_m for a in inside) < min(a.position_m for a in top)
+    assert 1.5 < max(a.rotation_rad for a in top) / math.radians(1 / 3600) < 3.0
+
+
+# -- workspace statements ----------------------------------------------------------------------
+def test_workspace_statements(device, geometry):
+    limits = WorkspaceLimits.from_device(device)
+    base = Workspace(geometry, limits)
+    ranges = {e.axis: e.range_m / M_PER_MM for e in base.extents(step_m=4 * M_PER_MM)}
+    assert ranges['x'] == pytest.approx(304.1, abs=1.0)        # the paper says 348
+    assert ranges['y'] == pytest.approx(289.0, abs=1.0)        # the paper says 348
+    profile = base.disc_profile()
+    tallest = base.tallest_cylinder(0.200, profile)
+    assert tallest.height_m / M_PER_MM == pytest.approx(74.3, abs=0.3)   # the paper says 75
+    assert tallest.z_low_m / M_PER_MM == pytest.approx(250.0, abs=0.1)   # shortest bar
+    twelve = base.with_orientations(orientation_set(math.radians(12)))
+    sphere = twelve.largest_sphere((0, 0, 0.3), directions=100)
+    assert 2 * sphere.distance_m.min() / M_PER_MM == pytest.approx(15.9, abs=1.0)
+    assert sphere.binding[sphere.nearest] == ('upper_tilt',)
+    assert not twelve.sphere_inside((0, 0, 0.3), 0.025, directions=100)
+    nine = base.with_orientations(orientation_set(math.radians(9)))
+    assert nine.sphere_inside((0, 0, 0.3), 0.025, directions=100)
+
+
+def test_most_violated_marks_inside_and_outside(device, geometry):
+    ws = Workspace(geometry, WorkspaceLimits.from_device(device))
+    got = ws.most_violated([[0, 0, 0.30], [0, 0, 0.40], [0, 0, 0.20]])
+    assert got.tolist() == [-1, 1, 0]                         # inside, bar_long, bar_short
+
+
+# -- command line ------------------------------------------------------------------------------
+def _parser() -> argparse.ArgumentParser:
+    from mmd_ros.cli import cmd_error_budget, cmd_workspace
+    parser = argparse.ArgumentParser(prog='mmd')
+    sub = parser.add_subparsers(dest='command')
+    cmd_error_budget.register(sub)
+    cmd_workspace.register(sub)
+    return parser
+
+
+def test_error_budget_command_prints_json(capsys):
+    args = _parser().parse_args(['error-budget', '--samples', '300', '--eps-step-um', '0.25',
+                                 '--parts', 'fig3,tolerance', '--method', 'linear', '--json',
+                                 '--no-progress'])
+    assert args.func(args) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out['reading'] == 'onesided-max' and len(out['fig3']['eq9_fitted']) == 6
+    assert out['fig3']['eq9_paper'] == PAPER_EQ9_UM.tolist()
+    assert 0.3 < out['tolerance']['at_design_ratio']['eps_joint_um'] < 0.6
+
+
+def test_error_budget_command_rejects_a_bad_pose():
+    args = _parser().parse_args(['error-budget', '--pose', '1', '2', '--no-progress'])
+    with pytest.raises(DesignError):
+        args.func(args)
+
+
+def test_workspace_command_writes_figures(tmp_path, capsys):
+    args = _parser().parse_args(['workspace', '--levels-deg', '0', '12', '--extents', 'zero',
+                                 '--step-mm', '6', '--json', '--no-progress',
+                                 '--out', str(tmp_path)])
+    assert args.func(args) == 0
+    out = json.loads(capsys.readouterr().out)
+    verdicts = [s['holds'] for s in out['statements']]
+    assert verdicts == [False, False, True, False, False]      # x, y, z, cylinder, sphere
+    assert out['statements'][-1]['largest_rotation_range_deg'] == pytest.approx(10.1, abs=0.3)
+    assert len(out['figures']) == 4
+    assert all((tmp_path / f.split('/')[-1]).stat().st_size > 1000 for f in out['figures'])
