@@ -1,0 +1,86 @@
+"""The model file, the hysteresis term, and stream = batch in the pipeline."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mmd_ros.core.device import find_config, load_device
+from mmd_ros.core.errors import ConfigError
+from mmd_ros.core.model import HysteresisTerm, Model, TermContext, load_model
+from mmd_ros.core.pipeline import Pipeline
+from mmd_ros.twin import AmbientProfile, Effects, TwinDevice, make_scenario
+
+DEVICE = load_device(find_config('mmd_prototype.yaml'))
+
+
+def test_model_file_round_trip(tmp_path):
+    model = Model(thermal_mode='single', plate_expansion=False, length_sigma_m=0.3e-6,
+                  terms=[HysteresisTerm(np.arange(1, 7) * 0.1e-6, 4e-6)])
+    path = model.save(tmp_path / 'model.yaml')
+    back = load_model(path)
+    assert back.thermal_mode == 'single' and back.plate_expansion is False
+    assert back.length_sigma_m == pytest.approx(0.3e-6)
+    assert isinstance(back.terms[0], HysteresisTerm)
+    assert back.terms[0].amplitude_m == pytest.approx(np.arange(1, 7) * 0.1e-6)
+    assert back.terms[0].travel_m == pytest.approx(4e-6)
+    assert load_model(None).terms == []   # the default: CDF + thermal only
+
+
+@pytest.mark.parametrize('text,key', [
+    ('format_version: 2\n', 'format_version'),
+    ('format_version: 1\nthermal: {mode: twice}\n', 'thermal.mode'),
+    ('format_version: 1\nterms: [{type: magic}]\n', 'terms[0].type'),
+    ('format_version: 1\nterms: [{type: hysteresis, amplitude_um: [1, 2]}]\n', 'amplitude_um'),
+    ('format_version: 1\nlength_sigma_um: -1\n', 'length_sigma_um'),
+])
+def test_bad_model_files_name_the_key(tmp_path, text, key):
+    path = tmp_path / 'model.yaml'
+    path.write_text(text)
+    with pytest.raises(ConfigError) as info:
+        load_model(path)
+    assert info.value.key == key and str(path) in str(info.value)
+
+
+def test_hysteresis_direction_follows_motion_with_a_play_of_travel():
+    term = HysteresisTerm(np.full(6, 1e-6), travel_m=5e-6)
+    x = np.concatenate([np.linspace(0, 100e-6, 101), np.linspace(100e-6, 97e-6, 4),   # small dither back
+                        np.full(10, 97e-6), np.linspace(97e-6, 0, 98)])
+    lengths = np.repeat(x[:, None], 6, axis=1)
+    ctx = TermContext(np.arange(len(x)) * 1e-3, np.zeros((len(x), 8)), lengths, lengths,
+                      np.zeros((len(x), 1)), np.zeros(len(x)))
+    corr = term.correction(ctx)[:, 0]
+    assert corr[0] == 0.0                        # no motion yet: no direction
+    assert corr[50] == pytest.approx(-1e-6)      # lengthening
+    assert corr[110] == pytest.approx(-1e-6)     # 3 um back and a dwell: still forward (play 2 x 5 um)
+    assert corr[-1] == pytest.approx(1e-6)       # shortening
+    # the same in pieces (streaming) as in one call
+    term.reset()
+    pieces = np.concatenate([term.correction(TermContext(ctx.times_s[k:k + 7], ctx.counts[k:k + 7],
+                                                         lengths[k:k + 7], lengths[k:k + 7],
+                                                         ctx.reference_error_m[k:k + 7], ctx.temp_change_c[k:k + 7]))
+                             for k in range(0, len(x), 7)])
+    assert np.array_equal(pieces[:, 0], corr)
+
+
+def test_streamed_samples_give_the_batch_result():
+    twin = TwinDevice(DEVICE, Effects.realistic(), seed=5)
+    room = AmbientProfile.constant(21.0)
+    calibration = twin.calibrate(0.0, room)
+    run = twin.simulate(make_scenario('random_motion', ['duration_s=3']), room, start_s=400.0)
+    model = Model(terms=[HysteresisTerm(np.full(6, 0.3e-6), 5e-6)])
+    batch = Pipeline(DEVICE, calibration, model).process(run.times_s, run.counts, with_covariance=True)
+    stream = Pipeline(DEVICE, calibration, Model.from_dict(model.to_dict()))
+    for k in range(0, run.n_samples, 97):   # every 97th sample, in order, carries the term's state
+        sample = stream.process_sample(run.times_s[k], run.counts[k], with_covariance=True)
+        if k == 0:
+            continue
+        assert sample.valid == batch.valid[k]
+    stream.reset()
+    poses = []
+    for k in range(run.n_samples):
+        poses.append(stream.process_sample(run.times_s[k], run.counts[k]).pose)
+    assert np.max(np.abs(np.array(poses)[:, :3] - batch.poses[:, :3])) < 1e-11
+    assert np.max(np.abs(np.array(poses)[:, 3:] - batch.poses[:, 3:])) < 1e-11
+    last = stream.process_sample(run.times_s[-1], run.counts[-1], with_covariance=True)
+    assert last.covariance is not None and np.allclose(last.covariance, batch.covariance[-1], rtol=1e-6)
