@@ -4,6 +4,8 @@
    and runs an ISO 230-2 x-axis test (11 targets over 200 mm, 5 bidirectional cycles) while the
    room cools as in section 4.1; the raw counts and a laser reading go into an MCAP log.
 2. ``mmd process`` turns the counts into poses and prints the error against the laser.
+3. ``mmd analyze`` closes the loop: the residual against the laser, the effect the model lacks,
+   the extended model, and the error before and after on held-out data.
 """
 
 from __future__ import annotations
@@ -13,18 +15,16 @@ import sys
 import time
 from pathlib import Path
 
+from mmd_ros.analysis.demo import close_the_loop
 from mmd_ros.cli.cmd_process import process_run, summarize, write_processed
 from mmd_ros.cli.cmd_simulate import SimulationSpec, simulate_to_log
+from mmd_ros.cli.progress import heading
 from mmd_ros.core.accuracy import ComponentStats, format_stats
 from mmd_ros.core.calibration import Calibration
 from mmd_ros.core.model import Model
 from mmd_ros.logs.layout import read_run
 
 __all__ = ['main']
-
-
-def heading(text: str) -> None:
-    print(f'\n== {text} ' + '=' * max(0, 74 - len(text)))
 
 
 def show_calibration(calibration: Calibration) -> None:
@@ -75,6 +75,7 @@ def main(argv: list[str] | None = None) -> int:
     out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)
     simulate_and_process(out_dir)
+    close_the_loop(out_dir / 'x_axis.mcap', out_dir / 'analysis')
     return 0
 
 

@@ -21,6 +21,8 @@ COMMAND_MODULES = [
     'mmd_ros.cli.cmd_process',
     'mmd_ros.cli.cmd_error_budget',
     'mmd_ros.cli.cmd_workspace',
+    'mmd_ros.cli.cmd_analyze',
+    'mmd_ros.cli.cmd_iso230',
 ]
 
 

@@ -6,7 +6,7 @@ import sys
 import time
 from typing import TextIO
 
-__all__ = ['Progress']
+__all__ = ['Progress', 'heading']
 
 
 class Progress:
@@ -43,3 +43,8 @@ class Progress:
             end = '\r' if self.stream.isatty() else ''
             self.stream.write(f'{end}{self.label}: done in {elapsed:.1f} s{" " * 20}\n')
             self.stream.flush()
+
+
+def heading(text: str) -> None:
+    """A section heading in console reports (demo, analysis)."""
+    print(f'\n== {text} ' + '=' * max(0, 74 - len(text)))

@@ -242,3 +242,6 @@ def load_model(path: str | os.PathLike[str] | None) -> Model:
     if path is None:
         return Model()
     return Model.from_dict(read_yaml(path), str(path))
+
+
+import mmd_ros.core.terms  # noqa: F401  (registers the catalogue's terms)

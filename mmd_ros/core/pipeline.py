@@ -113,25 +113,34 @@ class Pipeline:
         self.model.reset()
 
     # -- lengths -------------------------------------------------------------------------------
-    def compensate(self, times_s: FloatArray, counts: FloatArray,
-                   poses: FloatArray | None = None) -> Compensated:
-        """Compensated bar lengths of N consecutive samples.
+    def compensate(self, times_s: FloatArray, counts: FloatArray) -> Compensated:
+        """Compensated bar lengths of N consecutive samples, with the terms that need no pose.
 
         times_s : ndarray, shape (N,) [s]
         counts : ndarray, shape (N, 8) — raw counts of all channels
-        poses : ndarray, shape (N, 6), optional — first-pass poses for pose-dependent terms
         """
         counts = np.asarray(counts, dtype=np.float64)
         cdf_lengths, out = self.cdfs(counts[:, self.channels])
         thermal = self.thermal.state(counts, cdf_lengths)
         lengths = cdf_lengths - thermal.bar_error_m
-        terms = self._length_terms + (self._pose_terms if poses is not None else [])
-        if terms:
+        if self._length_terms:
             ctx = TermContext(np.asarray(times_s, dtype=np.float64), counts, lengths.copy(),
-                              cdf_lengths, thermal.reference_error_m, thermal.temp_change_c, poses)
-            for term in terms:
+                              cdf_lengths, thermal.reference_error_m, thermal.temp_change_c)
+            for term in self._length_terms:
                 lengths = lengths + term.correction(ctx)
         return Compensated(cdf_lengths, lengths, out, thermal)
+
+    def add_pose_terms(self, comp: Compensated, times_s: FloatArray, counts: FloatArray,
+                        poses: FloatArray) -> Compensated:
+        """Add the pose-dependent terms, given first-pass poses. Each term sees every sample
+        once, so terms that carry state give the same result streamed or in a batch."""
+        ctx = TermContext(np.asarray(times_s, dtype=np.float64), np.asarray(counts, dtype=np.float64),
+                          comp.cdf_lengths_m - comp.thermal.bar_error_m, comp.cdf_lengths_m,
+                          comp.thermal.reference_error_m, comp.thermal.temp_change_c, poses)
+        lengths = comp.lengths_m
+        for term in self._pose_terms:
+            lengths = lengths + term.correction(ctx)
+        return Compensated(comp.cdf_lengths_m, lengths, comp.out_of_range, comp.thermal)
 
     # -- batch ---------------------------------------------------------------------------------
     def process(self, times_s: FloatArray, counts: FloatArray, *,
@@ -141,7 +150,7 @@ class Pipeline:
         comp = self.compensate(times_s, counts)
         sol = self._solve_batch(comp, with_covariance or with_condition, with_condition)
         if self._pose_terms:
-            comp = self.compensate(times_s, counts, poses=sol[0])
+            comp = self.add_pose_terms(comp, times_s, counts, sol[0])
             sol = self._solve_batch(comp, with_covariance or with_condition, with_condition)
         poses, converged, iterations, residual, condition, jinv = sol
         valid = converged & ~np.any(comp.out_of_range, axis=1)
@@ -177,9 +186,12 @@ class Pipeline:
         scale = float(comp.thermal.plate_scale[0])
         sol = self.fk.solve(comp.lengths_m[0] / scale)
         pose = sol.pose.copy()
-        if self._pose_terms and sol.converged:
-            pose[:3] *= scale
-            comp = self.compensate(t, c, poses=pose[None])
+        if self._pose_terms:
+            first = pose.copy()
+            first[:3] *= scale
+            if not sol.converged:  # the terms still see the sample, so their state stays in step
+                first[:] = np.nan
+            comp = self.add_pose_terms(comp, t, c, first[None])
             sol = self.fk.solve(comp.lengths_m[0] / scale)
             pose = sol.pose.copy()
         pose[:3] *= scale

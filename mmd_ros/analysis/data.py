@@ -1,0 +1,368 @@
+"""What the analysis works on: one pass of the pipeline over a log, the reference's observation
+space, the time-blocked split, the noise floor and the features a residual is compared with.
+
+Observation space. A reference gives either pose components (a full 6-DOF pose, or some of
+them: a laser along one axis, a rotary calibrator's angle; unknown components NaN) or bar
+lengths (bars on reference pairs, section 4.1). The residual is MMD minus reference in that
+space. A small length correction dd (N, 6) moves the pose by J^-1 dd (J = dd/dp at the pose),
+of which only the known components are observed; for a bar-length reference it is observed
+directly.
+
+Datum. A laser or rotary calibrator is zeroed at the start of a test (section 5.2), so its zero
+is not the MMD's: for pose references the analysis removes one constant offset per known
+component (fitted on the training part only), unless told the reference is absolute.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mmd_ros.analysis.errors import AnalysisError
+from mmd_ros.core.calibration import Calibration
+from mmd_ros.core.device import DeviceDescription
+from mmd_ros.core.kinematics import jacobian
+from mmd_ros.core.model import HysteresisTerm, Model
+from mmd_ros.core.pipeline import Pipeline
+from mmd_ros.core.terms import SamplingSkewTerm
+from mmd_ros.core.units import ARCSEC_PER_RAD, M_PER_UM
+
+__all__ = [
+    'BLOCK', 'FitContext', 'MOVING_M', 'Observation', 'Processed', 'Split', 'binned_r2',
+    'effective_samples', 'make_observation', 'make_split', 'noise_floor', 'residual_features',
+    'run_pipeline',
+]
+
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+
+#: Samples per pipeline call (bounds memory; the pipeline carries term state across calls).
+BLOCK = 65536
+POSE_LABELS = ['x', 'y', 'z', 'roll', 'pitch', 'yaw']
+#: How far beyond its calibrated span a bar length still counts as measured [m].
+RANGE_MARGIN_M = 20e-6
+#: A bar whose length spans less than this is at rest (thermal creep is not motion) [m].
+MOVING_M = 50e-6
+#: Travel of the play operator used to label motion direction in features and plots [m].
+DIRECTION_TRAVEL_M = 2e-6
+
+
+@dataclass
+class Processed:
+    """One pass of the pipeline over a whole run (N samples).
+
+    poses : (N, 6) [m, rad]; valid : (N,) converged and in range
+    lengths_m : (N, 6) — final lengths (thermal and model terms) [m]
+    cdf_lengths_m : (N, 6) — Eq. (10) [m]
+    pre_lengths_m : (N, 6) — after thermal compensation, before the model's terms [m]
+    reference_error_m : (N, k) — Eq. (11) [m]; temp_change_c, plate_scale : (N,)
+    in_range : (N,) — every bar within its calibrated span, give or take ``RANGE_MARGIN_M``
+        (the CDF extrapolates its end segments; a bar resting on the first or last pair drifts
+        across the end point with temperature)
+    """
+
+    poses: FloatArray
+    valid: BoolArray
+    lengths_m: FloatArray
+    cdf_lengths_m: FloatArray
+    pre_lengths_m: FloatArray
+    reference_error_m: FloatArray
+    temp_change_c: FloatArray
+    plate_scale: FloatArray
+    in_range: BoolArray
+
+    def measured(self, kind: str) -> BoolArray:
+        """Samples that are measurements: a valid pose, or for bar lengths every bar in range."""
+        return self.in_range if kind == 'lengths' else self.valid
+
+    @property
+    def bar_error_m(self) -> FloatArray:
+        """Thermal error the model subtracts from each bar, (N, 6) [m]."""
+        return self.cdf_lengths_m - self.pre_lengths_m
+
+
+def run_pipeline(device: DeviceDescription, calibration: Calibration, model: Model,
+                 times_s: FloatArray, counts: FloatArray,
+                 progress: Callable[[int], None] | None = None) -> Processed:
+    """The live pipeline over a whole run, block by block in time order (as ``mmd process``)."""
+    model = Model.from_dict(model.to_dict(), model.source)  # fresh term states
+    pipeline = Pipeline(device, calibration, model)
+    lo, hi = pipeline.cdfs.distances_m.min(axis=1), pipeline.cdfs.distances_m.max(axis=1)
+    parts = []
+    for start in range(0, times_s.size, BLOCK):
+        stop = start + BLOCK
+        res = pipeline.process(times_s[start:stop], counts[start:stop])
+        comp = res.compensated
+        parts.append((res.poses, res.valid, comp.lengths_m, comp.cdf_lengths_m,
+                      comp.cdf_lengths_m - comp.thermal.bar_error_m, comp.thermal.reference_error_m,
+                      comp.thermal.temp_change_c, comp.thermal.plate_scale,
+                      np.all((comp.cdf_lengths_m >= lo - RANGE_MARGIN_M)
+                             & (comp.cdf_lengths_m <= hi + RANGE_MARGIN_M), axis=1)))
+        if progress:
+            progress(min(stop, times_s.size))
+    if not parts:
+        raise AnalysisError('the log has no samples')
+    return Processed(*[np.concatenate([p[k] for p in parts]) for k in range(9)])
+
+
+@dataclass
+class Observation:
+    """The reference's observation space.
+
+    kind : 'pose' or 'lengths'
+    components : indices of the observed pose components (0..5) or bars (0..5)
+    names, units : per observed component ('x' ... 'yaw' or 'bar1' ...; 'um' or 'arcsec')
+    reference : (N, k) — reference values of the observed components [m, rad]
+    usable : (N,) — reference known in every observed component
+    datum : True when a constant offset per component is removed (zeroed instrument)
+    """
+
+    kind: str
+    components: list[int]
+    names: list[str]
+    units: list[str]
+    reference: FloatArray
+    usable: BoolArray
+    datum: bool
+
+    @property
+    def to_report(self) -> FloatArray:
+        """Factor from SI to report units per component (µm or arc-seconds), shape (k,)."""
+        return np.array([ARCSEC_PER_RAD if u == 'arcsec' else 1.0 / M_PER_UM for u in self.units])
+
+    @property
+    def description(self) -> str:
+        if self.kind == 'lengths':
+            return f'known bar lengths ({", ".join(self.names)})'
+        if len(self.components) == 6:
+            return 'full 6-DOF reference pose'
+        return f'reference pose components {", ".join(self.names)} (the others unknown)'
+
+    def residual(self, processed: Processed) -> FloatArray:
+        """MMD minus reference, (N, k) [m, rad]; angles wrapped to (-pi, pi]."""
+        if self.kind == 'lengths':
+            return processed.lengths_m[:, self.components] - self.reference
+        err = processed.poses[:, self.components] - self.reference
+        ang = np.array([c >= 3 for c in self.components])
+        if np.any(ang):
+            err[:, ang] = (err[:, ang] + np.pi) % (2 * np.pi) - np.pi
+        return err
+
+
+def make_observation(reference_pose: FloatArray | None, reference_lengths: FloatArray | None,
+                     datum: str = 'auto') -> Observation:
+    """The observation space of a log's reference (pose components, else bar lengths).
+
+    datum : 'auto' (an offset per pose component; none for bar lengths), 'offset', 'none'
+    """
+    if datum not in ('auto', 'offset', 'none'):
+        raise AnalysisError(f'datum must be auto, offset or none, got {datum!r}')
+    for kind, ref in (('pose', reference_pose), ('lengths', reference_lengths)):
+        if ref is None:
+            continue
+        finite = np.isfinite(ref)
+        comps = [k for k in range(ref.shape[1]) if finite[:, k].mean() >= 0.5]
+        if not comps:
+            continue
+        usable = np.all(finite[:, comps], axis=1)
+        if kind == 'pose':
+            names = [POSE_LABELS[k] for k in comps]
+            units = ['um' if k < 3 else 'arcsec' for k in comps]
+        else:
+            names = [f'bar{k + 1}' for k in comps]
+            units = ['um'] * len(comps)
+        use_datum = datum == 'offset' or (datum == 'auto' and kind == 'pose')
+        return Observation(kind, comps, names, units, ref[:, comps], usable, use_datum)
+    raise AnalysisError('the log has no reference (no /mmd/reference/pose or '
+                        '/mmd/reference/bar_lengths with known values): nothing to compare the '
+                        'MMD with; record a reference (see msg_docs/analysis.md)')
+
+
+@dataclass
+class Split:
+    """Time-blocked split of the usable samples into a training and a held-out part.
+
+    block : (N,) block number of each sample (-1: not usable)
+    test : (N,) sample is in a held-out block
+    train_idx, test_idx : sorted indices of usable samples of each part (all of them)
+    fit_train, fit_test : sorted random subsets used for fitting (at most ``max_samples`` each)
+    """
+
+    block: NDArray[np.int64]
+    test: BoolArray
+    train_idx: NDArray[np.int64]
+    test_idx: NDArray[np.int64]
+    fit_train: NDArray[np.int64]
+    fit_test: NDArray[np.int64]
+    n_blocks: int
+
+
+def make_split(times_s: FloatArray, usable: BoolArray, n_blocks: int = 24, max_samples: int = 4000,
+               seed: int = 0) -> Split:
+    """Cut the usable time span into ``n_blocks`` blocks of equal duration (fewer for short
+    logs: at least 50 samples a block); of each consecutive pair of blocks one (drawn with
+    ``seed``) is held out. Pairing keeps both parts spread over
+    the whole run (every position, direction and temperature) without a period of the motion
+    falling in step with the blocks."""
+    idx = np.flatnonzero(usable)
+    if idx.size < 200:
+        raise AnalysisError(f'only {idx.size} samples have a reference and are measurements '
+                            '(valid pose, bars in range); need at least 200 for a held-out split')
+    n_blocks = max(4, min(n_blocks, idx.size // 50))
+    n_blocks += n_blocks % 2
+    t = times_s[idx]
+    edges = np.linspace(t[0], t[-1], n_blocks + 1)
+    b = np.clip(np.searchsorted(edges, t, side='right') - 1, 0, n_blocks - 1)
+    block = np.full(times_s.size, -1, dtype=np.int64)
+    block[idx] = b
+    rng = np.random.default_rng(seed)
+    held = np.zeros(n_blocks, dtype=bool)
+    for pair in range(n_blocks // 2):
+        held[2 * pair + int(rng.integers(2))] = True
+    test = np.zeros(times_s.size, dtype=bool)
+    test[idx] = held[b]
+    train_idx, test_idx = idx[~held[b]], idx[held[b]]
+
+    def pick(sel: NDArray[np.int64]) -> NDArray[np.int64]:
+        if sel.size <= max_samples:
+            return sel
+        return np.sort(rng.choice(sel, max_samples, replace=False))
+
+    return Split(block, test, train_idx, test_idx, pick(train_idx), pick(test_idx), n_blocks)
+
+
+def effective_samples(series: FloatArray) -> float:
+    """Effective number of independent samples of a residual series (AR(1) approximation,
+    n (1 - rho) / (1 + rho) with rho the lag-1 autocorrelation), summed over columns.
+
+    series : ndarray, shape (n,) or (n, k) in time order
+    """
+    s = np.asarray(series, dtype=np.float64)
+    if s.ndim == 1:
+        s = s[:, None]
+    total = 0.0
+    for col in s.T:
+        c = col - col.mean()
+        den = float(c @ c)
+        rho = float(c[1:] @ c[:-1]) / den if den > 0 and c.size > 2 else 0.0
+        rho = min(max(rho, 0.0), 0.999)
+        total += c.size * (1 - rho) / (1 + rho)
+    return max(total, 1.0)
+
+
+def noise_floor(obs: Observation, device: DeviceDescription, processed: Processed,
+                residual: FloatArray, idx: NDArray[np.int64], thermal_on: bool) -> FloatArray:
+    """What the residual cannot go below, per observed component, (k,) [m or rad].
+
+    Encoder quantisation (one count, uniform: res / sqrt(12) per bar, and the same again common
+    to all bars for the reference bar's rounding when thermal compensation is on), propagated
+    into the observation space, plus the sample-to-sample noise of the residual itself (robust
+    standard deviation of its differences / sqrt 2: reference noise, read noise).
+    """
+    q = device.encoder_resolution_m ** 2 / 12.0
+    cov = np.eye(6) * q + (q if thermal_on else 0.0) * np.ones((6, 6))
+    if obs.kind == 'pose':
+        sel = idx[:: max(1, idx.size // 500)]
+        jinv = np.linalg.inv(jacobian(device.geometry, processed.poses[sel]))
+        pc = jinv @ cov @ np.swapaxes(jinv, 1, 2)
+        quant = np.mean(np.diagonal(pc, axis1=1, axis2=2), axis=0)[obs.components]
+    else:
+        quant = np.diag(cov)[obs.components]
+    consecutive = idx[np.flatnonzero(np.diff(idx) == 1)]
+    white = np.zeros(len(obs.components))
+    if consecutive.size > 10:
+        diff = residual[consecutive + 1] - residual[consecutive]
+        mad = np.median(np.abs(diff - np.median(diff, axis=0)), axis=0)
+        white = (1.4826 * mad / np.sqrt(2.0)) ** 2
+    return np.sqrt(quant + white)
+
+
+def binned_r2(values: FloatArray, feature: FloatArray, n_bins: int = 20) -> float:
+    """Share of the variance of ``values`` (n, k) explained by their mean in bins of ``feature``
+    (quantile bins; a feature with at most 3 distinct values is treated as categories)."""
+    v = np.asarray(values, dtype=np.float64)
+    if v.ndim == 1:
+        v = v[:, None]
+    f = np.asarray(feature, dtype=np.float64)
+    ok = np.isfinite(f) & np.all(np.isfinite(v), axis=1)
+    v, f = v[ok], f[ok]
+    if f.size < 4 * n_bins or np.ptp(f) == 0:
+        return 0.0
+    uniq = np.unique(f)
+    if uniq.size <= 3:
+        labels = np.searchsorted(uniq, f)
+    else:
+        edges = np.unique(np.quantile(f, np.linspace(0, 1, n_bins + 1)))
+        labels = np.clip(np.searchsorted(edges, f, side='right') - 1, 0, max(edges.size - 2, 0))
+    nl = int(labels.max()) + 1
+    counts = np.bincount(labels, minlength=nl).astype(np.float64)
+    total = float(np.sum((v - v.mean(axis=0)) ** 2))
+    if total <= 0:
+        return 0.0
+    explained = 0.0
+    for col in v.T:
+        sums = np.bincount(labels, weights=col, minlength=nl)
+        means = np.divide(sums, counts, out=np.zeros(nl), where=counts > 0)
+        explained += float(np.sum(counts * (means - col.mean()) ** 2))
+    return explained / total
+
+
+@dataclass
+class FitContext:
+    """Everything the effect signatures need, with caches of the stateful features."""
+
+    device: DeviceDescription
+    calibration: Calibration
+    model: Model
+    times_s: FloatArray
+    counts: FloatArray
+    base: Processed
+    obs: Observation
+    options: Any = None
+    cache: dict[Any, Any] = field(default_factory=dict)
+
+    def cached(self, key: Any, make: Callable[[], Any]) -> Any:
+        if key not in self.cache:
+            self.cache[key] = make()
+        return self.cache[key]
+
+    def directions(self, travel_m: float) -> FloatArray:
+        """Motion direction of each bar (the hysteresis term's play operator), (N, 6)."""
+        return self.cached(('dir', travel_m), lambda: HysteresisTerm(np.ones(6), travel_m).directions(
+            self.base.pre_lengths_m))
+
+    def velocities(self) -> FloatArray:
+        """Bar velocities (backward differences of the CDF lengths, the skew term's), (N, 6) [m/s]."""
+        return self.cached('vel', lambda: -SamplingSkewTerm.features(
+            self.base.cdf_lengths_m, self.times_s, SamplingSkewTerm(np.zeros(6)).max_gap_s, None)[0])
+
+    @property
+    def thermal_on(self) -> bool:
+        return self.model.thermal_mode != 'off' and self.base.reference_error_m.shape[1] > 0
+
+
+def residual_features(ctx: FitContext) -> dict[str, FloatArray]:
+    """Quantities a residual may follow, each (N,): time, the pose components that move, each
+    bar's length, velocity and motion direction, and the thermal error of the reference bar."""
+    base = ctx.base
+    out: dict[str, FloatArray] = {'time': ctx.times_s}
+    usable = ctx.obs.usable & base.measured(ctx.obs.kind)
+    if ctx.obs.kind == 'pose':
+        p = base.poses[usable]
+        for k in range(6):
+            span = np.ptp(p[:, k]) if p.size else 0.0
+            if span > (1e-5 if k < 3 else 1e-5):
+                out[f'pose {POSE_LABELS[k]}'] = base.poses[:, k]
+    moving = (np.ptp(base.pre_lengths_m[usable], axis=0) > MOVING_M if usable.any()
+              else np.zeros(6, bool))
+    for i in range(6):
+        if moving[i]:
+            out[f'bar{i + 1} length'] = base.pre_lengths_m[:, i]
+            out[f'bar{i + 1} velocity'] = ctx.velocities()[:, i]
+            out[f'bar{i + 1} direction'] = ctx.directions(DIRECTION_TRAVEL_M)[:, i]
+    if ctx.thermal_on and np.ptp(base.reference_error_m[usable, 0]) > ctx.device.encoder_resolution_m:
+        out['reference-bar thermal error'] = base.reference_error_m[:, 0]
+    return out

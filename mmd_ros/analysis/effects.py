@@ -1,0 +1,652 @@
+"""The catalogue of physical effects the compensation model may lack.
+
+Each effect is a parameterised correction of the bar lengths with a physical meaning and its own
+signature: dd (N, 6) = sum_k theta_k s_k, where s_k is what the effect's model term
+(:mod:`mmd_ros.core.terms`, or :class:`~mmd_ros.core.model.HysteresisTerm`) computes per unit
+of parameter k. The analysis fits theta to the residual (mapped into the reference's
+observation space) and the pipeline then applies exactly that term from the model file.
+
+An effect also says which of its parameters the data can identify at all ("coverage": a bar that
+never reverses shows no hysteresis, a bar that moves less than a signal period shows no cyclic
+error, a temperature that does not change shows no thermal gain), and which features of the data
+its signature follows (for the check that what remains of the residual is not still structured
+along the effect's own coordinate).
+
+| effect | term | signature per bar i (correction per unit parameter) |
+|---|---|---|
+| hysteresis | hysteresis (one per play) | -direction_i(t) of plays of half-width travel |
+| thermal_gain | thermal_gain | -eps_i(t) (gain), d eps_i/dt (lag) |
+| thermal_interpolation | thermal_interpolation | (d_i - d_ref) eps(t), one coefficient |
+| plate_expansion | plate_scale | -dd_i/ds x (1, dT, -alpha_p d(dT)/dt) |
+| kinematic | joint_offsets | -R^T n_i, n_i (joints), -1 (length offset): 42 parameters |
+| scale_nonlinearity | scale_nonlinearity | -(sin/cos 2 pi k xi - PL interpolant), k = 1..3 |
+| calibration_points | cdf_offsets | -(hat function of CDF point j at d_i) |
+| cyclic_error | cyclic_error | -sin, -cos of 2 pi (q_i - q0_i) res / period |
+| sampling_skew | sampling_skew | -v_i(t) |
+| gravity_sag | gravity_sag | n_z,i^2 (one g for all bars) |
+| drift | drift | -1, -(t - t_first) |
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mmd_ros.analysis.data import MOVING_M, FitContext
+from mmd_ros.analysis.errors import AnalysisError
+from mmd_ros.core.model import HysteresisTerm, ModelTerm
+from mmd_ros.core.terms import (
+    DERIVATIVE_FILTER_S, CdfOffsetsTerm, CyclicErrorTerm, DriftTerm, GravitySagTerm, JointOffsetsTerm,
+    PlateScaleTerm, SamplingSkewTerm, ScaleNonlinearityTerm, ThermalGainTerm,
+    ThermalInterpolationTerm, ema, leg_geometry,
+)
+from mmd_ros.core.units import M_PER_UM
+
+__all__ = ['CATALOGUE', 'Effect', 'Parameter', 'catalogue']
+
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+
+#: A thermal signature needs the reference bar's error to change by at least this much [m].
+THERMAL_MIN_M = 0.5e-6
+#: The Eq. (12) term needs bars this much longer or shorter than the reference bar [m].
+INTERPOLATION_MIN_M = 10e-3
+#: A plate CTE or lag needs the temperature to change by at least this much [°C].
+PLATE_MIN_C = 0.2
+#: Standard signal periods of incremental optical scales [m] (cyclic error candidates).
+CYCLIC_PERIODS_M = (2e-6, 4e-6, 8e-6, 10e-6, 16e-6, 20e-6, 40e-6)
+#: Travels tried for the hysteresis play operator [m].
+HYSTERESIS_TRAVELS_M = (0.5e-6, 2e-6, 5e-6, 20e-6)
+#: Superpositions of plays tried for a friction state that turns over some travel [m].
+HYSTERESIS_PLAY_SETS_M = ((0.5e-6, 2e-6, 8e-6), (0.25e-6, 1e-6, 4e-6, 16e-6))
+#: Harmonics of the scale error over the calibrated span.
+SCALE_HARMONICS = 3
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """A fitted parameter as reported: ``value_report = value_si * factor`` in ``unit``.
+    ``bound`` is the largest physically plausible magnitude [SI]: a fitted direction that needs
+    more is not identified by the data (it is reported, not fitted)."""
+
+    name: str
+    unit: str
+    factor: float
+    bound: float = math.inf
+
+
+def _diag(values: FloatArray) -> FloatArray:
+    """(n, 6) per-bar signature to (n, 6, 6) columns, column i acting on bar i only."""
+    out = np.zeros(values.shape + (6,))
+    idx = np.arange(6)
+    out[:, idx, idx] = values
+    return out
+
+
+def _per_bar(blocks: list[FloatArray]) -> FloatArray:
+    """Per-bar signatures [(n, 6), ...] (one per parameter kind) to (n, 6, 6 * kinds) columns
+    ordered kind-major: all bars of kind 0, then kind 1..."""
+    return np.concatenate([_diag(b) for b in blocks], axis=2)
+
+
+def _usable(ctx: FitContext) -> BoolArray:
+    return ctx.obs.usable & ctx.base.measured(ctx.obs.kind)
+
+
+class Effect:
+    """One physical effect of the catalogue (see the module docstring)."""
+
+    name = ''
+    term_type = ''
+    title = ''
+    physics = ''
+    needs_pose = False
+
+    def applicable(self, ctx: FitContext) -> str | None:
+        """None when the effect can be tested on this log, else why not."""
+        if self.needs_pose and ctx.obs.kind != 'pose':
+            return ('the reference gives bar lengths of bars not on the MMD; a pose-dependent '
+                    'effect does not change them')
+        return None
+
+    def hypers(self, ctx: FitContext) -> list[Any]:
+        return [None]
+
+    def hyper_label(self, hyper: Any) -> str:
+        return ''
+
+    def parameters(self, ctx: FitContext, hyper: Any) -> list[Parameter]:
+        raise NotImplementedError
+
+    def signature(self, ctx: FitContext, hyper: Any, idx: NDArray[np.int64]) -> FloatArray:
+        """Length correction per unit of each parameter at samples ``idx``, (n, 6, P)."""
+        raise NotImplementedError
+
+    def coverage(self, ctx: FitContext, hyper: Any, idx: NDArray[np.int64]) -> tuple[BoolArray, str]:
+        """Which parameters the samples ``idx`` exercise, (P,), and why the others are not."""
+        return np.ones(len(self.parameters(ctx, hyper)), dtype=bool), ''
+
+    def make_term(self, ctx: FitContext, hyper: Any, theta: FloatArray) -> ModelTerm:
+        raise NotImplementedError
+
+    def make_terms(self, ctx: FitContext, hyper: Any, theta: FloatArray) -> list[ModelTerm]:
+        """The model term(s) that apply the fitted parameters ``theta``."""
+        return [self.make_term(ctx, hyper, theta)]
+
+    def diagnostics(self, ctx: FitContext, hyper: Any) -> dict[str, FloatArray]:
+        """Features (N,) the effect's signature follows."""
+        return {}
+
+    def interpret(self, ctx: FitContext, hyper: Any, theta: FloatArray, sigma: FloatArray) -> list[str]:
+        """Physical reading of the fitted values, in words."""
+        return []
+
+
+def _bar_names(kind: str, unit: str, factor: float, bound: float = math.inf) -> list[Parameter]:
+    return [Parameter(f'bar{i + 1} {kind}', unit, factor, bound) for i in range(6)]
+
+
+def _moving_bars(ctx: FitContext) -> BoolArray:
+    u = _usable(ctx)
+    return np.ptp(ctx.base.pre_lengths_m[u], axis=0) > MOVING_M if u.any() else np.zeros(6, bool)
+
+
+# -- the catalogue -----------------------------------------------------------------------------
+class Hysteresis(Effect):
+    name = 'hysteresis'
+    term_type = 'hysteresis'
+    title = 'friction hysteresis'
+    physics = ('friction in the ball joints and guides makes a bar read differently when it '
+               'lengthens and when it shortens (section 5.3); the correction depends on the sign '
+               'of each bar\'s recent motion (play operator); a friction state that turns over '
+               'some travel is a sum of plays of several travels (Prandtl–Ishlinskii)')
+
+    def hypers(self, ctx: FitContext) -> list[Any]:
+        return [(w,) for w in HYSTERESIS_TRAVELS_M] + list(HYSTERESIS_PLAY_SETS_M)
+
+    def hyper_label(self, hyper: Any) -> str:
+        return 'travel ' + ' + '.join(f'{w / M_PER_UM:g}' for w in hyper) + ' µm'
+
+    def parameters(self, ctx: FitContext, hyper: Any) -> list[Parameter]:
+        if len(hyper) == 1:
+            return _bar_names('amplitude', 'µm', 1 / M_PER_UM, 5e-6)
+        out = []
+        for w in hyper:
+            out += _bar_names(f'amplitude ({w / M_PER_UM:g} µm play)', 'µm', 1 / M_PER_UM, 5e-6)
+        return out
+
+    def signature(self, ctx, hyper, idx):
+        return _per_bar([-ctx.directions(w)[idx] for w in hyper])
+
+    def coverage(self, ctx, hyper, idx):
+        d = ctx.directions(hyper[-1])[idx]
+        ok = (np.mean(d > 0, axis=0) > 0.01) & (np.mean(d < 0, axis=0) > 0.01)
+        return np.tile(ok, len(hyper)), '' if ok.all() else 'bars that do not move both ways: ' + _bars(~ok)
+
+    def make_terms(self, ctx, hyper, theta):
+        t = np.asarray(theta).reshape(len(hyper), 6)
+        return [HysteresisTerm(t[k], w) for k, w in enumerate(hyper)]
+
+    def diagnostics(self, ctx, hyper):
+        d = ctx.directions(hyper[0])
+        return {f'bar{i + 1} direction': d[:, i] for i in np.flatnonzero(_moving_bars(ctx))}
+
+    def interpret(self, ctx, hyper, theta, sigma):
+        total = np.asarray(theta).reshape(len(hyper), 6).sum(axis=0)
+        amp = np.abs(total) / M_PER_UM
+        sign = 'long' if np.mean(total) > 0 else 'short'
+        return [f'mean |amplitude| {amp.mean():.3f} µm (bars {amp.min():.3f} … {amp.max():.3f} µm): '
+                f'the bars read {sign} while lengthening; the direction turns over '
+                f'{2 * hyper[0] / M_PER_UM:g}' + (f' … {2 * hyper[-1] / M_PER_UM:g}' if len(hyper) > 1 else '')
+                + ' µm of reverse travel']
+
+
+class ThermalGain(Effect):
+    name = 'thermal_gain'
+    term_type = 'thermal_gain'
+    title = 'per-bar thermal gain and lag against the reference bar'
+    physics = ('Eq. (13) assumes every bar has the reference bar\'s thermal error; a bar with a '
+               'different CTE or time constant (section 4.1: "minor differences") has a residual '
+               'proportional to that error (gain) and to its rate of change (lag)')
+
+    def _features(self, ctx: FitContext) -> tuple[FloatArray, FloatArray]:
+        def make():
+            g, r, _ = ThermalGainTerm.features(ctx.base.bar_error_m, ctx.times_s,
+                                               DERIVATIVE_FILTER_S, None)
+            return g, r
+        return ctx.cached('thermal_gain', make)
+
+    def parameters(self, ctx, hyper):
+        return _bar_names('gain', '%', 100.0, 1.0) + _bar_names('lag', 's', 1.0, 3600.0)
+
+    def signature(self, ctx, hyper, idx):
+        g, r = self._features(ctx)
+        return _per_bar([g[idx], r[idx]])
+
+    def coverage(self, ctx, hyper, idx):
+        if not ctx.thermal_on:
+            return np.zeros(12, bool), 'no thermal compensation in the model'
+        span = np.ptp(ctx.base.bar_error_m[idx], axis=0)
+        ok = np.tile(span >= THERMAL_MIN_M, 2)
+        return ok, '' if ok.all() else (f'the thermal error changes by only {span.max() / M_PER_UM:.2f} µm '
+                                         f'(< {THERMAL_MIN_M / M_PER_UM:g} µm)')
+
+    def make_term(self, ctx, hyper, theta):
+        return ThermalGainTerm(theta[:6], theta[6:], DERIVATIVE_FILTER_S)
+
+    def diagnostics(self, ctx, hyper):
+        return {'reference-bar thermal error': ctx.base.bar_error_m.mean(axis=1)}
+
+    def interpret(self, ctx, hyper, theta, sigma):
+        return [f'bar thermal errors differ from the reference bar\'s by {100 * np.min(theta[:6]):+.1f} … '
+                f'{100 * np.max(theta[:6]):+.1f} %, lags {np.min(theta[6:]):+.0f} … {np.max(theta[6:]):+.0f} s']
+
+
+class ThermalInterpolation(Effect):
+    name = 'thermal_interpolation'
+    term_type = 'thermal_interpolation'
+    title = 'Eq. (12) length interpolation of the thermal error'
+    physics = ('the scale between the reference bar\'s length and a bar\'s length expands too '
+               '(section 3.3: 0.037 µm/°C from 323 to 376 mm); Eq. (13) drops this term, Eq. (12) '
+               'interpolates it')
+
+    def _ref_distance(self, ctx: FitContext) -> float:
+        refs = ctx.device.reference_channels
+        return ctx.device.pair(refs[0].pair).distance_m if refs else 0.0
+
+    def parameters(self, ctx, hyper):
+        return [Parameter('coefficient', '1/m', 1.0, 100.0)]
+
+    def signature(self, ctx, hyper, idx):
+        f = ThermalInterpolationTerm.features(ctx.base.pre_lengths_m[idx],
+                                              ctx.base.reference_error_m[idx], self._ref_distance(ctx))
+        return f[:, :, None]
+
+    def coverage(self, ctx, hyper, idx):
+        if not ctx.thermal_on:
+            return np.zeros(1, bool), 'no thermal compensation in the model'
+        eps = np.max(np.abs(ctx.base.reference_error_m[idx, 0]))
+        spread = np.max(np.abs(ctx.base.pre_lengths_m[idx] - self._ref_distance(ctx)))
+        if spread < INTERPOLATION_MIN_M:
+            return np.zeros(1, bool), (f'the bars stay within {spread * 1e3:.1f} mm of the reference '
+                                       f'bar\'s length (< {INTERPOLATION_MIN_M * 1e3:g} mm)')
+        ok = eps >= THERMAL_MIN_M
+        return np.array([ok]), '' if ok else (f'the thermal error stays below {eps / M_PER_UM:.2f} µm '
+                                              f'(< {THERMAL_MIN_M / M_PER_UM:g} µm)')
+
+    def make_term(self, ctx, hyper, theta):
+        return ThermalInterpolationTerm(float(theta[0]), self._ref_distance(ctx))
+
+    def diagnostics(self, ctx, hyper):
+        return {'reference-bar thermal error': ctx.base.reference_error_m[:, 0]}
+
+    def interpret(self, ctx, hyper, theta, sigma):
+        dev = ctx.device
+        d_ref = self._ref_distance(ctx)
+        sens = -(dev.rod_cte_per_c * dev.fixed_length_m + dev.scale_cte_per_c * (d_ref - dev.fixed_length_m))
+        alpha = -theta[0] * sens
+        return [f'implies a scale CTE of {alpha * 1e6:.2f} ± {abs(sigma[0] * sens) * 1e6:.2f} ppm/°C '
+                f'(device description: {dev.scale_cte_per_c * 1e6:g} ppm/°C)']
+
+
+class PlateExpansion(Effect):
+    name = 'plate_expansion'
+    term_type = 'plate_scale'
+    title = 'plate expansion'
+    physics = ('the joints are scaled by the plates\' expansion estimated from the reference bar '
+               '(end of section 3.3); a scale error at the thermal zero, a CTE error or plates '
+               'lagging the bars change every length by ds * n_i . (R a_i - b_i)')
+    needs_pose = True
+
+    def parameters(self, ctx, hyper):
+        return [Parameter('scale offset', 'ppm', 1e6, 100e-6), Parameter('CTE error', 'ppm/°C', 1e6, 10e-6),
+                Parameter('plate lag', 's', 1.0, 1e4)]
+
+    def _rate(self, ctx: FitContext) -> FloatArray:
+        def make():
+            t = ctx.base.temp_change_c
+            low, _ = ema(t[:, None], ctx.times_s, DERIVATIVE_FILTER_S, None)
+            return (t - low[:, 0]) / DERIVATIVE_FILTER_S
+        return ctx.cached('plate_rate', make)
+
+    def signature(self, ctx, hyper, idx):
+        geo = ctx.device.geometry
+        _, _, ddds = leg_geometry(geo.upper, geo.lower, ctx.base.poses[idx])
+        dt = ctx.base.temp_change_c[idx, None]
+        rate = self._rate(ctx)[idx, None]
+        a_p = ctx.device.plate_cte_per_c
+        return np.stack([-ddds, -ddds * dt, a_p * ddds * rate], axis=2)
+
+    def coverage(self, ctx, hyper, idx):
+        span = np.ptp(ctx.base.temp_change_c[idx]) if ctx.thermal_on else 0.0
+        ok = np.array([True, span >= PLATE_MIN_C, span >= PLATE_MIN_C])
+        return ok, '' if ok.all() else (f'the temperature changes by only {span:.2f} °C: the CTE error '
+                                        'and lag are not identifiable')
+
+    def make_term(self, ctx, hyper, theta):
+        geo = ctx.device.geometry
+        return PlateScaleTerm(geo.upper, geo.lower, theta[0], theta[1], theta[2],
+                              ctx.device.plate_cte_per_c, DERIVATIVE_FILTER_S)
+
+    def diagnostics(self, ctx, hyper):
+        out = {'temperature change': ctx.base.temp_change_c}
+        out.update(_pose_features(ctx))
+        return out
+
+    def interpret(self, ctx, hyper, theta, sigma):
+        return [f'the plates\' scale differs from the model\'s by {theta[0] * 1e6:+.2f} ppm '
+                f'(+{theta[1] * 1e6:.3f} ppm/°C of temperature change)']
+
+
+def _pose_features(ctx: FitContext) -> dict[str, FloatArray]:
+    u = _usable(ctx)
+    names = ['x', 'y', 'z', 'roll', 'pitch', 'yaw']
+    p = ctx.base.poses
+    return {f'pose {names[k]}': p[:, k] for k in range(6) if u.any() and np.ptp(p[u, k]) > 1e-5}
+
+
+class Kinematic(Effect):
+    name = 'kinematic'
+    term_type = 'joint_offsets'
+    title = 'kinematic parameters (joint positions and bar length offsets)'
+    physics = ('the 42 kinematic parameters (section 2.2: 36 joint coordinates and 6 bar lengths) '
+               'differ from the device description; each changes a bar length by n_i . (R da_i - '
+               'db_i) or by its offset')
+    needs_pose = True
+
+    def parameters(self, ctx, hyper):
+        out = []
+        for i in range(6):
+            out += [Parameter(f'bar{i + 1} upper {c}', 'µm', 1 / M_PER_UM, 300e-6) for c in 'xyz']
+            out += [Parameter(f'bar{i + 1} lower {c}', 'µm', 1 / M_PER_UM, 300e-6) for c in 'xyz']
+            out.append(Parameter(f'bar{i + 1} length', 'µm', 1 / M_PER_UM, 100e-6))
+        return out
+
+    def signature(self, ctx, hyper, idx):
+        geo = ctx.device.geometry
+        up, low, length = JointOffsetsTerm.features(geo.upper, geo.lower, ctx.base.poses[idx])
+        n = idx.size
+        out = np.zeros((n, 6, 42))
+        for i in range(6):
+            out[:, i, 7 * i:7 * i + 3] = up[:, i]
+            out[:, i, 7 * i + 3:7 * i + 6] = low[:, i]
+            out[:, i, 7 * i + 6] = length[:, i]
+        return out
+
+    def make_term(self, ctx, hyper, theta):
+        geo = ctx.device.geometry
+        t = np.asarray(theta).reshape(6, 7)
+        return JointOffsetsTerm(geo.upper, geo.lower, t[:, :3], t[:, 3:6], t[:, 6])
+
+    def diagnostics(self, ctx, hyper):
+        return _pose_features(ctx)
+
+    def interpret(self, ctx, hyper, theta, sigma):
+        t = np.asarray(theta).reshape(6, 7)
+        joints = np.linalg.norm(t[:, :6].reshape(12, 3), axis=1)
+        return [f'joint corrections up to {joints.max() / M_PER_UM:.2f} µm, length offsets '
+                f'{np.min(t[:, 6]) / M_PER_UM:+.2f} … {np.max(t[:, 6]) / M_PER_UM:+.2f} µm '
+                '(minimum-norm in the identifiable directions)']
+
+
+class ScaleNonlinearity(Effect):
+    name = 'scale_nonlinearity'
+    term_type = 'scale_nonlinearity'
+    title = 'scale nonlinearity between CDF points'
+    physics = ('the CDF (Eq. 10) is exact at the seven calibration points and linear between them; '
+               'a smooth scale error leaves what it cannot follow between the points')
+
+    def _knots(self, ctx: FitContext) -> FloatArray:
+        return _knots(ctx)
+
+    def parameters(self, ctx, hyper):
+        out = []
+        for kind in ('sin', 'cos'):
+            for k in range(1, SCALE_HARMONICS + 1):
+                out += _bar_names(f'{kind} {k}', 'µm', 1 / M_PER_UM, 20e-6)
+        return out
+
+    def signature(self, ctx, hyper, idx):
+        b = ScaleNonlinearityTerm.basis(ctx.base.cdf_lengths_m[idx], self._knots(ctx), SCALE_HARMONICS)
+        return _per_bar([b[:, :, j] for j in range(2 * SCALE_HARMONICS)])
+
+    def coverage(self, ctx, hyper, idx):
+        knots = self._knots(ctx)
+        seg = np.median(np.diff(knots, axis=1), axis=1)
+        span = np.ptp(ctx.base.cdf_lengths_m[idx], axis=0)
+        bars = span >= 0.25 * seg
+        ok = np.tile(bars, 2 * SCALE_HARMONICS)
+        return ok, '' if ok.all() else 'bars that move less than a quarter of a CDF segment: ' + _bars(~bars)
+
+    def make_term(self, ctx, hyper, theta):
+        t = np.asarray(theta).reshape(2 * SCALE_HARMONICS, 6).T  # (6, 2K): sin k.., cos k..
+        return ScaleNonlinearityTerm(self._knots(ctx), t[:, :SCALE_HARMONICS], t[:, SCALE_HARMONICS:])
+
+    def diagnostics(self, ctx, hyper):
+        return {f'bar{i + 1} length': ctx.base.cdf_lengths_m[:, i] for i in np.flatnonzero(_moving_bars(ctx))}
+
+    def interpret(self, ctx, hyper, theta, sigma):
+        t = np.asarray(theta).reshape(2 * SCALE_HARMONICS, 6).T
+        amp = np.sqrt(t[:, :SCALE_HARMONICS] ** 2 + t[:, SCALE_HARMONICS:] ** 2).sum(axis=1)
+        return [f'scale error harmonics up to {amp.max() / M_PER_UM:.2f} µm over the span '
+                f'(bar{int(np.argmax(amp)) + 1})']
+
+
+class CalibrationPoints(Effect):
+    name = 'calibration_points'
+    term_type = 'cdf_offsets'
+    title = 'errors of the calibration points'
+    physics = ('a bar seated on a reference pair with an offset (seating repeatability, or the '
+               'friction state its guide was left in, section 5.3) gives a wrong CDF point; Eq. (10) '
+               'carries the error linearly between the points')
+
+    def parameters(self, ctx, hyper):
+        n = _knots(ctx).shape[1]
+        return [Parameter(f'bar{i + 1} point {j + 1}', 'µm', 1 / M_PER_UM, 5e-6) for j in range(n) for i in range(6)]
+
+    def signature(self, ctx, hyper, idx):
+        b = CdfOffsetsTerm.basis(ctx.base.cdf_lengths_m[idx], _knots(ctx))
+        return _per_bar([b[:, :, j] for j in range(b.shape[2])])
+
+    def coverage(self, ctx, hyper, idx):
+        knots = _knots(ctx)
+        seg = np.median(np.diff(knots, axis=1), axis=1)
+        span = np.ptp(ctx.base.cdf_lengths_m[idx], axis=0)
+        bars = span >= 0.25 * seg
+        ok = np.tile(bars, knots.shape[1])
+        return ok, '' if ok.all() else 'bars that move less than a quarter of a CDF segment: ' + _bars(~bars)
+
+    def make_term(self, ctx, hyper, theta):
+        knots = _knots(ctx)
+        return CdfOffsetsTerm(knots, np.asarray(theta).reshape(knots.shape[1], 6).T)
+
+    def diagnostics(self, ctx, hyper):
+        return {f'bar{i + 1} length': ctx.base.cdf_lengths_m[:, i] for i in np.flatnonzero(_moving_bars(ctx))}
+
+    def interpret(self, ctx, hyper, theta, sigma):
+        return [f'calibration point errors {np.min(theta) / M_PER_UM:+.2f} … {np.max(theta) / M_PER_UM:+.2f} µm '
+                '(minimum-norm in the identifiable directions); re-calibrating may remove them']
+
+
+class CyclicError(Effect):
+    name = 'cyclic_error'
+    term_type = 'cyclic_error'
+    title = 'encoder cyclic error'
+    physics = ('the interpolation of the scale\'s sine signals errs periodically with the signal '
+               'period; the error follows the scale position, not time')
+
+    def _setup(self, ctx: FitContext) -> tuple[list[int], FloatArray]:
+        names = ctx.device.channel_names
+        channels = list(ctx.device.measuring_channels)
+        origin = []
+        for ch in channels:
+            bar = ctx.calibration.bars[names[ch]]
+            order = np.argsort(bar.distances_m)
+            origin.append(float(np.asarray(bar.counts)[order][0]))
+        return channels, np.array(origin)
+
+    def hypers(self, ctx):
+        opts = getattr(ctx.options, 'cyclic_periods_m', None)
+        return list(opts) if opts else list(CYCLIC_PERIODS_M)
+
+    def hyper_label(self, hyper):
+        return f'period {hyper / M_PER_UM:g} µm'
+
+    def parameters(self, ctx, hyper):
+        return _bar_names('sin', 'nm', 1e9, 2e-6) + _bar_names('cos', 'nm', 1e9, 2e-6)
+
+    def _phase_position(self, ctx: FitContext, idx: NDArray[np.int64]) -> FloatArray:
+        channels, origin = self._setup(ctx)
+        return (ctx.counts[np.ix_(idx, channels)] - origin) * ctx.device.encoder_resolution_m
+
+    def signature(self, ctx, hyper, idx):
+        channels, origin = self._setup(ctx)
+        s, c = CyclicErrorTerm.features(ctx.counts[idx], channels, origin,
+                                        ctx.device.encoder_resolution_m, hyper)
+        return _per_bar([s, c])
+
+    def coverage(self, ctx, hyper, idx):
+        span = np.ptp(self._phase_position(ctx, idx), axis=0)
+        bars = span >= 2 * hyper
+        return np.tile(bars, 2), '' if bars.all() else 'bars that move less than two signal periods: ' + _bars(~bars)
+
+    def make_term(self, ctx, hyper, theta):
+        channels, origin = self._setup(ctx)
+        return CyclicErrorTerm(hyper, ctx.device.encoder_resolution_m, channels, origin,
+                               theta[:6], theta[6:])
+
+    def diagnostics(self, ctx, hyper):
+        all_idx = np.arange(ctx.times_s.size)
+        u = self._phase_position(ctx, all_idx)
+        return {f'bar{i + 1} scale phase': np.mod(u[:, i] / hyper, 1.0)
+                for i in np.flatnonzero(_moving_bars(ctx))}
+
+    def interpret(self, ctx, hyper, theta, sigma):
+        amp = np.hypot(theta[:6], theta[6:]) * 1e9
+        return [f'amplitude {amp.min():.0f} … {amp.max():.0f} nm at a {hyper / M_PER_UM:g} µm period']
+
+
+class SamplingSkew(Effect):
+    name = 'sampling_skew'
+    term_type = 'sampling_skew'
+    title = 'per-channel timing skew'
+    physics = ('a channel latched later than the sample time reads the bar where it is a moment '
+               'later: an error proportional to the bar\'s velocity')
+
+    def parameters(self, ctx, hyper):
+        return _bar_names('skew', 'µs', 1e6, 2e-3)
+
+    def signature(self, ctx, hyper, idx):
+        return _diag(-ctx.velocities()[idx])
+
+    def coverage(self, ctx, hyper, idx):
+        ok = np.max(np.abs(ctx.velocities()[idx]), axis=0) >= 1e-3
+        return ok, '' if ok.all() else 'bars that move slower than 1 mm/s: ' + _bars(~ok)
+
+    def make_term(self, ctx, hyper, theta):
+        return SamplingSkewTerm(theta)
+
+    def diagnostics(self, ctx, hyper):
+        v = ctx.velocities()
+        return {f'bar{i + 1} velocity': v[:, i] for i in np.flatnonzero(_moving_bars(ctx))}
+
+    def interpret(self, ctx, hyper, theta, sigma):
+        return [f'channel delays {np.min(theta) * 1e6:+.1f} … {np.max(theta) * 1e6:+.1f} µs '
+                f'(mean {np.mean(theta) * 1e6:+.1f} µs: a common delay shifts the whole pose in time)']
+
+
+class GravitySag(Effect):
+    name = 'gravity_sag'
+    term_type = 'gravity_sag'
+    title = 'gravity sag with bar inclination'
+    physics = ('a bar bends under its weight across its axis and reads long by g (1 - n_z^2); '
+               'calibrated lying flat, it reads short by g n_z^2 on the MMD (one g: the bars are '
+               'of one design)')
+    needs_pose = True
+
+    def _nz2(self, ctx: FitContext, idx: NDArray[np.int64]) -> FloatArray:
+        geo = ctx.device.geometry
+        return GravitySagTerm.features(geo.upper, geo.lower, ctx.base.poses[idx], np.array([0.0, 0.0, 1.0]))
+
+    def parameters(self, ctx, hyper):
+        return [Parameter('sag of a horizontal bar', 'µm', 1 / M_PER_UM, 20e-6)]
+
+    def signature(self, ctx, hyper, idx):
+        return self._nz2(ctx, idx)[:, :, None]
+
+    def coverage(self, ctx, hyper, idx):
+        span = np.max(np.ptp(self._nz2(ctx, idx), axis=0))
+        ok = span >= 0.01
+        return np.array([ok]), '' if ok else f'the bars\' inclination hardly changes (n_z^2 by {span:.3f})'
+
+    def make_term(self, ctx, hyper, theta):
+        geo = ctx.device.geometry
+        return GravitySagTerm(geo.upper, geo.lower, np.full(6, float(theta[0])))
+
+    def diagnostics(self, ctx, hyper):
+        nz2 = self._nz2(ctx, np.arange(ctx.times_s.size))
+        return {f'bar{i + 1} inclination n_z^2': nz2[:, i] for i in range(6)}
+
+    def interpret(self, ctx, hyper, theta, sigma):
+        return [f'a horizontal bar sags enough to read {theta[0] / M_PER_UM:+.2f} '
+                f'± {1.96 * sigma[0] / M_PER_UM:.2f} µm long']
+
+
+class Drift(Effect):
+    name = 'drift'
+    term_type = 'drift'
+    title = 'slow drift'
+    physics = ('a bar\'s reading drifts slowly since its calibration: an offset at the start of '
+               'the run and a rate')
+
+    def parameters(self, ctx, hyper):
+        return (_bar_names('offset', 'µm', 1 / M_PER_UM, 50e-6)
+                + _bar_names('rate', 'µm/h', 3600 / M_PER_UM, 100e-6 / 3600))
+
+    def signature(self, ctx, hyper, idx):
+        c, r, _ = DriftTerm.features(ctx.times_s, None)
+        return _per_bar([c[idx], r[idx]])
+
+    def make_term(self, ctx, hyper, theta):
+        return DriftTerm(theta[:6], theta[6:])
+
+    def diagnostics(self, ctx, hyper):
+        return {'time': ctx.times_s}
+
+    def interpret(self, ctx, hyper, theta, sigma):
+        rates = theta[6:] * 3600 / M_PER_UM
+        return [f'rates {np.min(rates):+.2f} … {np.max(rates):+.2f} µm/h']
+
+
+def _knots(ctx: FitContext) -> FloatArray:
+    """Calibration distances of bars 1..6, (6, n) [m]."""
+    names = ctx.device.channel_names
+    rows = [np.sort(np.asarray(ctx.calibration.bars[names[ch]].distances_m))
+            for ch in ctx.device.measuring_channels]
+    if len({r.size for r in rows}) != 1:
+        raise AnalysisError('bars have different numbers of calibration points')
+    return np.array(rows)
+
+
+def _bars(mask: BoolArray) -> str:
+    return ', '.join(f'bar{i + 1}' for i in np.flatnonzero(mask))
+
+
+#: The catalogue, in the order the report lists it.
+CATALOGUE: dict[str, Effect] = {e.name: e for e in (
+    Hysteresis(), ThermalGain(), ThermalInterpolation(), PlateExpansion(), Kinematic(),
+    ScaleNonlinearity(), CalibrationPoints(), CyclicError(), SamplingSkew(), GravitySag(), Drift())}
+
+
+def catalogue(names: list[str] | None = None) -> list[Effect]:
+    """The effects to test: all, or those named (unknown names are refused)."""
+    if not names:
+        return list(CATALOGUE.values())
+    unknown = [n for n in names if n not in CATALOGUE]
+    if unknown:
+        raise AnalysisError(f'unknown effects {unknown}; the catalogue has {list(CATALOGUE)}')
+    return [CATALOGUE[n] for n in names]

@@ -1,0 +1,201 @@
+"""The report of an analysis: ``report.md`` with PNG figures, ``analysis.json`` with the numbers,
+and ``model.yaml`` when the model was extended. Units of the report: µm and arc-seconds."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+from mmd_ros.analysis.identify import Analysis, ComponentError, Found
+
+__all__ = ['finite_json', 'format_summary', 'write_report']
+
+_UNIT = {'um': 'µm', 'arcsec': '″'}
+
+
+def _u(unit: str) -> str:
+    return _UNIT.get(unit, unit)
+
+
+def _num(v: float | None, digits: int = 3) -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return '–'
+    return f'{v:.{digits}g}'
+
+
+def _stats_table(before: list[ComponentError], after: list[ComponentError] | None,
+                 predicted: list[ComponentError] | None = None) -> list[str]:
+    if after is None:
+        lines = ['| component | unit | RMS | max | mean |', '|---|---|---|---|---|']
+        lines += [f'| {s.name} | {_u(s.unit)} | {_num(s.rms)} | {_num(s.max_abs)} | {_num(s.mean)} |'
+                  for s in before]
+        return lines
+    head = '| component | unit | RMS before | max before | RMS after | max after |'
+    sep = '|---|---|---|---|---|---|'
+    if predicted:
+        head += ' RMS predicted (linear) |'
+        sep += '---|'
+    lines = [head, sep]
+    amap = {s.name: s for s in after}
+    pmap = {s.name: s for s in predicted or []}
+    for s in before:
+        a = amap.get(s.name)
+        row = (f'| {s.name} | {_u(s.unit)} | {_num(s.rms)} | {_num(s.max_abs)} | '
+               f'{_num(a.rms) if a else "–"} | {_num(a.max_abs) if a else "–"} |')
+        if predicted:
+            p = pmap.get(s.name)
+            row += f' {_num(p.rms) if p else "–"} |'
+        lines.append(row)
+    return lines
+
+
+def _param_table(f: Found) -> list[str]:
+    lines = ['| parameter | value | 95 % interval (±) | unit |', '|---|---|---|---|']
+    rows = f.parameter_rows()
+    shown = [r for r in rows if abs(r['value']) > 0 or r['identifiable']]
+    if len(shown) > 24:
+        shown = sorted(shown, key=lambda r: -abs(r['value']))[:24]
+        lines.insert(0, f'(the 24 largest of {len(rows)} parameters; all are in analysis.json)\n')
+    for r in shown:
+        ci = '–' if r['ci95'] is None else _num(r['ci95'])
+        lines.append(f'| {r["name"]} | {_num(r["value"], 4)} | {ci} | {r["unit"]} |')
+    return lines
+
+
+def write_report(a: Analysis, out_dir: str | Path, *, figures: bool = True) -> dict[str, Path]:
+    """Write report.md, analysis.json, the figures and (if extended) model.yaml into
+    ``out_dir``; returns the paths written."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    written: dict[str, Path] = {}
+    figs: dict[str, str] = {}
+    if figures:
+        from mmd_ros.analysis.plots import analysis_figures
+        figs = analysis_figures(a, out)
+    if a.model is not None:
+        written['model'] = a.model.save(out / 'model.yaml')
+    data = a.as_dict()
+    data['model_file'] = str(written['model']) if 'model' in written else None
+    data['figures'] = figs
+    (out / 'analysis.json').write_text(json.dumps(finite_json(data), indent=2, default=_json_default),
+                                       encoding='utf-8')
+    written['json'] = out / 'analysis.json'
+    (out / 'report.md').write_text(_markdown(a, figs, written.get('model')), encoding='utf-8')
+    written['report'] = out / 'report.md'
+    return written
+
+
+def finite_json(value: Any) -> Any:
+    """NaN and infinities as null (valid JSON)."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: finite_json(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [finite_json(v) for v in value]
+    return value
+
+
+def _json_default(value: Any) -> Any:
+    if hasattr(value, 'tolist'):
+        return value.tolist()
+    if isinstance(value, tuple):
+        return list(value)
+    return str(value)
+
+
+def _markdown(a: Analysis, figs: dict[str, str], model_path: Path | None) -> str:
+    o = a.obs
+    L: list[str] = ['# Closing the loop: residual, effect, error before and after', '']
+    L += [f'Log: `{a.log}`  ', f'Reference: {o.description}'
+          + (' (a constant offset per component removed: the instrument is zeroed)' if o.datum else '') + '  ',
+          f'Samples: {a.times_s.size} over {a.times_s[-1]:.1f} s; {a.split.train_idx.size} for fitting, '
+          f'{a.split.test_idx.size} held out ({a.split.n_blocks} time blocks, one of each pair held out)', '']
+    L += ['## Conclusion', '', a.conclusion, '']
+    if model_path is not None:
+        L += [f'Extended model: `{model_path.name}` (`mmd process --model {model_path.name}`, or the '
+              'compensation node\'s `model_file` parameter).', '']
+    L += ['## 1. Residual of the current model (held-out blocks)', '']
+    floor = ', '.join(f'{n} {f * s:.3g} {_u(u)}' for n, f, s, u in zip(o.names, a.floor, o.to_report, o.units))
+    L += [f'Noise floor (encoder quantisation propagated, and the sample-to-sample noise): {floor}.', '']
+    L += _stats_table(a.stats_before, None) + ['']
+    if a.per_bar_before:
+        L += ['Per bar (the pose residual mapped to bar lengths, J · Δp):', '',
+              '| bar | RMS [µm] | max [µm] |', '|---|---|---|']
+        L += [f'| {s.name} | {_num(s.rms)} | {_num(s.max_abs)} |' for s in a.per_bar_before]
+        L += ['']
+    L += ['Structure: share of the residual variance that bin means of each feature explain '
+          '(R², held-out samples):', '']
+    L += [f'- {name}: {r2:.2f}' for name, r2 in a.structure_before[:8]] + ['']
+    L += ['## 2. Effects tested', '',
+          'Each effect is fitted on the training blocks and judged on the held-out blocks. '
+          'Added when the held-out RMS falls by at least '
+          f'{100 * a.options.min_gain:g} % and {a.options.min_floor_gain:g} of the noise floor, '
+          f'consistently over the held-out blocks (t ≥ {a.options.min_t:g}), and the held-out '
+          f'information criterion falls by at least {a.options.min_delta_ic:g}.', '']
+    for k, step in enumerate(a.steps):
+        L += [f'### Step {k + 1}', '',
+              '| effect | setting | identifiable / parameters | held-out RMS ratio | ΔIC | t | verdict |',
+              '|---|---|---|---|---|---|---|']
+        for c in step:
+            L.append(f'| {c.effect} | {c.hyper_label or "–"} | {c.n_identifiable} / {c.n_params} | '
+                     f'{_num(c.rms_ratio)} | {_num(c.delta_ic, 4)} | {_num(c.t_stat)} | {c.verdict} |')
+        notes = [c for c in step if c.unidentifiable or c.note]
+        if notes:
+            L += ['', 'Not identifiable from this reference and run (reported, not fitted):', '']
+            for c in notes:
+                items = ([c.note] if c.note else []) + [x for x in c.unidentifiable if 'not exercised' not in x]
+                n_lost = sum('not exercised' in x for x in c.unidentifiable)
+                if n_lost:
+                    items.insert(0, f'{n_lost} parameter{"s" if n_lost > 1 else ""} not exercised')
+                L.append(f'- {c.effect}: ' + '; '.join(items[:6]))
+        L.append('')
+    if a.not_applicable:
+        L += ['Not applicable: ' + '; '.join(f'{k} ({v})' for k, v in a.not_applicable.items()), '']
+    L += ['## 3. Effects found', '']
+    if not a.found:
+        L += ['None: the model is unchanged.', '']
+    for f in a.found:
+        setting = f', {f.hyper_label}' if f.hyper_label else ''
+        L += [f'### {f.title} (`{f.effect}`, model term `{f.term_type}`{setting})', '']
+        if math.isfinite(f.explained):
+            L.append(f'Explains {100 * f.explained:.0f} % of the held-out residual variance.  ')
+        L += [f'- {text}' for text in f.interpretation] + ['']
+        L += _param_table(f) + ['']
+    for f in a.not_claimed:
+        L += [f'Not claimed: {f.title}: {f.reason}.', '']
+    L += ['## 4. Error before and after (held-out blocks, pipeline re-run with the extended model)', '']
+    L += _stats_table(a.stats_before, a.stats_after or [], a.stats_predicted) + ['']
+    if a.per_bar_before and a.per_bar_after:
+        L += ['| bar | RMS before [µm] | RMS after [µm] |', '|---|---|---|']
+        amap = {s.name: s for s in a.per_bar_after}
+        L += [f'| {s.name} | {_num(s.rms)} | {_num(amap[s.name].rms)} |' for s in a.per_bar_before]
+        L += ['']
+    if a.at_floor:
+        L += ['What remains is at the noise floor.', '']
+    else:
+        L += ['What remains is above the noise floor; it follows:', '']
+        L += [f'- {name}: R² {r2:.2f}' for name, r2 in a.structure_after[:6]] + ['']
+    if figs:
+        L += ['## Figures', '']
+        for caption, name in figs.items():
+            L += [f'### {caption}', '', f'![{caption}]({name})', '']
+    L += [f'Analysis took {a.seconds:.1f} s.', '']
+    return '\n'.join(L)
+
+
+def format_summary(a: Analysis) -> str:
+    """A few lines for the terminal."""
+    lines = [f'residual of the current model ({a.obs.description}), held-out RMS: '
+             + ', '.join(f'{s.name} {s.rms:.3g} {_u(s.unit)}' for s in a.stats_before)]
+    for f in a.found:
+        lines.append(f'found {f.effect} ({f.title}{", " + f.hyper_label if f.hyper_label else ""}): '
+                     + '; '.join(f.interpretation))
+    for f in a.not_claimed:
+        lines.append(f'not claimed {f.effect}: {f.reason}')
+    if a.stats_after:
+        lines.append('after, held-out RMS: ' + ', '.join(f'{s.name} {s.rms:.3g} {_u(s.unit)}' for s in a.stats_after))
+    lines.append(a.conclusion)
+    return '\n'.join(lines)

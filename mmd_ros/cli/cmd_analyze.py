@@ -1,0 +1,106 @@
+"""``mmd analyze LOG.mcap --out DIR``: close the loop with measured data (residual → effect →
+extended model → error before and after)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+
+from mmd_ros.analysis.effects import CATALOGUE
+from mmd_ros.analysis.errors import AnalysisError
+from mmd_ros.analysis.identify import AnalysisOptions, analyze
+from mmd_ros.analysis.report import finite_json, format_summary, write_report
+from mmd_ros.core.calibration import load_calibration
+from mmd_ros.core.model import Model, load_model
+from mmd_ros.core.units import M_PER_UM
+from mmd_ros.logs.layout import read_run
+
+__all__ = ['register']
+
+
+def _names(text: str | None) -> list[str] | None:
+    if not text:
+        return None
+    names = [n.strip() for n in text.split(',') if n.strip()]
+    unknown = [n for n in names if n not in CATALOGUE]
+    if unknown:
+        raise AnalysisError(f'unknown effects {unknown}; the catalogue has {list(CATALOGUE)}')
+    return names
+
+
+def run_command(args: argparse.Namespace) -> int:
+    started = time.perf_counter()
+    quiet = args.json or args.quiet
+
+    def say(text: str) -> None:
+        if not quiet:
+            print(f'[{time.perf_counter() - started:6.1f} s] {text}', file=sys.stderr, flush=True)
+
+    say(f'reading {args.log}')
+    run = read_run(args.log)
+    if run.problem:
+        print(f'warning: {run.problem}', file=sys.stderr)
+    model = load_model(args.model) if args.model else (run.model or Model())
+    calibration = load_calibration(args.calibration) if args.calibration else None
+    periods = None
+    if args.cyclic_period_um:
+        periods = tuple(float(v) * M_PER_UM for v in args.cyclic_period_um.split(','))
+    options = AnalysisOptions(
+        effects=_names(args.effects), exclude=tuple(_names(args.exclude) or ()),
+        n_blocks=args.blocks, max_samples=args.max_samples, min_gain=args.min_gain,
+        max_effects=args.max_effects, datum='none' if args.absolute_reference else 'auto',
+        seed=args.seed, cyclic_periods_m=periods)
+    result = analyze(run, model, calibration, options, progress=say)
+    written = {}
+    if args.out:
+        say(f'writing the report to {args.out}')
+        written = write_report(result, args.out, figures=not args.no_figures)
+    if args.json:
+        data = result.as_dict()
+        data['model_file'] = str(written['model']) if 'model' in written else None
+        json.dump(finite_json(data), sys.stdout, indent=2,
+                  default=lambda v: v.tolist() if hasattr(v, 'tolist') else str(v))
+        sys.stdout.write('\n')
+        return 0
+    print(format_summary(result))
+    if written:
+        print(f'wrote {written["report"]}' + (f', {written["model"]}' if 'model' in written else '')
+              + f' and {written["json"]}')
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        'analyze', help='find the residual, trace it to a missing effect, extend the model',
+        description='Run the current model over a log with a reference, compute the residual at '
+        'the level the reference allows (pose components or bar lengths), test a catalogue of '
+        'physical effects the model may lack on held-out time blocks, add those that explain the '
+        'residual significantly, write the extended model and report the error before and after '
+        '(the pipeline re-run with the extended model).',
+        epilog=f'Catalogue: {", ".join(CATALOGUE)}. See msg_docs/analysis.md.')
+    p.add_argument('log', help='MCAP log with raw counts and a reference (pose or bar lengths)')
+    p.add_argument('--model', help='current model file (default: the log\'s, else CDF + thermal)')
+    p.add_argument('--calibration', help='calibration file to use instead of the one in the log')
+    p.add_argument('--out', help='folder for report.md, analysis.json, the figures and model.yaml')
+    p.add_argument('--json', action='store_true', help='print the numbers as JSON on stdout')
+    p.add_argument('--effects', help='comma-separated effects to test (default: the whole catalogue)')
+    p.add_argument('--exclude', help='comma-separated effects not to test')
+    p.add_argument('--blocks', type=int, default=40, help='time blocks of the split (default 40)')
+    p.add_argument('--max-samples', type=int, default=2500, dest='max_samples',
+                   help='samples per part used for fitting (default 2500)')
+    p.add_argument('--min-gain', type=float, default=0.05, dest='min_gain',
+                   help='smallest relative fall of the held-out RMS for an effect (default 0.05)')
+    p.add_argument('--max-effects', type=int, default=4, dest='max_effects',
+                   help='most effects added (default 4)')
+    p.add_argument('--cyclic-period-um', dest='cyclic_period_um',
+                   help='signal period(s) of the scales in µm, comma separated (default: tries '
+                   '2, 4, 8, 10, 16, 20, 40)')
+    p.add_argument('--absolute-reference', action='store_true', dest='absolute_reference',
+                   help='the reference pose is absolute in {L} (default: zeroed, an offset per '
+                   'component is removed)')
+    p.add_argument('--seed', type=int, default=0, help='draws the held-out blocks (default 0)')
+    p.add_argument('--no-figures', action='store_true', dest='no_figures', help='skip the PNG figures')
+    p.add_argument('--quiet', action='store_true', help='no progress on stderr')
+    p.set_defaults(func=run_command)

@@ -1,0 +1,680 @@
+"""Model terms of the analysis catalogue (:mod:`mmd_ros.analysis.effects`): physical effects the
+paper's compensation (CDF, Eq. 10; thermal, Eqs. 11–13) leaves out, as corrections of the bar
+lengths that the pipeline applies from a model file.
+
+Every term is linear in its parameters: its correction is ``sum_k theta_k * s_k`` with a
+signature ``s_k`` of shape (N, 6) that depends on the samples only. The signatures are exposed
+as ``features(...)`` so that the analysis fits exactly what the pipeline later applies.
+
+Sign convention (all terms): the correction is ADDED to the compensated lengths, so it is minus
+the reading error the effect causes. A term whose physics needs the pose (kinematic, plate,
+sag) sets ``needs_pose`` and uses the pipeline's first-pass pose; the joint positions it needs
+are stored in its parameters (``upper_mm``, ``lower_mm``), because a term does not see the
+device description.
+
+Streaming: terms with state (play operator, filters, previous sample, start time) carry it from
+one call to the next, so a run processed sample by sample (the ROS node) gives the batch result.
+The pipeline calls non-pose terms a second time on the same block when the model also has pose
+terms; a stateful term here recognises such a replay (same first time stamp and length) and
+starts again from the state it had before the first call, so the replay gives the same result.
+
+    terms:
+      - type: thermal_gain            # bar's thermal error vs the reference bar: gain and lag
+        gain: [0.1, -0.05, 0, 0, 0, 0]
+        lag_s: [120, 0, 0, 0, 0, 0]
+      - type: cyclic_error            # encoder sub-division error at the signal period
+        period_um: 20.0
+        ...
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.signal import lfilter
+
+from mmd_ros.core.errors import ConfigError
+from mmd_ros.core.model import HysteresisTerm, ModelTerm, TermContext, register_term, six_values
+from mmd_ros.core.rotation import rotation_matrix
+from mmd_ros.core.units import M_PER_MM, M_PER_NM, M_PER_UM, PPM
+
+__all__ = [
+    'CdfOffsetsTerm', 'CyclicErrorTerm', 'DriftTerm', 'GravitySagTerm', 'HysteresisTerm', 'JointOffsetsTerm',
+    'PlateScaleTerm', 'SamplingSkewTerm', 'ScaleNonlinearityTerm', 'ThermalGainTerm',
+    'ThermalInterpolationTerm', 'ema', 'leg_geometry',
+]
+
+FloatArray = NDArray[np.float64]
+
+#: Time constant of the low-pass used to take time derivatives of thermal quantities [s].
+DERIVATIVE_FILTER_S = 300.0
+#: A gap between samples longer than this is not motion (velocity of the skew term) [s].
+MAX_GAP_S = 0.1
+
+
+# -- helpers -----------------------------------------------------------------------------------
+def _number(params: dict[str, Any], key: str, source: str, default: float | None = None, *,
+            positive: bool = False) -> float:
+    value = params.get(key, default)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ConfigError(source, key, f'must be a finite number, got {value!r}')
+    if positive and value <= 0:
+        raise ConfigError(source, key, f'must be > 0, got {value!r}')
+    return float(value)
+
+
+def _matrix(params: dict[str, Any], key: str, source: str, shape: tuple[int, ...],
+            default: Any = None) -> FloatArray:
+    value = params.get(key, default)
+    try:
+        arr = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        arr = None
+    if arr is None or arr.shape != shape or not np.all(np.isfinite(arr)):
+        raise ConfigError(source, key, f'must be finite numbers of shape {list(shape)}, got {value!r}')
+    return arr
+
+
+def _geometry(params: dict[str, Any], source: str) -> tuple[FloatArray, FloatArray]:
+    return (_matrix(params, 'upper_mm', source, (6, 3)) * M_PER_MM,
+            _matrix(params, 'lower_mm', source, (6, 3)) * M_PER_MM)
+
+
+def _geometry_params(upper_m: FloatArray, lower_m: FloatArray) -> dict[str, Any]:
+    return {'upper_mm': (np.asarray(upper_m) / M_PER_MM).tolist(),
+            'lower_mm': (np.asarray(lower_m) / M_PER_MM).tolist()}
+
+
+def leg_geometry(upper_m: FloatArray, lower_m: FloatArray, poses: FloatArray
+                 ) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Rotated upper joints, bar unit vectors and dd/ds of N poses.
+
+    upper_m, lower_m : ndarray, shape (6, 3) — a_i in {U}, b_i in {L} [m]
+    poses : ndarray, shape (N, 6) [m, rad]
+    returns : R a_i (N, 6, 3) [m]; n_i (N, 6, 3), unit vector of bar i from b_i to its upper
+        joint, in {L}; and dd_i/ds (N, 6) [m], the change of d_i when both plates' joint
+        positions are scaled by s (Eq. 6 with s a_i, s b_i), n_i . (R a_i - b_i)
+    """
+    rot = rotation_matrix(poses[:, 3:])
+    ra = np.einsum('nij,kj->nki', rot, upper_m)
+    legs = ra + poses[:, None, :3] - lower_m[None]
+    units = legs / np.linalg.norm(legs, axis=2, keepdims=True)
+    ddds = np.einsum('nki,nki->nk', units, ra - lower_m[None])
+    return ra, units, ddds
+
+
+def ema(x: FloatArray, times_s: FloatArray, tau_s: float,
+        state: tuple[FloatArray, float] | None) -> tuple[FloatArray, tuple[FloatArray, float]]:
+    """First-order low-pass of x with time constant tau_s, exact for any sample spacing.
+
+    L_k = L_{k-1} + (1 - exp(-dt_k / tau)) (x_k - L_{k-1}); L starts at the first sample.
+
+    x : ndarray, shape (N, m)
+    times_s : ndarray, shape (N,) [s]
+    state : (L, t) after the previous call, or None at the start of a run
+    returns : L, shape (N, m), and the state after the last sample
+    """
+    n = x.shape[0]
+    if n == 0:
+        return x.copy(), state  # type: ignore[return-value]
+    if state is None:
+        prev, t_prev = x[0].astype(np.float64).copy(), float(times_s[0])
+    else:
+        prev, t_prev = state
+    dt = np.diff(np.concatenate(([t_prev], times_s)))
+    dt = np.maximum(dt, 0.0)
+    a = -np.expm1(-dt / tau_s)
+    out = np.empty_like(x, dtype=np.float64)
+    if n > 1 and np.ptp(a[1:]) <= 1e-3 * max(float(np.mean(a[1:])), 1e-300):
+        # regular sampling: one recursive filter for the whole block
+        out[0] = prev + a[0] * (x[0] - prev)
+        coef = float(np.mean(a[1:]))
+        if n > 1:
+            out[1:], _ = lfilter([coef], [1.0, coef - 1.0], x[1:], axis=0,
+                                 zi=((1.0 - coef) * out[0])[None, :])
+    else:
+        cur = prev.copy()
+        for k in range(n):
+            cur = cur + a[k] * (x[k] - cur)
+            out[k] = cur
+    return out, (out[-1].copy(), float(times_s[-1]))
+
+
+class _Replayable(ModelTerm):
+    """Base of stateful terms: state in ``self._state``, replay of the same block detected."""
+
+    def _initial_state(self) -> Any:
+        return None
+
+    def reset(self) -> None:
+        self._state = self._initial_state()
+        self._replay: tuple[tuple[float, int], Any] | None = None
+
+    def _begin(self, ctx: TermContext) -> None:
+        n = ctx.times_s.shape[0]
+        if n == 0:
+            return
+        key = (float(ctx.times_s[0]), int(n))
+        if self._replay is not None and self._replay[0] == key:
+            self._state = copy.deepcopy(self._replay[1])
+        else:
+            self._replay = (key, copy.deepcopy(self._state))
+
+
+# -- thermal -----------------------------------------------------------------------------------
+@register_term
+class ThermalGainTerm(_Replayable):
+    """Per-bar thermal behaviour against the reference bar (section 3.3, Eq. 13 assumes all
+    bars behave alike; section 4.1 saw "minor differences" between them).
+
+    Bar i's thermal error is (1 + g_i) times the error the model subtracts (eps_i, from Eqs.
+    11–13) and lags it by lag_i seconds (its time constant differs):
+    eps_i,true ~ (1 + g_i) eps_i - lag_i d(eps_i)/dt. Correction: -g_i eps_i + lag_i deps_i/dt,
+    the derivative from a first-order low-pass of ``filter_s``: (eps - L) / filter_s.
+    """
+
+    type_name = 'thermal_gain'
+
+    def __init__(self, gain: FloatArray, lag_s: FloatArray, filter_s: float = DERIVATIVE_FILTER_S) -> None:
+        self.gain = np.asarray(gain, dtype=np.float64)
+        self.lag_s = np.asarray(lag_s, dtype=np.float64)
+        self.filter_s = float(filter_s)
+        self.reset()
+
+    @staticmethod
+    def features(bar_error_m: FloatArray, times_s: FloatArray, filter_s: float,
+                 state: Any) -> tuple[FloatArray, FloatArray, Any]:
+        """Signatures per unit gain and per second of lag, each (N, 6) [m, m/s], and the state.
+
+        bar_error_m : ndarray, shape (N, 6) — thermal error the model subtracts per bar [m]
+        """
+        low, state = ema(bar_error_m, times_s, filter_s, state)
+        return -bar_error_m, (bar_error_m - low) / filter_s, state
+
+    def correction(self, ctx: TermContext) -> FloatArray:
+        self._begin(ctx)
+        g, r, self._state = self.features(ctx.cdf_lengths_m - ctx.lengths_m, ctx.times_s,
+                                          self.filter_s, self._state)
+        return self.gain * g + self.lag_s * r
+
+    @classmethod
+    def from_params(cls, params: dict[str, Any], source: str) -> ThermalGainTerm:
+        return cls(six_values(params, 'gain', source),
+                   six_values({'lag_s': params.get('lag_s', 0.0)}, 'lag_s', source),
+                   _number(params, 'filter_s', source, DERIVATIVE_FILTER_S, positive=True))
+
+    def params(self) -> dict[str, Any]:
+        return {'gain': self.gain.tolist(), 'lag_s': self.lag_s.tolist(), 'filter_s': self.filter_s}
+
+
+@register_term
+class ThermalInterpolationTerm(ModelTerm):
+    """The Eq. (12) interpolation that Eq. (13) drops (section 3.3).
+
+    A bar of length d_i at the temperature change of the reference bar (on d_ref) has a thermal
+    error that differs from the reference's by -alpha_scale (d_i - d_ref) dT, i.e. in proportion
+    to (d_i - d_ref) eps (eps, Eq. 11, is itself proportional to dT). Correction:
+    k (d_i - d_ref) eps with one coefficient k [1/m] for all bars (k = -alpha_scale / (deps/dT)).
+    """
+
+    type_name = 'thermal_interpolation'
+
+    def __init__(self, coefficient_per_m: float, reference_distance_m: float) -> None:
+        self.coefficient_per_m = float(coefficient_per_m)
+        self.reference_distance_m = float(reference_distance_m)
+        self.reset()
+
+    @staticmethod
+    def features(lengths_m: FloatArray, reference_error_m: FloatArray,
+                 reference_distance_m: float) -> FloatArray:
+        """Signature per unit coefficient, (N, 6) [m^2]: (d_i - d_ref) eps of the first
+        reference bar (zero when the model has no reference bar)."""
+        if reference_error_m.shape[1] == 0:
+            return np.zeros_like(lengths_m)
+        return (lengths_m - reference_distance_m) * reference_error_m[:, :1]
+
+    def correction(self, ctx: TermContext) -> FloatArray:
+        return self.coefficient_per_m * self.features(ctx.lengths_m, ctx.reference_error_m,
+                                                      self.reference_distance_m)
+
+    @classmethod
+    def from_params(cls, params: dict[str, Any], source: str) -> ThermalInterpolationTerm:
+        return cls(_number(params, 'coefficient_per_m', source),
+                   _number(params, 'reference_distance_mm', source, positive=True) * M_PER_MM)
+
+    def params(self) -> dict[str, Any]:
+        return {'coefficient_per_m': self.coefficient_per_m,
+                'reference_distance_mm': self.reference_distance_m / M_PER_MM}
+
+
+@register_term
+class PlateScaleTerm(_Replayable):
+    """Error of the plates' expansion estimate (end of section 3.3).
+
+    The model scales both plates' joints by 1 + alpha_plate (dT + offset) with dT from the
+    reference bar. The true scale may differ by ds = s0 + k dT - alpha_plate lag d(dT)/dt: a
+    scale error at the thermal zero (s0), a CTE error (k), and plates lagging the bars by
+    ``lag_s``. Since d_i(s) = s |R a_i + t/s - b_i|, a scale error ds changes each length by
+    ds * n_i . (R a_i - b_i); the correction is minus that (pose-dependent: first-pass pose).
+    """
+
+    type_name = 'plate_scale'
+    needs_pose = True
+
+    def __init__(self, upper_m: FloatArray, lower_m: FloatArray, scale_offset: float,
+                 cte_per_c: float, lag_s: float, plate_cte_per_c: float,
+                 filter_s: float = DERIVATIVE_FILTER_S) -> None:
+        self.upper_m = np.asarray(upper_m, dtype=np.float64)
+        self.lower_m = np.asarray(lower_m, dtype=np.float64)
+        self.scale_offset = float(scale_offset)
+        self.cte_per_c = float(cte_per_c)
+        self.lag_s = float(lag_s)
+        self.plate_cte_per_c = float(plate_cte_per_c)
+        self.filter_s = float(filter_s)
+        self.reset()
+
+    @staticmethod
+    def features(upper_m: FloatArray, lower_m: FloatArray, poses: FloatArray,
+                 temp_change_c: FloatArray, times_s: FloatArray, filter_s: float,
+                 state: Any) -> tuple[FloatArray, FloatArray, FloatArray, Any]:
+        """Signatures per unit scale offset [m], per unit CTE error [m/°C] and per unit of
+        alpha_plate * lag [m / (°C/s)], each (N, 6), and the filter state."""
+        _, _, ddds = leg_geometry(upper_m, lower_m, poses)
+        low, state = ema(temp_change_c[:, None], times_s, filter_s, state)
+        rate = (temp_change_c[:, None] - low) / filter_s
+        return -ddds, -ddds * temp_change_c[:, None], ddds * rate, state
+
+    def correction(self, ctx: TermContext) -> FloatArray:
+        self._begin(ctx)
+        if ctx.poses is None:
+            return np.zeros_like(ctx.lengths_m)
+        s0, k, r, self._state = self.features(self.upper_m, self.lower_m, ctx.poses,
+                                              ctx.temp_change_c, ctx.times_s, self.filter_s,
+                                              self._state)
+        return self.scale_offset * s0 + self.cte_per_c * k + self.plate_cte_per_c * self.lag_s * r
+
+    @classmethod
+    def from_params(cls, params: dict[str, Any], source: str) -> PlateScaleTerm:
+        upper, lower = _geometry(params, source)
+        return cls(upper, lower, _number(params, 'scale_offset_ppm', source, 0.0) * PPM,
+                   _number(params, 'cte_ppm_per_c', source, 0.0) * PPM,
+                   _number(params, 'lag_s', source, 0.0),
+                   _number(params, 'plate_cte_ppm_per_c', source, 0.5) * PPM,
+                   _number(params, 'filter_s', source, DERIVATIVE_FILTER_S, positive=True))
+
+    def params(self) -> dict[str, Any]:
+        return {'scale_offset_ppm': self.scale_offset / PPM, 'cte_ppm_per_c': self.cte_per_c / PPM,
+                'lag_s': self.lag_s, 'plate_cte_ppm_per_c': self.plate_cte_per_c / PPM,
+                'filter_s': self.filter_s, **_geometry_params(self.upper_m, self.lower_m)}
+
+
+# -- kinematics --------------------------------------------------------------------------------
+@register_term
+class JointOffsetsTerm(ModelTerm):
+    """Errors of the 42 kinematic parameters (section 2.2): the 36 joint coordinates and the six
+    bar length offsets, applied as a length correction at the first-pass pose.
+
+    With true joints a_i + da_i, b_i + db_i and bar i reading dl_i long, the lengths the nominal
+    geometry needs at the true pose are the measured ones plus
+    c_i = -n_i . (R da_i - db_i) - dl_i (to first order; the second-order error is |da|^2 / d,
+    below a picometre for micrometre errors).
+    """
+
+    type_name = 'joint_offsets'
+    needs_pose = True
+
+    def __init__(self, upper_m: FloatArray, lower_m: FloatArray, upper_offset_m: FloatArray,
+                 lower_offset_m: FloatArray, length_offset_m: FloatArray) -> None:
+        self.upper_m = np.asarray(upper_m, dtype=np.float64)
+        self.lower_m = np.asarray(lower_m, dtype=np.float64)
+        self.upper_offset_m = np.asarray(upper_offset_m, dtype=np.float64).reshape(6, 3)
+        self.lower_offset_m = np.asarray(lower_offset_m, dtype=np.float64).reshape(6, 3)
+        self.length_offset_m = np.asarray(length_offset_m, dtype=np.float64).reshape(6)
+        self.reset()
+
+    @staticmethod
+    def features(upper_m: FloatArray, lower_m: FloatArray, poses: FloatArray
+                 ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Signatures: d c_i / d da_i (N, 6, 3), d c_i / d db_i (N, 6, 3), d c_i / d dl_i (N, 6).
+
+        dc_i/dda_i = -R^T n_i (in {U}); dc_i/ddb_i = n_i; dc_i/ddl_i = -1.
+        """
+        rot = rotation_matrix(poses[:, 3:])
+        _, units, _ = leg_geometry(upper_m, lower_m, poses)
+        upper = -np.einsum('nji,nkj->nki', rot, units)
+        return upper, units, -np.ones(units.shape[:2])
+
+    def correction(self, ctx: TermContext) -> FloatArray:
+        if ctx.poses is None:
+            return np.zeros_like(ctx.lengths_m)
+        up, low, length = self.features(self.upper_m, self.lower_m, ctx.poses)
+        return (np.einsum('nki,ki->nk', up, self.upper_offset_m)
+                + np.einsum('nki,ki->nk', low, self.lower_offset_m) + length * self.length_offset_m)
+
+    @classmethod
+    def from_params(cls, params: dict[str, Any], source: str) -> JointOffsetsTerm:
+        upper, lower = _geometry(params, source)
+        zeros = np.zeros((6, 3)).tolist()
+        return cls(upper, lower,
+                   _matrix(params, 'upper_um', source, (6, 3), zeros) * M_PER_UM,
+                   _matrix(params, 'lower_um', source, (6, 3), zeros) * M_PER_UM,
+                   _matrix(params, 'length_um', source, (6,), [0.0] * 6) * M_PER_UM)
+
+    def params(self) -> dict[str, Any]:
+        return {'upper_um': (self.upper_offset_m / M_PER_UM).tolist(),
+                'lower_um': (self.lower_offset_m / M_PER_UM).tolist(),
+                'length_um': (self.length_offset_m / M_PER_UM).tolist(),
+                **_geometry_params(self.upper_m, self.lower_m)}
+
+
+@register_term
+class GravitySagTerm(ModelTerm):
+    """Gravity sag with the bar's inclination.
+
+    A bar bends under its weight in proportion to the weight's component across its axis, so it
+    reads long by g_i (1 - n_z^2) (n_z: component of its axis along the vertical). The bars are
+    calibrated lying horizontally on the reference plate (n_z = 0), which puts g_i into the CDF,
+    so a bar on the MMD reads short by g_i n_z^2. Correction: +g_i n_z^2 (first-pass pose; the
+    vertical is ``vertical`` in {L}, default +z: the lower plate level).
+    """
+
+    type_name = 'gravity_sag'
+    needs_pose = True
+
+    def __init__(self, upper_m: FloatArray, lower_m: FloatArray, sag_m: FloatArray,
+                 vertical: FloatArray | None = None) -> None:
+        self.upper_m = np.asarray(upper_m, dtype=np.float64)
+        self.lower_m = np.asarray(lower_m, dtype=np.float64)
+        self.sag_m = np.asarray(sag_m, dtype=np.float64)
+        v = np.array([0.0, 0.0, 1.0]) if vertical is None else np.asarray(vertical, dtype=np.float64)
+        self.vertical = v / np.linalg.norm(v)
+        self.reset()
+
+    @staticmethod
+    def features(upper_m: FloatArray, lower_m: FloatArray, poses: FloatArray,
+                 vertical: FloatArray) -> FloatArray:
+        """Signature per unit sag, (N, 6): n_z,i^2."""
+        _, units, _ = leg_geometry(upper_m, lower_m, poses)
+        return (units @ vertical) ** 2
+
+    def correction(self, ctx: TermContext) -> FloatArray:
+        if ctx.poses is None:
+            return np.zeros_like(ctx.lengths_m)
+        return self.sag_m * self.features(self.upper_m, self.lower_m, ctx.poses, self.vertical)
+
+    @classmethod
+    def from_params(cls, params: dict[str, Any], source: str) -> GravitySagTerm:
+        upper, lower = _geometry(params, source)
+        vertical = _matrix(params, 'vertical', source, (3,), [0.0, 0.0, 1.0])
+        if np.linalg.norm(vertical) == 0:
+            raise ConfigError(source, 'vertical', 'must not be the zero vector')
+        return cls(upper, lower, six_values(params, 'sag_um', source) * M_PER_UM, vertical)
+
+    def params(self) -> dict[str, Any]:
+        return {'sag_um': (self.sag_m / M_PER_UM).tolist(), 'vertical': self.vertical.tolist(),
+                **_geometry_params(self.upper_m, self.lower_m)}
+
+
+# -- scale -------------------------------------------------------------------------------------
+@register_term
+class ScaleNonlinearityTerm(ModelTerm):
+    """Smooth scale error between the CDF points (section 3.2: "the calibration point is free of
+    geometric error and the overall accuracy depends on the number of the calibration points").
+
+    A bar's scale error e_i(x) over its calibrated span is written as a short Fourier series,
+    e_i(x) = sum_k a_ik sin(2 pi k xi) + b_ik cos(2 pi k xi), xi = (x - x_1)/(x_n - x_1) with
+    x = f_i(q) the CDF length. The CDF (Eq. 10) removes e_i at its points and, between them,
+    its linear interpolant, so what is left is e_i minus its piecewise-linear interpolant through
+    the knots; that vanishes at every calibration point. Correction: minus the remainder.
+    """
+
+    type_name = 'scale_nonlinearity'
+
+    def __init__(self, knots_m: FloatArray, sin_m: FloatArray, cos_m: FloatArray) -> None:
+        self.knots_m = np.asarray(knots_m, dtype=np.float64)
+        self.sin_m = np.asarray(sin_m, dtype=np.float64)
+        self.cos_m = np.asarray(cos_m, dtype=np.float64)
+        self.harmonics = self.sin_m.shape[1]
+        self.reset()
+
+    @staticmethod
+    def basis(x_m: FloatArray, knots_m: FloatArray, harmonics: int) -> FloatArray:
+        """Signature per unit coefficient, (N, 6, 2K): columns sin k = 1..K then cos k = 1..K,
+        each minus its piecewise-linear interpolant through the bar's knots, negated.
+
+        x_m : ndarray, shape (N, 6) — CDF lengths f_i(q_i) [m]
+        knots_m : ndarray, shape (6, n) — each bar's calibration distances, increasing [m]
+        """
+        n, out = x_m.shape[0], np.empty(x_m.shape + (2 * harmonics,))
+        for i in range(x_m.shape[1]):
+            kn = knots_m[i]
+            span = kn[-1] - kn[0]
+            xi = (x_m[:, i] - kn[0]) / span
+            xk = (kn - kn[0]) / span
+            seg = np.clip(np.searchsorted(kn, x_m[:, i], side='right') - 1, 0, kn.size - 2)
+            w = (x_m[:, i] - kn[seg]) / (kn[seg + 1] - kn[seg])
+            for k in range(1, harmonics + 1):
+                for j, fn in enumerate((np.sin, np.cos)):
+                    at_knots = fn(2 * np.pi * k * xk)
+                    interp = at_knots[seg] + w * (at_knots[seg + 1] - at_knots[seg])
+                    out[:, i, (k - 1) + j * harmonics] = -(fn(2 * np.pi * k * xi) - interp)
+        return out if n else np.zeros((0, 6, 2 * harmonics))
+
+    def correction(self, ctx: TermContext) -> FloatArray:
+        b = self.basis(ctx.cdf_lengths_m, self.knots_m, self.harmonics)
+        coef = np.concatenate([self.sin_m, self.cos_m], axis=1)  # (6, 2K)
+        return np.einsum('nkj,kj->nk', b, coef)
+
+    @classmethod
+    def from_params(cls, params: dict[str, Any], source: str) -> ScaleNonlinearityTerm:
+        knots = np.array(params.get('knots_mm'), dtype=np.float64) if params.get('knots_mm') is not None else None
+        if knots is None or knots.ndim != 2 or knots.shape[0] != 6 or knots.shape[1] < 2 \
+                or not np.all(np.diff(knots, axis=1) > 0):
+            raise ConfigError(source, 'knots_mm', 'must be six increasing lists of calibration '
+                              f'distances (one per bar), got {params.get("knots_mm")!r}')
+        sin = np.array(params.get('sin_um'), dtype=np.float64)
+        cos = np.array(params.get('cos_um'), dtype=np.float64)
+        if sin.ndim != 2 or sin.shape[0] != 6 or cos.shape != sin.shape or not (
+                np.all(np.isfinite(sin)) and np.all(np.isfinite(cos))):
+            raise ConfigError(source, 'sin_um', 'sin_um and cos_um must be six equal-length lists '
+                              'of harmonic amplitudes')
+        return cls(knots * M_PER_MM, sin * M_PER_UM, cos * M_PER_UM)
+
+    def params(self) -> dict[str, Any]:
+        return {'knots_mm': (self.knots_m / M_PER_MM).tolist(),
+                'sin_um': (self.sin_m / M_PER_UM).tolist(), 'cos_um': (self.cos_m / M_PER_UM).tolist()}
+
+
+@register_term
+class CdfOffsetsTerm(ModelTerm):
+    """Errors of the calibration points themselves (section 3.2): a bar seated on a reference
+    pair with an offset (seating repeatability, or the friction state its guide was left in when
+    it was put down) makes its CDF point (q_i^j, d_r^j) wrong by c_ij, and Eq. (10) carries that
+    error linearly between the points. Correction: minus the piecewise-linear interpolant of the
+    c_ij through the bar's knots at its CDF length (extrapolated with the end segments, as the
+    CDF is).
+    """
+
+    type_name = 'cdf_offsets'
+
+    def __init__(self, knots_m: FloatArray, offsets_m: FloatArray) -> None:
+        self.knots_m = np.asarray(knots_m, dtype=np.float64)
+        self.offsets_m = np.asarray(offsets_m, dtype=np.float64)
+        self.reset()
+
+    @staticmethod
+    def basis(x_m: FloatArray, knots_m: FloatArray) -> FloatArray:
+        """Signature per unit knot error, (N, 6, n): minus the hat function of knot j at bar i's
+        CDF length (its weight in the piecewise-linear interpolation).
+
+        x_m : ndarray, shape (N, 6) — CDF lengths [m]
+        knots_m : ndarray, shape (6, n) — each bar's calibration distances, increasing [m]
+        """
+        n_k = knots_m.shape[1]
+        out = np.zeros(x_m.shape + (n_k,))
+        rows = np.arange(x_m.shape[0])
+        for i in range(x_m.shape[1]):
+            kn = knots_m[i]
+            seg = np.clip(np.searchsorted(kn, x_m[:, i], side='right') - 1, 0, n_k - 2)
+            w = (x_m[:, i] - kn[seg]) / (kn[seg + 1] - kn[seg])
+            out[rows, i, seg] = -(1.0 - w)
+            out[rows, i, seg + 1] = -w
+        return out
+
+    def correction(self, ctx: TermContext) -> FloatArray:
+        return np.einsum('nkj,kj->nk', self.basis(ctx.cdf_lengths_m, self.knots_m), self.offsets_m)
+
+    @classmethod
+    def from_params(cls, params: dict[str, Any], source: str) -> CdfOffsetsTerm:
+        knots = np.array(params.get('knots_mm'), dtype=np.float64) if params.get('knots_mm') is not None else None
+        if knots is None or knots.ndim != 2 or knots.shape[0] != 6 or knots.shape[1] < 2 \
+                or not np.all(np.diff(knots, axis=1) > 0):
+            raise ConfigError(source, 'knots_mm', 'must be six increasing lists of calibration '
+                              f'distances (one per bar), got {params.get("knots_mm")!r}')
+        return cls(knots * M_PER_MM, _matrix(params, 'offsets_um', source, knots.shape) * M_PER_UM)
+
+    def params(self) -> dict[str, Any]:
+        return {'knots_mm': (self.knots_m / M_PER_MM).tolist(),
+                'offsets_um': (self.offsets_m / M_PER_UM).tolist()}
+
+
+@register_term
+class CyclicErrorTerm(ModelTerm):
+    """Encoder sub-division (cyclic) error: the interpolation of the incremental scale's sine
+    signals errs periodically with the signal period. Bar i reads a_i sin(phi) + b_i cos(phi)
+    too long, phi = 2 pi (q_i - q0_i) resolution / period, counted from ``count_origin`` (the
+    bar's calibration count on the first reference pair, so the phase refers to the scale, not
+    to the power-on count). Correction: minus that. Re-fit after a new calibration.
+    """
+
+    type_name = 'cyclic_error'
+
+    def __init__(self, period_m: float, resolution_m: float, channels: list[int],
+                 count_origin: FloatArray, sin_m: FloatArray, cos_m: FloatArray) -> None:
+        self.period_m = float(period_m)
+        self.resolution_m = float(resolution_m)
+        self.channels = [int(c) for c in channels]
+        self.count_origin = np.asarray(count_origin, dtype=np.float64)
+        self.sin_m = np.asarray(sin_m, dtype=np.float64)
+        self.cos_m = np.asarray(cos_m, dtype=np.float64)
+        self.reset()
+
+    @staticmethod
+    def features(counts: FloatArray, channels: list[int], count_origin: FloatArray,
+                 resolution_m: float, period_m: float) -> tuple[FloatArray, FloatArray]:
+        """Signatures per unit sine and cosine amplitude, each (N, 6)."""
+        phase = 2 * np.pi * ((counts[:, channels] - count_origin) * (resolution_m / period_m))
+        return -np.sin(phase), -np.cos(phase)
+
+    def correction(self, ctx: TermContext) -> FloatArray:
+        s, c = self.features(ctx.counts, self.channels, self.count_origin, self.resolution_m,
+                             self.period_m)
+        return self.sin_m * s + self.cos_m * c
+
+    @classmethod
+    def from_params(cls, params: dict[str, Any], source: str) -> CyclicErrorTerm:
+        channels = params.get('channels')
+        if not (isinstance(channels, list) and len(channels) == 6
+                and all(isinstance(c, int) and 0 <= c < 64 for c in channels)):
+            raise ConfigError(source, 'channels', f'must list the terminal channels of bars 1..6, got {channels!r}')
+        return cls(_number(params, 'period_um', source, positive=True) * M_PER_UM,
+                   _number(params, 'resolution_nm', source, positive=True) * M_PER_NM, channels,
+                   six_values(params, 'count_origin', source),
+                   six_values(params, 'sin_nm', source) * M_PER_NM,
+                   six_values(params, 'cos_nm', source) * M_PER_NM)
+
+    def params(self) -> dict[str, Any]:
+        return {'period_um': self.period_m / M_PER_UM, 'resolution_nm': self.resolution_m / M_PER_NM,
+                'channels': self.channels, 'count_origin': self.count_origin.tolist(),
+                'sin_nm': (self.sin_m / M_PER_NM).tolist(), 'cos_nm': (self.cos_m / M_PER_NM).tolist()}
+
+
+# -- timing ------------------------------------------------------------------------------------
+@register_term
+class SamplingSkewTerm(_Replayable):
+    """Per-channel timing skew: channel i latches its count tau_i after the sample time, so a
+    moving bar reads d_i(t + tau_i) ~ d_i + tau_i v_i. Correction: -tau_i v_i, with v_i the
+    backward difference of the CDF lengths (causal, so the stream gives the batch result; zero
+    across gaps longer than ``max_gap_s``).
+    """
+
+    type_name = 'sampling_skew'
+
+    def __init__(self, skew_s: FloatArray, max_gap_s: float = MAX_GAP_S) -> None:
+        self.skew_s = np.asarray(skew_s, dtype=np.float64)
+        self.max_gap_s = float(max_gap_s)
+        self.reset()
+
+    @staticmethod
+    def features(cdf_lengths_m: FloatArray, times_s: FloatArray, max_gap_s: float,
+                 state: Any) -> tuple[FloatArray, Any]:
+        """Signature per second of skew, (N, 6) [m/s]: minus the bar velocities."""
+        n = cdf_lengths_m.shape[0]
+        if n == 0:
+            return np.zeros((0, 6)), state
+        if state is None:
+            prev_d, prev_t = cdf_lengths_m[:1], times_s[:1]
+        else:
+            prev_d, prev_t = state[0][None], np.array([state[1]])
+        d = np.concatenate([prev_d, cdf_lengths_m])
+        t = np.concatenate([prev_t, times_s])
+        dt = np.diff(t)
+        ok = (dt > 0) & (dt <= max_gap_s)
+        vel = np.where(ok[:, None], np.diff(d, axis=0) / np.where(ok, dt, 1.0)[:, None], 0.0)
+        return -vel, (cdf_lengths_m[-1].copy(), float(times_s[-1]))
+
+    def correction(self, ctx: TermContext) -> FloatArray:
+        self._begin(ctx)
+        v, self._state = self.features(ctx.cdf_lengths_m, ctx.times_s, self.max_gap_s, self._state)
+        return self.skew_s * v
+
+    @classmethod
+    def from_params(cls, params: dict[str, Any], source: str) -> SamplingSkewTerm:
+        return cls(six_values(params, 'skew_us', source) * 1e-6,
+                   _number(params, 'max_gap_s', source, MAX_GAP_S, positive=True))
+
+    def params(self) -> dict[str, Any]:
+        return {'skew_us': (self.skew_s / 1e-6).tolist(), 'max_gap_s': self.max_gap_s}
+
+
+@register_term
+class DriftTerm(_Replayable):
+    """Slow drift of each bar's reading since its calibration: over a run it is an offset at the
+    run's first sample plus a rate, c_i + v_i (t - t_first). Correction: minus that. The offset
+    belongs to the run analysed (it grows with the time since calibration); the rate carries
+    over.
+    """
+
+    type_name = 'drift'
+
+    def __init__(self, offset_m: FloatArray, rate_m_per_s: FloatArray) -> None:
+        self.offset_m = np.asarray(offset_m, dtype=np.float64)
+        self.rate_m_per_s = np.asarray(rate_m_per_s, dtype=np.float64)
+        self.reset()
+
+    @staticmethod
+    def features(times_s: FloatArray, state: Any) -> tuple[FloatArray, FloatArray, Any]:
+        """Signatures per unit offset and per unit rate, (N, 6) each [1, s]; state: t_first."""
+        if times_s.shape[0] == 0:
+            return np.zeros((0, 6)), np.zeros((0, 6)), state
+        t0 = float(times_s[0]) if state is None else state
+        elapsed = np.repeat((times_s - t0)[:, None], 6, axis=1)
+        return -np.ones_like(elapsed), -elapsed, t0
+
+    def correction(self, ctx: TermContext) -> FloatArray:
+        self._begin(ctx)
+        c, r, self._state = self.features(ctx.times_s, self._state)
+        return self.offset_m * c + self.rate_m_per_s * r
+
+    @classmethod
+    def from_params(cls, params: dict[str, Any], source: str) -> DriftTerm:
+        return cls(six_values({'offset_um': params.get('offset_um', 0.0)}, 'offset_um', source) * M_PER_UM,
+                   six_values(params, 'rate_um_per_h', source) * M_PER_UM / 3600.0)
+
+    def params(self) -> dict[str, Any]:
+        return {'offset_um': (self.offset_m / M_PER_UM).tolist(),
+                'rate_um_per_h': (self.rate_m_per_s * 3600.0 / M_PER_UM).tolist()}
