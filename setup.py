@@ -8,6 +8,13 @@ PACKAGE = 'mmd_ros'
 # Console scripts: the ``mmd`` offline tool and one executable per ROS node.
 CONSOLE_SCRIPTS = [
     'mmd = mmd_ros.cli.main:main',
+    'encoder_node = mmd_ros.nodes.encoder_node:main',
+    'compensation_node = mmd_ros.nodes.compensation_node:main',
+    'fk_node = mmd_ros.nodes.fk_node:main',
+    'calibration_node = mmd_ros.nodes.calibration_node:main',
+    'recorder_node = mmd_ros.nodes.recorder_node:main',
+    'replay_node = mmd_ros.nodes.replay_node:main',
+    'pose_node = mmd_ros.nodes.pose_node:main',
 ]
 
 setup(

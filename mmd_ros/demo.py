@@ -6,6 +6,9 @@
 2. ``mmd process`` turns the counts into poses and prints the error against the laser.
 3. ``mmd analyze`` closes the loop: the residual against the laser, the effect the model lacks,
    the extended model, and the error before and after on held-out data.
+4. Live: ``pose_node`` on the simulated terminal; the guided calibration through
+   ``/mmd/calibrate_bar``; 20 s of the live pose stream while it is recorded; the recorded log
+   processed and compared with the twin's reference.
 """
 
 from __future__ import annotations
@@ -71,11 +74,20 @@ def simulate_and_process(out_dir: Path) -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument('--out', default='out/demo', help='folder for the logs and reports')
+    parser.add_argument('--no-live', action='store_true', dest='no_live',
+                        help='skip the live ROS 2 step (pose_node, calibration service, recording)')
+    parser.add_argument('--live-seconds', type=float, default=20.0, dest='live_seconds',
+                        help='length of the live pose stream [s] (default 20)')
     args = parser.parse_args(argv)
     out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)
     simulate_and_process(out_dir)
     close_the_loop(out_dir / 'x_axis.mcap', out_dir / 'analysis')
+    if not args.no_live:
+        heading('4. live: pose_node on the simulated terminal, through ROS 2')
+        from mmd_ros.nodes.live_demo import live_step
+        if live_step(out_dir, stream_s=args.live_seconds, heading=heading):
+            return 1
     return 0
 
 

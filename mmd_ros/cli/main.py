@@ -19,6 +19,7 @@ __all__ = ['build_parser', 'main']
 COMMAND_MODULES = [
     'mmd_ros.cli.cmd_simulate',
     'mmd_ros.cli.cmd_process',
+    'mmd_ros.cli.cmd_replay',
     'mmd_ros.cli.cmd_error_budget',
     'mmd_ros.cli.cmd_workspace',
     'mmd_ros.cli.cmd_analyze',

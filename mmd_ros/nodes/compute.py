@@ -1,0 +1,289 @@
+"""Compensation and forward kinematics of a sample stream, one transfer at a time (ROS-free).
+
+:class:`Compensator` (``compensation_node``, ``pose_node``) turns raw counts into compensated
+bar lengths with :meth:`Pipeline.compensate` (CDF Eq. 10, thermal Eqs. 11–13, model terms); for
+model terms that need a pose it solves a first-pass pose as :meth:`Pipeline.process` does.
+:class:`Kinematics` (``fk_node``, ``pose_node``) solves the pose of every sample whose six bars
+are within their calibrated span, warm-started from the previous poses, with the propagated
+covariance. Both keep the figures their diagnostics report.
+
+A bar out of its calibrated span gives NaN in the published lengths (the extrapolated value is
+not a measurement) and no pose; live, such samples are not solved.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mmd_ros.core.calibration import Calibration
+from mmd_ros.core.device import DeviceDescription
+from mmd_ros.core.errors import MmdError
+from mmd_ros.core.kinematics import ForwardKinematics
+from mmd_ros.core.model import Model
+from mmd_ros.core.pipeline import Pipeline
+
+__all__ = ['CompensationOut', 'Compensator', 'Kinematics', 'KinematicsOut', 'calibration_created_ns']
+
+FloatArray = NDArray[np.float64]
+
+
+def calibration_created_ns(calibration: Calibration) -> int | None:
+    """When the calibration was made [ns since the epoch], or None when it does not say."""
+    try:
+        when = datetime.fromisoformat(calibration.created)
+    except (TypeError, ValueError):
+        return None
+    if when.tzinfo is None:
+        when = when.replace(tzinfo=timezone.utc)
+    return int(when.timestamp() * 1e9)
+
+
+@dataclass(frozen=True)
+class CompensationOut:
+    """Compensated lengths of N samples.
+
+    lengths_m : (N, 6) — d_i* [m], NaN where the bar is out of its calibrated span
+    out_of_range : (N, 6)
+    reference_error_m : (N, k) — Eq. (11) per reference bar [m]
+    temp_change_c : (N,) — temperature change since the thermal zero [°C]
+    plate_scale : (N,) — the plates' expansion factor applied to the joints
+    """
+
+    lengths_m: FloatArray
+    out_of_range: NDArray[np.bool_]
+    reference_error_m: FloatArray
+    temp_change_c: FloatArray
+    plate_scale: FloatArray
+
+    def thermal_values(self) -> FloatArray:
+        """Values of /mmd/thermal: reference errors [m], temp_change [°C], plate_scale [1]."""
+        return np.column_stack([self.reference_error_m, self.temp_change_c, self.plate_scale])
+
+
+@dataclass
+class _CompStats:
+    samples: int = 0
+    out_of_range: NDArray[np.int64] = field(default_factory=lambda: np.zeros(6, np.int64))
+    period_out: NDArray[np.int64] = field(default_factory=lambda: np.zeros(6, np.int64))
+    last_ref_error_m: FloatArray = field(default_factory=lambda: np.zeros(0))
+    last_temp_change_c: float = math.nan
+    held: int = 0
+
+
+class Compensator:
+    """Counts → compensated lengths with the current calibration and model (thread-safe swap).
+
+    device, model : the device description and the model in use
+    """
+
+    def __init__(self, device: DeviceDescription, model: Model) -> None:
+        self.device = device
+        self.model = model
+        self.needs_pose = any(getattr(t, 'needs_pose', False) for t in model.terms)
+        self.reference_names = [c.name for c in device.reference_channels]
+        self._lock = threading.Lock()
+        self._pipeline: Pipeline | None = None
+        self._fk: ForwardKinematics | None = None
+        self._t0: int | None = None
+        self.calibration: Calibration | None = None
+        self.calibration_source = ''
+        self.problem = 'no calibration yet'
+        self.hold_from_ns: int | None = None
+        self.stats = _CompStats()
+
+    def set_calibration(self, calibration: Calibration | None, source: str) -> str | None:
+        """Use ``calibration`` from now on. Returns why it cannot be used (and keeps computing
+        nothing), or None. An invalid calibration (counter reset) stops the output."""
+        problem = None
+        pipeline = None
+        if calibration is None:
+            problem = 'no calibration'
+        elif not calibration.valid:
+            pending = calibration.quality.get('pending_re_reference') if calibration.quality else None
+            problem = ('calibration invalid: the terminal\'s counters were reset; re-reference '
+                       + (', '.join(pending) if pending else 'the bars') + ' (calibrate_bar)')
+        elif self.hold_from_ns is not None and calibration_created_ns(calibration) is not None and \
+                calibration_created_ns(calibration) < self.hold_from_ns - 1_000_000_000:
+            problem = ('the terminal\'s counters were reset after this calibration was made: '
+                       'waiting for the bars to be re-referenced (calibrate_bar)')
+        else:
+            try:
+                pipeline = Pipeline(self.device, calibration, self.model)
+            except MmdError as exc:
+                problem = f'calibration from {source} cannot be used: {exc}'
+        with self._lock:
+            self.calibration = calibration
+            self.calibration_source = source
+            self.problem = problem
+            self._pipeline = pipeline
+            self._fk = ForwardKinematics(self.device.geometry) if pipeline is not None else None
+            self._t0 = None
+            if pipeline is not None:
+                self.hold_from_ns = None
+        return problem
+
+    def hold(self, from_stamp_ns: int) -> None:
+        """A counter reset happened at ``from_stamp_ns``: compute nothing from there until a
+        calibration made after it arrives."""
+        cal = self.calibration
+        if cal is not None and cal.valid and calibration_created_ns(cal) is not None and \
+                calibration_created_ns(cal) >= from_stamp_ns and self._pipeline is not None:
+            return  # an old reset event: this calibration was made (re-referenced) after it
+        with self._lock:
+            self.hold_from_ns = int(from_stamp_ns)
+            self._pipeline = None
+            self.problem = ('the terminal\'s counters were reset: waiting for the bars to be '
+                            're-referenced (calibrate_bar)')
+
+    @property
+    def ready(self) -> bool:
+        return self._pipeline is not None
+
+    def process(self, stamps_ns: NDArray[np.int64], counts: FloatArray) -> CompensationOut | None:
+        """Lengths of the samples of one transfer, or None when there is no usable calibration."""
+        with self._lock:
+            pipeline, fk = self._pipeline, self._fk
+            if pipeline is None:
+                self.stats.held += len(stamps_ns)
+                return None
+            if self._t0 is None:
+                self._t0 = int(stamps_ns[0])
+            t0 = self._t0
+        times = (np.asarray(stamps_ns, dtype=np.int64) - t0).astype(np.float64) * 1e-9
+        comp = pipeline.compensate(times, counts)
+        if self.needs_pose and fk is not None:
+            first = _solve(fk, comp.lengths_m, comp.thermal.plate_scale)[0]
+            comp = pipeline.add_pose_terms(comp, times, counts, first)
+        out = comp.out_of_range
+        lengths = np.where(out, np.nan, comp.lengths_m)
+        result = CompensationOut(lengths, out, comp.thermal.reference_error_m,
+                                 comp.thermal.temp_change_c, comp.thermal.plate_scale)
+        st = self.stats
+        st.samples += len(stamps_ns)
+        bad = out.sum(axis=0)
+        st.out_of_range += bad
+        st.period_out += bad
+        if result.reference_error_m.size:
+            st.last_ref_error_m = result.reference_error_m[-1].copy()
+        st.last_temp_change_c = float(result.temp_change_c[-1])
+        return result
+
+
+@dataclass(frozen=True)
+class KinematicsOut:
+    """Poses of N samples: poses (N, 6) [m, rad]; valid (N,): published as a measurement;
+    converged, iterations, residual_m (NaN when not solved); covariance (M, 6, 6) of the
+    valid samples, or None."""
+
+    poses: FloatArray
+    valid: NDArray[np.bool_]
+    converged: NDArray[np.bool_]
+    iterations: NDArray[np.int64]
+    residual_m: FloatArray
+    covariance: FloatArray | None
+
+    def status_values(self) -> FloatArray:
+        """Values of /mmd/fk_status: converged, valid, iterations, residual [m], condition."""
+        n = self.valid.size
+        return np.column_stack([self.converged, self.valid, self.iterations, self.residual_m,
+                                np.full(n, np.nan)]).astype(np.float64)
+
+
+def _solve(fk: ForwardKinematics, lengths: FloatArray, scale: FloatArray
+           ) -> tuple[FloatArray, NDArray[np.bool_], NDArray[np.int64], FloatArray, FloatArray]:
+    """Streaming FK of N samples as :meth:`Pipeline.process_sample` does it: FK on d / s with the
+    nominal geometry, translation times s. Samples with a NaN length are not solved."""
+    n = lengths.shape[0]
+    poses = np.full((n, 6), np.nan)
+    converged = np.zeros(n, dtype=bool)
+    iterations = np.zeros(n, dtype=np.int64)
+    residual = np.full(n, np.nan)
+    jacobians = np.full((n, 6, 6), np.nan)
+    rows = lengths.tolist()
+    scales = scale.tolist()
+    solve = fk.solve
+    isfinite = math.isfinite
+    for i in range(n):
+        d = rows[i]
+        if not all(isfinite(v) for v in d):
+            continue
+        s = scales[i]
+        sol = solve([v / s for v in d])
+        pose = sol.pose
+        poses[i] = pose
+        converged[i] = sol.converged
+        iterations[i] = sol.iterations
+        residual[i] = sol.residual_m
+        jacobians[i] = sol.jacobian
+    poses[:, :3] *= scale[:, None]
+    residual[~np.isfinite(residual)] = np.nan
+    return poses, converged, iterations, residual, jacobians
+
+
+@dataclass
+class _KinStats:
+    samples: int = 0
+    poses: int = 0
+    not_converged: int = 0
+    out_of_range: int = 0
+    period_samples: int = 0
+    period_not_converged: int = 0
+    period_out_of_range: int = 0
+    period_iterations: list[int] = field(default_factory=list)
+    period_residual_max_m: float = 0.0
+    period_t0: float = field(default_factory=time.monotonic)
+
+
+class Kinematics:
+    """Forward kinematics of compensated lengths (see the module docstring).
+
+    sigma_m : 1-sigma bar-length uncertainty for the covariance [m] (model ``length_sigma_um``)
+    """
+
+    def __init__(self, device: DeviceDescription, sigma_m: float, *,
+                 with_covariance: bool = True) -> None:
+        self.fk = ForwardKinematics(device.geometry)
+        self.sigma_m = float(sigma_m)
+        self.with_covariance = with_covariance
+        self.stats = _KinStats()
+
+    def covariance(self, jacobians: FloatArray, plate_scale: FloatArray) -> FloatArray:
+        """sigma^2 J^-1 J^-T of M solutions, translation rows and columns times the plates'
+        scale (as :class:`Pipeline` does), shape (M, 6, 6) [m, rad]^2."""
+        jinv = np.linalg.inv(jacobians)
+        cov = self.sigma_m ** 2 * (jinv @ np.swapaxes(jinv, -1, -2))
+        s = np.ones((jacobians.shape[0], 6))
+        s[:, :3] = plate_scale[:, None]
+        return cov * s[:, :, None] * s[:, None, :]
+
+    def solve(self, lengths_m: FloatArray, plate_scale: FloatArray) -> KinematicsOut:
+        poses, converged, iterations, residual, jac = _solve(self.fk, lengths_m, plate_scale)
+        in_range = np.isfinite(lengths_m).all(axis=1)
+        valid = converged & in_range
+        cov = None
+        if self.with_covariance and valid.any():
+            cov = self.covariance(jac[valid], plate_scale[valid])
+        st = self.stats
+        n = len(valid)
+        st.samples += n
+        st.period_samples += n
+        st.poses += int(valid.sum())
+        nc = int((in_range & ~converged).sum())
+        st.not_converged += nc
+        st.period_not_converged += nc
+        oor = int((~in_range).sum())
+        st.out_of_range += oor
+        st.period_out_of_range += oor
+        if in_range.any():
+            st.period_iterations.extend(iterations[in_range].tolist())
+            r = residual[in_range]
+            if np.isfinite(r).any():
+                st.period_residual_max_m = max(st.period_residual_max_m, float(np.nanmax(r)))
+        return KinematicsOut(poses, valid, converged, iterations, residual, cov)

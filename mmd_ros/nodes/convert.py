@@ -1,0 +1,154 @@
+"""Messages ↔ arrays, for every topic of the mmd nodes (units in ``msg_docs/nodes.md``).
+
+Per-sample topics are built for a whole transfer at once as CDR bytes, with the fixed layouts
+of :mod:`mmd_ros.logs.cdr` (one numpy pass per topic instead of one Python message object per
+sample); the bytes are published as they are (``Publisher.publish(bytes)``) and written as they
+are into logs, so a log holds exactly what was published. Subscribers get ordinary message
+objects, turned into arrays here.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from builtin_interfaces.msg import Time
+from numpy.typing import NDArray
+from std_msgs.msg import Header, String
+
+from mmd_ros.core.rotation import angles_to_quaternion, quaternion_to_angles
+from mmd_ros.logs.cdr import JointStateLayout, PoseLayout, encode_string
+from mmd_ros.logs.layout import BAR_NAMES, FRAME_LOWER, REFERENCE_POSE_NAMES
+
+__all__ = [
+    'DIAGNOSTIC_ARRAY', 'FK_STATUS_NAMES', 'HEADER', 'JS', 'POSE', 'POSE_COV', 'RawBatch', 'Rows',
+    'STRING', 'from_time', 'header', 'joint_state_values', 'pose_from_msg', 'string_bytes',
+    'string_msg', 'thermal_names', 'to_time',
+]
+
+JS = 'sensor_msgs/msg/JointState'
+POSE = 'geometry_msgs/msg/PoseStamped'
+POSE_COV = 'geometry_msgs/msg/PoseWithCovarianceStamped'
+STRING = 'std_msgs/msg/String'
+HEADER = 'std_msgs/msg/Header'
+DIAGNOSTIC_ARRAY = 'diagnostic_msgs/msg/DiagnosticArray'
+#: Names of /mmd/fk_status (as ``mmd process`` writes it).
+FK_STATUS_NAMES = ['converged', 'valid', 'iterations', 'residual', 'condition']
+
+
+def thermal_names(reference_channels: list[str]) -> list[str]:
+    """Names of /mmd/thermal: Eq. (11) error per reference bar [m], the temperature change
+    since the thermal zero [°C], the plates' scale factor (1 + alpha dT) [1]."""
+    return [f'{name}_error' for name in reference_channels] + ['temp_change', 'plate_scale']
+
+
+def to_time(stamp_ns: int) -> Time:
+    sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
+    return Time(sec=sec, nanosec=nsec)
+
+
+def from_time(t: Time) -> int:
+    return int(t.sec) * 1_000_000_000 + int(t.nanosec)
+
+
+def header(stamp_ns: int, frame_id: str = '') -> Header:
+    return Header(stamp=to_time(stamp_ns), frame_id=frame_id)
+
+
+def string_msg(text: str) -> String:
+    return String(data=text)
+
+
+def string_bytes(text: str) -> bytes:
+    """A std_msgs/msg/String as CDR bytes."""
+    return encode_string(text)
+
+
+def joint_state_values(msg, names: list[str] | None = None) -> NDArray[np.float64]:
+    """``position`` of a JointState as an array, in the order of ``names`` (checked)."""
+    values = np.asarray(msg.position, dtype=np.float64)
+    if names is not None and list(msg.name) != names:
+        index = {n: k for k, n in enumerate(msg.name)}
+        missing = [n for n in names if n not in index]
+        if missing:
+            raise ValueError(f'joint state lacks {missing} (has {list(msg.name)})')
+        values = values[[index[n] for n in names]]
+    return values
+
+
+def pose_from_msg(pose) -> NDArray[np.float64]:
+    """[x, y, z, roll, pitch, yaw] [m, rad] (Eq. 3) of a geometry_msgs/Pose."""
+    q = [pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w]
+    ang = quaternion_to_angles(np.array(q))
+    return np.array([pose.position.x, pose.position.y, pose.position.z, *ang])
+
+
+class Rows:
+    """CDR bytes of N samples of each per-sample topic (fixed layouts, built once).
+
+    channel_names : the terminal's 8 channel names (/mmd/raw_counts)
+    reference_channels : names of the reference-bar channels (/mmd/thermal)
+    """
+
+    def __init__(self, channel_names: list[str], reference_channels: list[str]) -> None:
+        self.raw = JointStateLayout(list(channel_names))
+        self.lengths = JointStateLayout(list(BAR_NAMES))
+        self.thermal_names = thermal_names(reference_channels)
+        self.thermal = JointStateLayout(self.thermal_names)
+        self.fk_status = JointStateLayout(FK_STATUS_NAMES)
+        self.reference = JointStateLayout(REFERENCE_POSE_NAMES, FRAME_LOWER)
+        self.pose = PoseLayout(FRAME_LOWER)
+        self.pose_cov = PoseLayout(FRAME_LOWER, covariance=True)
+
+    def poses(self, stamps_ns: NDArray[np.int64], poses: NDArray[np.float64],
+              covariance: NDArray[np.float64] | None = None) -> NDArray[np.uint8]:
+        """PoseStamped (or PoseWithCovarianceStamped with ``covariance``) rows, frame mmd_lower."""
+        p = np.asarray(poses, dtype=np.float64)
+        parts = [p[:, :3], angles_to_quaternion(p[:, 3:])]
+        if covariance is None:
+            return self.pose.encode(stamps_ns, np.concatenate(parts, axis=1))
+        parts.append(np.asarray(covariance, dtype=np.float64).reshape(len(p), 36))
+        return self.pose_cov.encode(stamps_ns, np.concatenate(parts, axis=1))
+
+
+class RawBatch:
+    """Serialised messages of a fixed-layout JointState topic, collected from a ``raw=True``
+    subscription and decoded together (one numpy pass instead of one Python message object per
+    sample). Messages that do not match the layout (another publisher's padding, other names)
+    are decoded one by one with rclpy and reordered by name.
+
+    names : the joint names expected, in order; frame_id : their frame
+    """
+
+    def __init__(self, names: list[str], frame_id: str = '') -> None:
+        self.names = list(names)
+        self.layout = JointStateLayout(self.names, frame_id)
+        self.items: list[bytes] = []
+        self.foreign = 0
+
+    def add(self, payload: bytes) -> int:
+        self.items.append(payload)
+        return len(self.items)
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def take(self) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+        """Stamps (N,) [ns] and values (N, k) of the collected messages, in arrival order."""
+        items, self.items = self.items, []
+        if not items:
+            return np.zeros(0, np.int64), np.zeros((0, len(self.names)))
+        size = self.layout.size
+        if all(len(p) == size for p in items):
+            rows = np.frombuffer(b''.join(items), dtype=np.uint8).reshape(len(items), size)
+            decoded = self.layout.decode(rows)
+            if decoded is not None:
+                return decoded
+        from rclpy.serialization import deserialize_message
+        from sensor_msgs.msg import JointState
+        stamps = np.empty(len(items), np.int64)
+        values = np.empty((len(items), len(self.names)))
+        for i, payload in enumerate(items):
+            msg = deserialize_message(payload, JointState)
+            stamps[i] = from_time(msg.header.stamp)
+            values[i] = joint_state_values(msg, self.names)
+        self.foreign += len(items)
+        return stamps, values

@@ -1,0 +1,214 @@
+"""``pose_node``: the whole pipeline in one process.
+
+Terminal → compensation → forward kinematics, with the calibration service and the recorder,
+passing each transfer's samples between the stages by direct calls (no serialisation between
+them) and still publishing every topic of the separate nodes. Defaults: the simulated terminal
+streaming the digital twin in a demonstration scenario (random 6-DOF motion), a factory
+calibration of the twin when there is no calibration file yet, and recording on, so that
+``ros2 run mmd_ros pose_node`` works on a machine without hardware.
+
+Topics, parameters and services: ``msg_docs/nodes.md``.
+"""
+
+from __future__ import annotations
+
+import sys
+from typing import Any
+
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import JointState
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+
+from mmd_ros.core.calibration import Calibration
+from mmd_ros.nodes.calibration_stage import (
+    CalibrationConfig, CalibrationStage, calibration_params,
+)
+from mmd_ros.nodes.common import (
+    COMMON_PARAMS, MODEL_PARAMS, NAMESPACE, load_device_param, load_model_param, run,
+)
+from mmd_ros.nodes.compute import Compensator, Kinematics
+from mmd_ros.nodes.convert import (
+    DIAGNOSTIC_ARRAY, JS, POSE, POSE_COV, STRING, Rows, string_bytes,
+)
+from mmd_ros.nodes.diagnostics import Diagnostics
+from mmd_ros.nodes.outlets import Outlet
+from mmd_ros.nodes.params import Param, check, declare
+from mmd_ros.nodes.qos import DIAGNOSTICS, LATCHED, data_qos
+from mmd_ros.nodes.recorder_stage import RECORDER_PARAMS, RecorderConfig, RecorderStage
+from mmd_ros.nodes.reports import compensation_report, kinematics_report
+from mmd_ros.nodes.terminal import TERMINAL_PARAMS, TerminalConfig, TerminalStage
+
+__all__ = ['PoseNode', 'main']
+
+POSE_PARAMS = [
+    Param('record', True, 'record every topic of this node into an MCAP log'),
+    Param('publish_covariance', True, 'publish pose_with_covariance'),
+    Param('thermal_warn_c', 2.0, 'warn when the temperature has changed more than this since the '
+          'thermal zero with one reference bar (Eq. 13 territory) [°C]', low=0.0, high=100.0),
+    Param('sim_factory_calibration', True, 'simulation: when the calibration file does not exist, '
+          'write the twin\'s own calibration (made before power-on) into it'),
+]
+
+
+class PoseNode(Node):
+    """Terminal, compensation, kinematics, calibration service and recorder in one node."""
+
+    def __init__(self) -> None:
+        super().__init__('pose_node', namespace=NAMESPACE)
+        v = declare(self, COMMON_PARAMS + MODEL_PARAMS + TERMINAL_PARAMS + POSE_PARAMS)
+        device = load_device_param(v['device_file'])
+        cal_params = calibration_params(device.name)
+        v.update(declare(self, cal_params))
+        record = v['record']
+        if record:
+            v.update(declare(self, RECORDER_PARAMS))
+        self._params = {p.name: p for p in TERMINAL_PARAMS + cal_params}
+        self.device = device
+        self.model = load_model_param(v['model_file'])
+        self.rows = Rows(device.channel_names, [c.name for c in device.reference_channels])
+        self.recorder = RecorderStage(RecorderConfig.from_values(v), self.get_fully_qualified_name(),
+                                      self.get_logger()) if record else None
+        rec = self.recorder.queue if self.recorder is not None else None
+        qos = data_qos(v['qos'], v['qos_depth'])
+        log_qos = 'sensor' if v['qos'] == 'sensor' else 'reliable'
+
+        def outlet(topic: str, cls: Any, type_name: str, profile=qos, kind=log_qos) -> Outlet:
+            return Outlet(self, topic, cls, type_name, profile, kind, rec)
+
+        self.out_device = outlet('device_description', String, STRING, LATCHED, 'latched')
+        self.out_calibration = outlet('calibration', String, STRING, LATCHED, 'latched')
+        self.out_model = outlet('model', String, STRING, LATCHED, 'latched')
+        self.out_raw = outlet('raw_counts', JointState, JS)
+        self.out_reference = outlet('reference/pose', JointState, JS)
+        self.out_lengths = outlet('bar_lengths', JointState, JS)
+        self.out_thermal = outlet('thermal', JointState, JS)
+        self.out_status = outlet('fk_status', JointState, JS)
+        self.out_pose = outlet('pose', PoseStamped, POSE)
+        self.out_pose_cov = outlet('pose_with_covariance', PoseWithCovarianceStamped, POSE_COV)
+        self.out_diag = outlet('/diagnostics', DiagnosticArray, DIAGNOSTIC_ARRAY, DIAGNOSTICS, 'reliable')
+        self.publish_covariance = v['publish_covariance']
+        self.thermal_warn_c = v['thermal_warn_c']
+
+        self.compensator = Compensator(device, self.model)
+        self.kinematics = Kinematics(device, self.model.length_sigma_m,
+                                     with_covariance=self.publish_covariance)
+        tcfg = TerminalConfig.from_values(v)
+        self.terminal = TerminalStage(tcfg, device, self.rows, self.out_raw, self.out_reference,
+                                      self.get_logger(), alive=self.context.ok, raw_last=True)
+        factory = None
+        if tcfg.device == 'sim' and v['sim_factory_calibration'] and self.terminal.source is not None:
+            factory = self.terminal.source.factory_calibration
+        self.calibration = CalibrationStage(
+            CalibrationConfig.from_values(v), device, thermal_mode=self.model.thermal_mode,
+            publish=self._publish_calibration, logger=self.get_logger(),
+            on_valid=self.terminal.mark_referenced, factory=factory)
+        self.terminal.on_reset.append(self._on_reset)
+        self.terminal.on_batch.append(self._on_batch)
+
+        self.create_service(Trigger, 'calibrate_bar', self._calibrate_bar)
+        self.create_service(Trigger, 'calibration/reset_session', self._reset_session)
+        self.add_on_set_parameters_callback(self._on_set)
+        self.diagnostics = Diagnostics(self, self.out_diag, [self._reports], v['diagnostics_period_s'],
+                                       hardware_id=lambda: self.terminal.serial)
+        self.create_timer(1.0, self.calibration.poll_file)
+        stamp = self.get_clock().now().nanoseconds
+        self.out_device.payload(string_bytes(device.to_yaml()), stamp)
+        self.out_model.payload(string_bytes(self.model.to_yaml()), stamp)
+        self.calibration.start()
+        self.terminal.start()
+        self.get_logger().info(
+            f'pose_node: {tcfg.device} terminal, calibration {self.calibration.path}, '
+            + (f'recording into {self.recorder.path}' if self.recorder else 'not recording'))
+
+    # -- stages --------------------------------------------------------------------------------
+    def _publish_calibration(self, cal: Calibration) -> None:
+        self.compensator.set_calibration(cal, str(self.calibration.path)
+                                         if hasattr(self, 'calibration') else 'calibration file')
+        self.out_calibration.payload(string_bytes(cal.to_yaml()), self.get_clock().now().nanoseconds)
+
+    def _on_reset(self, stamp_ns: int) -> None:
+        self.compensator.hold(stamp_ns)
+        self.calibration.on_counter_reset(stamp_ns)
+
+    def _on_batch(self, stamps, counts, batch) -> None:
+        self.calibration.feed(stamps, counts)
+        comp = self.compensator.process(stamps, counts)
+        if comp is None:
+            return
+        kin = self.kinematics.solve(comp.lengths_m, comp.plate_scale)
+        # poses first (what CNC tooling waits for), then the rest of the transfer's topics
+        if kin.valid.any():
+            s = stamps[kin.valid]
+            poses = kin.poses[kin.valid]
+            self.out_pose.rows(self.rows.poses(s, poses), s)
+            if kin.covariance is not None:
+                self.out_pose_cov.rows(self.rows.poses(s, poses, kin.covariance), s)
+        self.out_lengths.rows(self.rows.lengths.encode(stamps, comp.lengths_m), stamps)
+        self.out_thermal.rows(self.rows.thermal.encode(stamps, comp.thermal_values()), stamps)
+        self.out_status.rows(self.rows.fk_status.encode(stamps, kin.status_values()), stamps)
+
+    # -- service and parameters ----------------------------------------------------------------
+    def _selection(self) -> tuple[str, str, str]:
+        return (self.get_parameter('bar').value, self.get_parameter('pair').value,
+                self.get_parameter('mode').value)
+
+    def _calibrate_bar(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        bar, pair, mode = self._selection()
+        response.success, response.message = self.calibration.trigger(bar, pair, mode)
+        if response.success and pair:
+            self.set_parameters([Parameter('pair', Parameter.Type.STRING, '')])
+        return response
+
+    def _reset_session(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        response.success, response.message = self.calibration.reset_session()
+        return response
+
+    def _on_set(self, changes: list[Parameter]) -> SetParametersResult:
+        for change in changes:
+            p = self._params.get(change.name)
+            if p is None:
+                continue
+            why = check(p, change.value)
+            if why:
+                return SetParametersResult(successful=False, reason=why)
+            if change.name in ('bar', 'pair') and change.value:
+                try:
+                    self.calibration.routine.next_step(
+                        change.value if change.name == 'bar' else '',
+                        change.value if change.name == 'pair' else '', 'full')
+                except Exception as exc:  # noqa: BLE001 - the routine says what is allowed
+                    return SetParametersResult(successful=False, reason=f'parameter {change.name}: {exc}')
+            if change.name == 'sim_command':
+                ok, text = self.terminal.sim_command(change.value)
+                return SetParametersResult(successful=ok, reason=text)
+        return SetParametersResult(successful=True)
+
+    def _reports(self) -> list:
+        bar, pair, mode = self._selection()
+        out = [self.terminal.report(),
+               compensation_report(self.compensator, self.thermal_warn_c, self.model.source),
+               kinematics_report(self.kinematics),
+               self.calibration.report(bar, pair, mode)]
+        if self.recorder is not None:
+            out.append(self.recorder.report())
+        return out
+
+    def destroy_node(self) -> None:
+        self.terminal.stop()
+        if self.recorder is not None:
+            # the last diagnostics say how the recording ended
+            self.recorder.close()
+        super().destroy_node()
+
+
+def main(args: list[str] | None = None) -> int:
+    return run(PoseNode, args)
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,100 @@
+"""Diagnostic reports of the compensation and kinematics stages (shared by the nodes)."""
+
+from __future__ import annotations
+
+import math
+import time
+from datetime import datetime, timezone
+
+import numpy as np
+
+from mmd_ros.core.calibration import Calibration
+from mmd_ros.nodes.compute import Compensator, Kinematics
+from mmd_ros.nodes.diagnostics import ERROR, OK, WARN, Report
+
+__all__ = ['calibration_age_s', 'compensation_report', 'kinematics_report']
+
+
+def calibration_age_s(calibration: Calibration | None) -> float:
+    """Seconds since the calibration was made (``created``), NaN when unknown."""
+    if calibration is None or not calibration.created:
+        return math.nan
+    try:
+        when = datetime.fromisoformat(calibration.created)
+    except ValueError:
+        return math.nan
+    if when.tzinfo is None:
+        when = when.replace(tzinfo=timezone.utc)
+    return time.time() - when.timestamp()
+
+
+def compensation_report(comp: Compensator, thermal_warn_c: float, model_source: str) -> Report:
+    """Calibration in use, thermal drift since the thermal zero (Eq. 11), bars out of range."""
+    st = comp.stats
+    r = Report('compensation', OK, 'compensating')
+    if comp.problem:
+        r.worse(ERROR if comp.calibration is not None or comp.hold_from_ns else WARN, comp.problem)
+    cal = comp.calibration
+    n_refs = len(comp.reference_names)
+    dt = st.last_temp_change_c
+    if math.isfinite(dt) and abs(dt) > thermal_warn_c:
+        if n_refs == 1:
+            r.worse(WARN, f'thermal drift {dt:+.2f} °C since the thermal zero with one reference '
+                    f'bar: past {thermal_warn_c:g} °C Eq. (13) neglects how the thermal error grows '
+                    'with bar length (Eq. 12); fit a second reference bar or set a new thermal zero')
+        else:
+            r.worse(OK, f'thermal drift {dt:+.2f} °C since the thermal zero (Eq. 12)')
+    out = st.period_out
+    if out.any():
+        bars = [f'bar{i + 1} ({int(v)})' for i, v in enumerate(out) if v]
+        r.worse(WARN, 'out of the calibrated range: ' + ', '.join(bars)
+                + ' samples: no pose for them')
+    r.values.update({
+        'calibration': comp.calibration_source,
+        'calibration_valid': bool(cal is not None and cal.valid and comp.ready),
+        'calibration_created': cal.created if cal is not None else '',
+        'calibration_age_s': round(calibration_age_s(cal), 1),
+        'model': model_source,
+        'thermal_mode': comp.model.thermal_mode,
+        'reference_bars': n_refs,
+        'temp_change_c': round(dt, 4) if math.isfinite(dt) else math.nan,
+        'samples': st.samples,
+        'samples_without_calibration': st.held,
+    })
+    for name, err in zip(comp.reference_names, st.last_ref_error_m):
+        r.values[f'{name}_error_um'] = round(float(err) * 1e6, 4)
+    for i in range(6):
+        r.values[f'bar{i + 1}_out_of_range'] = int(st.out_of_range[i])
+    st.period_out = np.zeros(6, np.int64)
+    return r
+
+
+def kinematics_report(kin: Kinematics) -> Report:
+    """FK iterations and residual, not converged and out-of-range samples since the last one."""
+    st = kin.stats
+    r = Report('kinematics', OK, 'solving')
+    if st.period_samples == 0:
+        r.message = 'no compensated lengths received'
+    if st.period_not_converged:
+        r.worse(WARN, f'{st.period_not_converged} sample(s) did not converge: no pose for them')
+    if st.period_out_of_range:
+        r.worse(WARN, f'{st.period_out_of_range} sample(s) with a bar out of its calibrated range: '
+                'no pose for them')
+    its = st.period_iterations
+    now = time.monotonic()
+    elapsed = now - st.period_t0
+    r.values.update({
+        'samples': st.samples,
+        'poses_published': st.poses,
+        'not_converged': st.not_converged,
+        'out_of_range': st.out_of_range,
+        'iterations_mean': round(float(np.mean(its)), 3) if its else math.nan,
+        'iterations_max': int(max(its)) if its else 0,
+        'residual_max_m': st.period_residual_max_m if its else math.nan,
+        'rate_hz': round(st.period_samples / elapsed, 1) if elapsed > 0 else math.nan,
+    })
+    st.period_t0 = now
+    st.period_samples = st.period_not_converged = st.period_out_of_range = 0
+    st.period_iterations = []
+    st.period_residual_max_m = 0.0
+    return r

@@ -1,0 +1,202 @@
+"""The guided calibration routine (section 3.2, Eq. 11, quick re-reference), ROS-free.
+
+Known truth comes from the digital twin: its bars on the reference pairs give the counts a
+capture window holds, and its own calibration routine (:meth:`TwinDevice.calibrate`) is the
+answer the guided routine must reproduce.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mmd_ros.core.calibration import Calibration
+from mmd_ros.core.calibration_routine import (
+    CalibrationRoutine, RoutineSettings, Step, Window, bar_quality,
+)
+from mmd_ros.core.device import find_config, load_device
+from mmd_ros.core.errors import CalibrationError
+from mmd_ros.core.pipeline import Pipeline
+from mmd_ros.twin import AmbientProfile, Effects, TwinDevice
+
+RATE = 1000.0
+WINDOW_S = 0.5
+
+
+@pytest.fixture(scope='module')
+def world():
+    device = load_device(find_config('mmd_prototype.yaml'))
+    twin = TwinDevice(device, Effects.realistic(), seed=3)
+    return device, twin, AmbientProfile.constant(20.0)
+
+
+class Plate:
+    """Bars on reference pairs: capture windows from the twin at a running clock."""
+
+    def __init__(self, device, twin, room, offset=None):
+        self.device, self.twin, self.room = device, twin, room
+        self.t = 10.0
+        self.where = {c.name: c.pair for c in device.reference_channels}
+        self.offset = np.zeros(8) if offset is None else np.asarray(offset, float)
+
+    def window(self, moving: dict[str, float] | None = None, seconds: float = WINDOW_S) -> Window:
+        times = self.t + np.arange(int(seconds * RATE)) / RATE
+        self.t += seconds + 1.0
+        counts = np.zeros((times.size, 8))
+        for name, pair in self.where.items():
+            k = self.device.channel_names.index(name)
+            counts[:, k] = self.twin.counts_on_pair(k, pair, times, self.room)
+        for name, amp_m in (moving or {}).items():
+            k = self.device.channel_names.index(name)
+            counts[:, k] += amp_m / self.device.encoder_resolution_m * np.sin(2 * np.pi * 2 * (times - times[0]))
+        return Window.of(counts + self.offset, seconds)
+
+    def place(self, step: Step) -> None:
+        if step.channel not in [c.name for c in self.device.reference_channels]:
+            self.where = {k: v for k, v in self.where.items()
+                          if k in [c.name for c in self.device.reference_channels]}
+        self.where[step.channel] = step.pair
+
+
+def run_full(routine: CalibrationRoutine, plate: Plate) -> list:
+    results = []
+    step = routine.next_step()
+    while step is not None:
+        plate.place(step)
+        res = routine.capture(step, plate.window(), f't{len(results)}', ambient_c=20.0)
+        assert res.accepted, res.message
+        results.append(res)
+        step = res.next_step
+    return results
+
+
+def test_full_routine_matches_the_twins_own_calibration(world):
+    device, twin, room = world
+    routine = CalibrationRoutine(device)
+    plate = Plate(device, twin, room)
+    results = run_full(routine, plate)
+    order = [(r.step.channel, r.step.pair) for r in results]
+    schedule = [(device.channel_names[p.channel], p.pair) for p in twin.calibration_schedule(0.0)]
+    assert order == schedule  # the paper's order: bar by bar, the reference bar last on dr4
+    cal = routine.calibration
+    assert cal is not None and cal.valid and set(cal.bars) == set(device.channel_names[:7])
+    assert [r.completed for r in results if r.completed] == device.channel_names[:7]
+    assert 'Calibration complete' in results[-1].message
+    truth = twin.calibrate(0.0, room)
+    for name, bar in truth.bars.items():
+        mine = cal.bars[name]
+        assert mine.pairs == bar.pairs
+        # the same points up to read noise averaged over a window (50 nm counts, 10 nm noise)
+        q = np.linspace(min(bar.counts), max(bar.counts), 50)
+        np.testing.assert_allclose(mine.cdf()(q)[0], bar.cdf()(q)[0], atol=0.05e-6)
+        quality = cal.quality['bars'][name]
+        assert abs(quality['scale_ppm']) < 200 and quality['nonlinearity_um'] < 10
+    assert abs(cal.thermal_zero_m['ref1']) < 1e-12  # read where its last point was taken
+    assert cal.ambient_c == 20.0
+    Pipeline(device, cal)  # a complete calibration makes a pipeline
+    again = Calibration.from_yaml(cal.to_yaml())
+    assert again.quality['bars']['bar3'] == cal.quality['bars']['bar3']
+
+
+def test_a_moving_bar_and_a_wrong_pair_are_refused(world):
+    device, twin, room = world
+    routine = CalibrationRoutine(device)
+    plate = Plate(device, twin, room)
+    for _ in range(2):
+        step = routine.next_step()
+        plate.place(step)
+        assert routine.capture(step, plate.window(), 'now').accepted
+    step = routine.next_step()
+    assert (step.channel, step.pair) == ('bar1', 'dr3')
+    plate.place(step)
+    res = routine.capture(step, plate.window(moving={'bar1': 2e-6}), 'now')
+    assert not res.accepted and 'still moving' in res.message
+    assert 'Next: place bar1 on dr3' in res.message
+    assert set(routine.session_points('bar1')) == {'dr1', 'dr2'}
+    plate.place(Step('calibrate', 'bar1', 'dr5'))  # the operator used the wrong sockets
+    res = routine.capture(step, plate.window(), 'now')
+    assert not res.accepted and 'does not fit dr3' in res.message and 'dr5' in res.message
+    plate.place(step)
+    assert routine.capture(step, plate.window(), 'now').accepted
+
+
+def test_too_few_samples_and_a_reset_window_are_refused(world):
+    device, twin, room = world
+    routine = CalibrationRoutine(device, settings=RoutineSettings(min_samples=100))
+    plate = Plate(device, twin, room)
+    step = routine.next_step()
+    plate.place(step)
+    w = plate.window(seconds=0.05)
+    assert 'only 50 samples' in routine.capture(step, w, 'now').message
+    w = plate.window()
+    assert 'reset' in routine.capture(step, Window(w.counts, w.duration_s, True), 'now').message
+
+
+def test_selection_override_and_thermal_zero_step(world):
+    device, twin, room = world
+    routine = CalibrationRoutine(device)
+    plate = Plate(device, twin, room)
+    with pytest.raises(CalibrationError, match='bar must be one of'):
+        routine.next_step(bar='bar9')
+    with pytest.raises(CalibrationError, match='pair must be one of'):
+        routine.next_step(pair='dr9')
+    # calibrate the reference bar alone, ending on dr7 instead of its resting pair dr4
+    for pair in ['dr1', 'dr2', 'dr3', 'dr4', 'dr5', 'dr6', 'dr7']:
+        step = routine.next_step(bar='ref1', pair=pair)
+        assert (step.kind, step.channel, step.pair) == ('calibrate', 'ref1', pair)
+        plate.place(step)
+        res = routine.capture(step, plate.window(), 'now', bar='ref1')
+        assert res.accepted, res.message
+    assert res.completed == 'ref1' and 'back on its resting pair dr4' in res.message
+    assert res.calibration is not None and 'ref1' not in res.calibration.thermal_zero_m
+    step = routine.next_step()
+    assert (step.kind, step.channel, step.pair) == ('thermal_zero', 'ref1', 'dr4')
+    plate.place(step)
+    res = routine.capture(step, plate.window(), 'later', ambient_c=21.5)
+    assert res.accepted and 'thermal zero of ref1' in res.message
+    assert abs(res.calibration.thermal_zero_m['ref1']) < 0.1e-6
+    assert res.calibration.ambient_c == 21.5
+    assert routine.next_step() == Step('calibrate', 'bar1', 'dr1')
+
+
+def test_quick_re_reference_after_a_counter_reset(world):
+    device, twin, room = world
+    routine = CalibrationRoutine(device)
+    plate = Plate(device, twin, room)
+    run_full(routine, plate)
+    before = routine.calibration
+    lost = routine.invalidate('terminal counter reset', 'then')
+    assert lost is not None and not lost.valid
+    assert lost.quality['pending_re_reference'] == device.channel_names[:6] + ['ref1']
+    reloaded = CalibrationRoutine(device, Calibration.from_yaml(lost.to_yaml()))
+    assert reloaded.pending == routine.pending
+    # the counters restarted: every channel's counts moved by an unknown offset
+    offset = np.array([-5_000_000, 123_456, 7, -42, 9_999_999, 31, -2_000_000, 0], float)
+    plate.offset = offset
+    step = routine.next_step()
+    assert (step.kind, step.channel, step.pair) == ('re_reference', 'ref1', 'dr4')
+    early = Step('re_reference', 'bar2', 'dr4')
+    plate.place(early)
+    res = routine.capture(early, plate.window(), 'now')
+    assert not res.accepted and 're-reference the reference bar ref1 first' in res.message
+    while step is not None:
+        plate.place(step)
+        res = routine.capture(step, plate.window(), 'now')
+        assert res.accepted, res.message
+        step = res.next_step
+    cal = routine.calibration
+    assert cal.valid and not routine.pending and 'pending_re_reference' not in cal.quality
+    assert 'valid again' in res.message
+    for k, name in enumerate(device.channel_names[:7]):
+        shift = np.array(cal.bars[name].counts) - np.array(before.bars[name].counts)
+        assert np.ptp(shift) < 1e-6  # the shape is kept: one offset per bar
+        assert abs(shift[0] - offset[k]) < 3.0  # the lost offset, to a few counts of noise
+
+
+def test_bar_quality_of_a_straight_scale():
+    from mmd_ros.core.calibration import BarCalibration
+    d = np.linspace(0.25, 0.376, 7)
+    bar = BarCalibration('bar1', tuple(f'dr{j}' for j in range(1, 8)), tuple(d / 50e-9), tuple(d))
+    q = bar_quality(bar, 50e-9, 1e-8)
+    assert q['scale_nm_per_count'] == pytest.approx(50.0)
+    assert abs(q['scale_ppm']) < 1e-3 and q['nonlinearity_um'] < 1e-6 and q['noise_um'] == 0.01
