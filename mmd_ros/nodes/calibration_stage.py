@@ -24,16 +24,18 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from rclpy.parameter import Parameter
+from std_srvs.srv import Trigger
 
 from mmd_ros.core.calibration import Calibration, load_calibration
 from mmd_ros.core.calibration_routine import CalibrationRoutine, RoutineSettings, Window
 from mmd_ros.core.device import DeviceDescription
-from mmd_ros.core.errors import CalibrationError, ConfigError
+from mmd_ros.core.errors import CalibrationError, ConfigError, MmdError
 from mmd_ros.nodes.diagnostics import ERROR, OK, WARN, Events, Report
-from mmd_ros.nodes.params import Param
+from mmd_ros.nodes.params import Param, check
 from mmd_ros.nodes.reports import calibration_age_s
 
-__all__ = ['CALIBRATION_PARAMS', 'CalibrationConfig', 'CalibrationStage', 'SampleBuffer',
+__all__ = ['CALIBRATION_PARAMS', 'CalibrationConfig', 'CalibrationService', 'CalibrationStage', 'SampleBuffer',
            'default_calibration_file', 'now_iso']
 
 
@@ -386,3 +388,52 @@ class CalibrationStage:
             for name, zero in cal.thermal_zero_m.items():
                 r.values[f'thermal_zero_{name}_um'] = round(zero * 1e6, 4)
         return r
+
+
+class CalibrationService:
+    """``calibrate_bar`` and ``calibration/reset_session`` (std_srvs/Trigger) and the ``bar`` /
+    ``pair`` / ``mode`` parameters, for the nodes that own a :class:`CalibrationStage`
+    (``calibration_node`` and ``pose_node``). The node sets ``self.calibration`` and
+    ``self._params`` and calls :meth:`_create_calibration_service`."""
+
+    calibration: CalibrationStage
+    _params: dict[str, Param]
+
+    def _create_calibration_service(self) -> None:
+        self.create_service(Trigger, 'calibrate_bar', self._calibrate_bar)
+        self.create_service(Trigger, 'calibration/reset_session', self._reset_session)
+
+    def _before_capture(self) -> None:
+        """Hook: make sure every sample received so far is in the capture window."""
+
+    def _selection(self) -> tuple[str, str, str]:
+        return (self.get_parameter('bar').value, self.get_parameter('pair').value,
+                self.get_parameter('mode').value)
+
+    def _calibrate_bar(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        self._before_capture()
+        bar, pair, mode = self._selection()
+        response.success, response.message = self.calibration.trigger(bar, pair, mode)
+        if response.success and pair:
+            self.set_parameters([Parameter('pair', Parameter.Type.STRING, '')])
+        return response
+
+    def _reset_session(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        response.success, response.message = self.calibration.reset_session()
+        return response
+
+    def _refuse_parameter(self, name: str, value: Any) -> str | None:
+        """Why a new parameter value is refused (named, with what is allowed), or None."""
+        p = self._params.get(name)
+        if p is None:
+            return None
+        why = check(p, value)
+        if why:
+            return why
+        if name in ('bar', 'pair') and value:
+            try:
+                self.calibration.routine.next_step(value if name == 'bar' else '',
+                                                   value if name == 'pair' else '', 'full')
+            except MmdError as exc:
+                return f'parameter {name}: {exc}'
+        return None

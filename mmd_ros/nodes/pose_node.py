@@ -22,11 +22,10 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
-from std_srvs.srv import Trigger
 
 from mmd_ros.core.calibration import Calibration
 from mmd_ros.nodes.calibration_stage import (
-    CalibrationConfig, CalibrationStage, calibration_params,
+    CalibrationConfig, CalibrationService, CalibrationStage, calibration_params,
 )
 from mmd_ros.nodes.common import (
     COMMON_PARAMS, MODEL_PARAMS, NAMESPACE, load_device_param, load_model_param, run,
@@ -37,7 +36,7 @@ from mmd_ros.nodes.convert import (
 )
 from mmd_ros.nodes.diagnostics import Diagnostics
 from mmd_ros.nodes.outlets import Outlet
-from mmd_ros.nodes.params import Param, check, declare
+from mmd_ros.nodes.params import Param, declare
 from mmd_ros.nodes.qos import DIAGNOSTICS, LATCHED, data_qos
 from mmd_ros.nodes.recorder_stage import RECORDER_PARAMS, RecorderConfig, RecorderStage
 from mmd_ros.nodes.reports import compensation_report, kinematics_report
@@ -55,7 +54,7 @@ POSE_PARAMS = [
 ]
 
 
-class PoseNode(Node):
+class PoseNode(CalibrationService, Node):
     """Terminal, compensation, kinematics, calibration service and recorder in one node."""
 
     def __init__(self) -> None:
@@ -110,8 +109,7 @@ class PoseNode(Node):
         self.terminal.on_reset.append(self._on_reset)
         self.terminal.on_batch.append(self._on_batch)
 
-        self.create_service(Trigger, 'calibrate_bar', self._calibrate_bar)
-        self.create_service(Trigger, 'calibration/reset_session', self._reset_session)
+        self._create_calibration_service()
         self.add_on_set_parameters_callback(self._on_set)
         self.diagnostics = Diagnostics(self, self.out_diag, [self._reports], v['diagnostics_period_s'],
                                        hardware_id=lambda: self.terminal.serial)
@@ -153,36 +151,11 @@ class PoseNode(Node):
         self.out_status.rows(self.rows.fk_status.encode(stamps, kin.status_values()), stamps)
 
     # -- service and parameters ----------------------------------------------------------------
-    def _selection(self) -> tuple[str, str, str]:
-        return (self.get_parameter('bar').value, self.get_parameter('pair').value,
-                self.get_parameter('mode').value)
-
-    def _calibrate_bar(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        bar, pair, mode = self._selection()
-        response.success, response.message = self.calibration.trigger(bar, pair, mode)
-        if response.success and pair:
-            self.set_parameters([Parameter('pair', Parameter.Type.STRING, '')])
-        return response
-
-    def _reset_session(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        response.success, response.message = self.calibration.reset_session()
-        return response
-
     def _on_set(self, changes: list[Parameter]) -> SetParametersResult:
         for change in changes:
-            p = self._params.get(change.name)
-            if p is None:
-                continue
-            why = check(p, change.value)
+            why = self._refuse_parameter(change.name, change.value)
             if why:
                 return SetParametersResult(successful=False, reason=why)
-            if change.name in ('bar', 'pair') and change.value:
-                try:
-                    self.calibration.routine.next_step(
-                        change.value if change.name == 'bar' else '',
-                        change.value if change.name == 'pair' else '', 'full')
-                except Exception as exc:  # noqa: BLE001 - the routine says what is allowed
-                    return SetParametersResult(successful=False, reason=f'parameter {change.name}: {exc}')
             if change.name == 'sim_command':
                 ok, text = self.terminal.sim_command(change.value)
                 return SetParametersResult(successful=ok, reason=text)
