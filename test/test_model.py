@@ -84,3 +84,38 @@ def test_streamed_samples_give_the_batch_result():
     assert np.max(np.abs(np.array(poses)[:, 3:] - batch.poses[:, 3:])) < 1e-11
     last = stream.process_sample(run.times_s[-1], run.counts[-1], with_covariance=True)
     assert last.covariance is not None and np.allclose(last.covariance, batch.covariance[-1], rtol=1e-6)
+
+
+def test_node_stages_transfer_by_transfer_give_the_batch_result():
+    """What compensation_node, fk_node and pose_node compute, 8 samples per transfer, is what
+    ``Pipeline.process`` gives for the whole run, covariance included."""
+    from mmd_ros.nodes.compute import Compensator, Kinematics
+    twin = TwinDevice(DEVICE, Effects.realistic(), seed=6)
+    room = AmbientProfile.constant(20.5)
+    calibration = twin.calibrate(0.0, room)
+    run = twin.simulate(make_scenario('random_motion', ['duration_s=1']), room, start_s=300.0)
+    model = Model()
+    batch = Pipeline(DEVICE, calibration, model).process(run.times_s, run.counts, with_covariance=True)
+    compensator = Compensator(DEVICE, model)
+    compensator.set_calibration(calibration, 'test')
+    kinematics = Kinematics(DEVICE, model.length_sigma_m)
+    stamps = np.round(run.times_s * 1e9).astype(np.int64)
+    poses, covariances, valid = [], [], []
+    for a in range(0, run.n_samples, 8):
+        comp = compensator.process(stamps[a:a + 8], run.counts[a:a + 8])
+        kin = kinematics.solve(comp.lengths_m, comp.plate_scale)
+        poses.append(kin.poses)
+        valid.append(kin.valid)
+        covariances.append(kin.covariance)
+    valid = np.concatenate(valid)
+    assert valid.mean() > 0.99 and np.array_equal(valid, batch.valid)
+    poses = np.concatenate(poses)[valid]
+    assert np.max(np.abs(poses - batch.poses[valid])) < 1e-11
+    cov = np.concatenate([c for c in covariances if c is not None])
+    # the Jacobians are taken at the last Newton iterates, a few nm apart: tiny off-diagonal
+    # terms differ by parts in 1e4 of themselves, parts in 1e6 of the variances
+    scale = np.max(np.diagonal(cov, axis1=1, axis2=2))
+    np.testing.assert_allclose(cov, batch.covariance[valid], rtol=1e-6, atol=1e-5 * scale)
+    assert np.all(np.diagonal(cov, axis1=1, axis2=2) > 0)
+    without = Kinematics(DEVICE, model.length_sigma_m, with_covariance=False)
+    assert without.solve(comp.lengths_m, comp.plate_scale).covariance is None

@@ -13,6 +13,7 @@ not a measurement) and no pose; live, such samples are not solved.
 
 from __future__ import annotations
 
+import functools
 import math
 import threading
 import time
@@ -179,15 +180,34 @@ class Compensator:
 @dataclass(frozen=True)
 class KinematicsOut:
     """Poses of N samples: poses (N, 6) [m, rad]; valid (N,): published as a measurement;
-    converged, iterations, residual_m (NaN when not solved); covariance (M, 6, 6) of the
-    valid samples, or None."""
+    converged, iterations, residual_m (NaN when not solved); jacobians (N, 6, 6) and
+    plate_scale (N,) of the solutions; sigma_m: the bar-length uncertainty, or None when no
+    covariance is wanted."""
 
     poses: FloatArray
     valid: NDArray[np.bool_]
     converged: NDArray[np.bool_]
     iterations: NDArray[np.int64]
     residual_m: FloatArray
-    covariance: FloatArray | None
+    jacobians: FloatArray
+    plate_scale: FloatArray
+    sigma_m: float | None
+
+    @functools.cached_property
+    def covariance(self) -> FloatArray | None:
+        """Covariance (M, 6, 6) [m, rad]^2 of the M valid samples, or None.
+
+        sigma^2 J^-1 J^-T, translation rows and columns times the plates' scale (as
+        :class:`Pipeline` does). Computed when first asked for, so that a node can publish the
+        poses before it spends time on the inverses.
+        """
+        if self.sigma_m is None or not self.valid.any():
+            return None
+        jinv = np.linalg.inv(self.jacobians[self.valid])
+        cov = self.sigma_m ** 2 * (jinv @ np.swapaxes(jinv, -1, -2))
+        s = np.ones((jinv.shape[0], 6))
+        s[:, :3] = self.plate_scale[self.valid, None]
+        return cov * s[:, :, None] * s[:, None, :]
 
     def status_values(self) -> FloatArray:
         """Values of /mmd/fk_status: converged, valid, iterations, residual [m], condition."""
@@ -254,22 +274,10 @@ class Kinematics:
         self.with_covariance = with_covariance
         self.stats = _KinStats()
 
-    def covariance(self, jacobians: FloatArray, plate_scale: FloatArray) -> FloatArray:
-        """sigma^2 J^-1 J^-T of M solutions, translation rows and columns times the plates'
-        scale (as :class:`Pipeline` does), shape (M, 6, 6) [m, rad]^2."""
-        jinv = np.linalg.inv(jacobians)
-        cov = self.sigma_m ** 2 * (jinv @ np.swapaxes(jinv, -1, -2))
-        s = np.ones((jacobians.shape[0], 6))
-        s[:, :3] = plate_scale[:, None]
-        return cov * s[:, :, None] * s[:, None, :]
-
     def solve(self, lengths_m: FloatArray, plate_scale: FloatArray) -> KinematicsOut:
         poses, converged, iterations, residual, jac = _solve(self.fk, lengths_m, plate_scale)
         in_range = np.isfinite(lengths_m).all(axis=1)
         valid = converged & in_range
-        cov = None
-        if self.with_covariance and valid.any():
-            cov = self.covariance(jac[valid], plate_scale[valid])
         st = self.stats
         n = len(valid)
         st.samples += n
@@ -286,4 +294,6 @@ class Kinematics:
             r = residual[in_range]
             if np.isfinite(r).any():
                 st.period_residual_max_m = max(st.period_residual_max_m, float(np.nanmax(r)))
-        return KinematicsOut(poses, valid, converged, iterations, residual, cov)
+        return KinematicsOut(poses, valid, converged, iterations, residual, jac,
+                             np.asarray(plate_scale, dtype=np.float64),
+                             self.sigma_m if self.with_covariance else None)

@@ -123,13 +123,14 @@ class FkNode(Node):
 
     def _solve(self, stamps: np.ndarray, lengths: np.ndarray, scales: np.ndarray) -> None:
         kin = self.kinematics.solve(lengths, scales)
-        self.out_status.rows(self.rows.fk_status.encode(stamps, kin.status_values()), stamps)
+        # poses first (what CNC tooling waits for); the covariance is computed after them
         if kin.valid.any():
             s = stamps[kin.valid]
             poses = kin.poses[kin.valid]
             self.out_pose.rows(self.rows.poses(s, poses), s)
             if kin.covariance is not None:
                 self.out_pose_cov.rows(self.rows.poses(s, poses, kin.covariance), s)
+        self.out_status.rows(self.rows.fk_status.encode(stamps, kin.status_values()), stamps)
 
     def _report(self) -> list:
         r = kinematics_report(self.kinematics)

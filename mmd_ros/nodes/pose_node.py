@@ -139,7 +139,8 @@ class PoseNode(CalibrationService, Node):
         if comp is None:
             return
         kin = self.kinematics.solve(comp.lengths_m, comp.plate_scale)
-        # poses first (what CNC tooling waits for), then the rest of the transfer's topics
+        # poses first (what CNC tooling waits for), then the covariance (computed only now) and
+        # the rest of the transfer's topics
         if kin.valid.any():
             s = stamps[kin.valid]
             poses = kin.poses[kin.valid]
