@@ -12,9 +12,11 @@ random 6-DOF motion, recording on) and this process subscribes to ``/mmd/pose`` 
 - **CPU** per process over the measured span, in % of one core (target ``pose_node`` <= 60 %);
 - **memory**: resident set size after warm-up and at the end, and its growth (target flat).
 
-Usage: ``python bench/bench_ros.py [--quick] [--duration S] [--only pose_node|split]``.
-Default 600 s per configuration; ``--quick`` 60 s. Prints the figures and a JSON line; never
-fails on timing.
+Usage: ``python bench/bench_ros.py [--quick] [--duration S] [--repeat N] [--only pose_node|split]
+[--param NAME:=VALUE]``. Default 600 s per configuration; ``--quick`` 60 s. With ``--repeat`` the
+configurations alternate N times and the medians over the runs are printed too (single runs on a
+shared 2-core machine vary by a factor of 1.5 in latency). Prints the figures and a JSON line;
+never fails on timing.
 """
 
 from __future__ import annotations
@@ -67,20 +69,21 @@ def factory_calibration(path: Path) -> None:
     replace(cal, created=time.strftime('%Y-%m-%dT%H:%M:%S+00:00', time.gmtime())).save(path)
 
 
-def run_config(name: str, duration_s: float, work: Path) -> dict:
+def run_config(name: str, duration_s: float, work: Path, extra: list[str] = ()) -> dict:
     from mmd_ros.nodes.client import MmdClient
     work.mkdir(parents=True, exist_ok=True)
     timing = work / 'timing.bin'
     cal = work / 'calibration.yaml'
     depth = ['-p', 'qos_depth:=5000']
+    terminal = [a for kv in extra for a in ('-p', kv)]
     if name == 'pose_node':
         launches = {'pose_node': cmd('pose_node') + ['--ros-args', '-p', f'timing_log:={timing}',
                                                      '-p', f'calibration_file:={cal}',
-                                                     '-p', f'output:={work / "log.mcap"}'] + depth}
+                                                     '-p', f'output:={work / "log.mcap"}'] + depth + terminal}
     else:
         factory_calibration(cal)
         launches = {
-            'encoder_node': cmd('encoder_node') + ['--ros-args', '-p', f'timing_log:={timing}'] + depth,
+            'encoder_node': cmd('encoder_node') + ['--ros-args', '-p', f'timing_log:={timing}'] + depth + terminal,
             'calibration_node': cmd('calibration_node') + ['--ros-args', '-p', f'calibration_file:={cal}'] + depth,
             'compensation_node': cmd('compensation_node') + ['--ros-args'] + depth,
             'fk_node': cmd('fk_node') + ['--ros-args'] + depth,
@@ -163,31 +166,65 @@ def show(r: dict) -> None:
     print(f'  total CPU {r["cpu_percent_total"]:.1f} %   [target pose_node <= 60 %; memory flat]')
 
 
+def medians(runs: list[dict]) -> dict:
+    """Median figures of repeated runs of one configuration."""
+    def med(get) -> float:
+        return round(float(np.median([get(r) for r in runs])), 3)
+    return {
+        'config': runs[0]['config'], 'runs': len(runs),
+        'samples_lost_max': max(r['samples_lost'] for r in runs),
+        'lost_on_wire_max': max(r['lost_on_wire'] for r in runs),
+        'latency_ms_median': {k: med(lambda r, k=k: r['latency_ms'][k]) for k in ('p50', 'p99', 'p999')},
+        'cpu_percent_median': {k: med(lambda r, k=k: r['cpu_percent'][k]) for k in runs[0]['cpu_percent']},
+        'cpu_percent_total_median': med(lambda r: r['cpu_percent_total']),
+        'rss_mb_growth_max': max(max(r['rss_mb_growth'].values()) for r in runs),
+    }
+
+
+def show_medians(m: dict) -> None:
+    lat = m['latency_ms_median']
+    print(f'== {m["config"]}: medians of {m["runs"]} runs')
+    print(f'  samples lost: at most {m["samples_lost_max"]} (on the wire: {m["lost_on_wire_max"]})')
+    print(f'  latency p50 {lat["p50"]:.2f} ms, p99 {lat["p99"]:.2f} ms, p99.9 {lat["p999"]:.2f} ms')
+    print(f'  CPU total {m["cpu_percent_total_median"]:.1f} % of a core; '
+          f'RSS growth at most {m["rss_mb_growth_max"]:+.1f} MB')
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument('--quick', action='store_true', help='60 s per configuration')
     parser.add_argument('--duration', type=float, default=None, help='seconds per configuration')
     parser.add_argument('--only', choices=['pose_node', 'split'], default=None)
+    parser.add_argument('--repeat', type=int, default=1, help='runs of each configuration')
+    parser.add_argument('--param', action='append', default=[], metavar='NAME:=VALUE',
+                        help='an extra parameter for the terminal (pose_node or encoder_node), '
+                             'e.g. frames_per_transfer:=2; repeatable')
     args = parser.parse_args()
     duration = args.duration or (60.0 if args.quick else 600.0)
     os.environ['ROS_DOMAIN_ID'] = str(60 + os.getpid() % 40)
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     os.environ.setdefault('AMENT_PREFIX_PATH', sys.prefix)
     work = Path(tempfile.mkdtemp(prefix='bench_ros_'))
+    names = [args.only] if args.only else ['pose_node', 'split']
     results = []
     try:
-        for name in ([args.only] if args.only else ['pose_node', 'split']):
-            r = run_config(name, duration, work / name)
-            show(r)
-            results.append(r)
+        for k in range(args.repeat):
+            for name in names:
+                r = run_config(name, duration, work / f'{name}_{k}', args.param)
+                show(r)
+                results.append(r)
     finally:
         shutil.rmtree(work, ignore_errors=True)
+    summary = [medians([r for r in results if r['config'] == name]) for name in names]
+    if args.repeat > 1:
+        for m in summary:
+            show_medians(m)
     try:
         load = os.getloadavg()
     except OSError:
         load = None
-    print(json.dumps({'benchmark': 'ros', 'duration_s': duration, 'load_average': load,
-                      'results': results}))
+    print(json.dumps({'benchmark': 'ros', 'duration_s': duration, 'params': args.param, 'load_average': load,
+                      'repeat': args.repeat, 'medians': summary, 'results': results}))
 
 
 if __name__ == '__main__':
