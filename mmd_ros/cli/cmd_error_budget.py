@@ -16,8 +16,8 @@ from typing import Any
 
 import numpy as np
 
+from mmd_ros.cli.device_args import add_device_arguments, device_geometry
 from mmd_ros.cli.progress import Progress
-from mmd_ros.core.device import find_config, load_device
 from mmd_ros.core.units import M_PER_MM, M_PER_UM
 from mmd_ros.design.error_budget import (
     DEFAULT_READING, METHODS, PAPER_EQ9_UM, PAPER_POSITIONS_M, PARTS, READINGS, ErrorBudget,
@@ -39,10 +39,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     'Fig. 2 (a, b), the Eq. (9) fit of Fig. 3 beside the paper, Fig. 4, rotation '
                     'errors, and the largest tolerances that keep a target accuracy.',
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument('--device', default='mmd_prototype.yaml',
-                   help='device description (a path, or a file name in config/)')
-    p.add_argument('--joints', choices=('design', 'measured'), default='design',
-                   help='nominal joint set of the device description')
+    add_device_arguments(p, 'nominal joint set of the device description')
     p.add_argument('--pose', action='append', nargs='+', type=float, metavar='V',
                    help='setting pose X Y Z [PHI THETA PSI] in mm and degrees; repeat for '
                         'several; default the five positions of Fig. 2 at zero rotation. '
@@ -103,8 +100,7 @@ def run(args: argparse.Namespace) -> int:
         raise DesignError(f'--parts: unknown {sorted(unknown)}; use some of {list(PARTS)}')
     if args.samples < 2:
         raise DesignError(f'--samples must be >= 2, got {args.samples}')
-    device = load_device(find_config(args.device))
-    geometry = device.design_geometry if args.joints == 'design' else device.measured_geometry
+    device, geometry = device_geometry(args)
     poses = _poses(args.pose)
     eps = _grid(args.eps_max_um, args.eps_step_um)
     design = (args.design_point[0] * M_PER_UM, args.design_point[1] * M_PER_UM)

@@ -16,8 +16,8 @@ from typing import Any
 
 import numpy as np
 
+from mmd_ros.cli.device_args import add_device_arguments, device_geometry
 from mmd_ros.cli.progress import Progress
-from mmd_ros.core.device import find_config, load_device
 from mmd_ros.core.units import M_PER_MM
 from mmd_ros.design.errors import DesignError
 from mmd_ros.design.workspace import (
@@ -37,10 +37,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     'inscribed cylinder at zero rotation and the sphere at the largest range, '
                     'and names the constraint that binds.',
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument('--device', default='mmd_prototype.yaml',
-                   help='device description (a path, or a file name in config/)')
-    p.add_argument('--joints', choices=('design', 'measured'), default='design',
-                   help='joint set of the device description')
+    add_device_arguments(p, 'joint set of the device description')
     p.add_argument('--levels-deg', nargs='+', type=float, default=list(PAPER_ROTATION_LEVELS_DEG),
                    help='rotation ranges ±k [deg]; must include 0')
     p.add_argument('--orientations', choices=('cube', 'axes'), default='cube',
@@ -90,8 +87,7 @@ def _limits(args: argparse.Namespace, device: Any) -> WorkspaceLimits:
 def run(args: argparse.Namespace) -> int:
     if args.step_mm <= 0:
         raise DesignError(f'--step-mm must be > 0, got {args.step_mm}')
-    device = load_device(find_config(args.device))
-    geometry = device.design_geometry if args.joints == 'design' else device.measured_geometry
+    device, geometry = device_geometry(args)
     limits = _limits(args, device)
     progress = Progress('workspace', 1.0, enabled=not args.no_progress)
     sphere = (tuple(v * M_PER_MM for v in args.sphere_mm[:3]), args.sphere_mm[3] * M_PER_MM)
