@@ -8,7 +8,10 @@ random 6-DOF motion, recording on) and this process subscribes to ``/mmd/pose`` 
   (target 0);
 - **latency**: from the moment a frame's USB transfer left the terminal backend (the node's
   ``timing_log``: the host time when the driver's bulk read returned it) to the moment its pose
-  arrived in this process's subscription callback (target p99 <= 2 ms);
+  arrived in this process's subscription callback (target p99 <= 2 ms). The subscriber builds
+  ``PoseStamped`` objects (``--subscriber objects``, rclpy's usual way) or reads the stamp from
+  the serialised message (``bytes``): a transfer's poses arrive together, so a Python
+  subscriber's own cost per message delays the later ones;
 - **CPU** per process over the measured span, in % of one core (target ``pose_node`` <= 60 %);
 - **memory**: resident set size after warm-up and at the end, and its growth (target flat).
 
@@ -69,7 +72,8 @@ def factory_calibration(path: Path) -> None:
     replace(cal, created=time.strftime('%Y-%m-%dT%H:%M:%S+00:00', time.gmtime())).save(path)
 
 
-def run_config(name: str, duration_s: float, work: Path, extra: list[str] = ()) -> dict:
+def run_config(name: str, duration_s: float, work: Path, extra: list[str] = (),
+               subscriber: str = 'objects') -> dict:
     from mmd_ros.nodes.client import MmdClient
     work.mkdir(parents=True, exist_ok=True)
     timing = work / 'timing.bin'
@@ -93,13 +97,14 @@ def run_config(name: str, duration_s: float, work: Path, extra: list[str] = ()) 
     procs = {k: subprocess.Popen(v, env=env, stdout=open(work / f'{k}.log', 'w'),  # noqa: SIM115
                                  stderr=subprocess.STDOUT, start_new_session=True)
              for k, v in launches.items()}
-    client = MmdClient(topics=('pose',), name='bench_subscriber', depth=5000)
+    topic = 'pose' if subscriber == 'objects' else 'pose_stamps'
+    client = MmdClient(topics=(topic,), name='bench_subscriber', depth=5000)
     try:
-        if not client.wait_for(lambda: len(client.poses) > 1000, 90):
+        if not client.wait_for(lambda: len(client.pose_stamps) > 1000, 90):
             raise RuntimeError(f'{name}: no poses; see {work}')
         time.sleep(WARMUP_S)
         with client._lock:
-            n0 = len(client.poses)
+            n0 = len(client.pose_stamps)
         ticks0 = {k: cpu_ticks(p.pid) for k, p in procs.items()}
         rss0 = {k: rss_mb(p.pid) for k, p in procs.items()}
         t0 = time.monotonic()
@@ -111,7 +116,7 @@ def run_config(name: str, duration_s: float, work: Path, extra: list[str] = ()) 
         ticks1 = {k: cpu_ticks(p.pid) for k, p in procs.items()}
         rss1 = {k: rss_mb(p.pid) for k, p in procs.items()}
         with client._lock:
-            rows = client.poses[n0:]
+            stamps = client.pose_stamps[n0:]
             arrivals = client.pose_arrivals[n0:]
         term = (client.status(': terminal') or {}).get('values', {})
     finally:
@@ -124,7 +129,7 @@ def run_config(name: str, duration_s: float, work: Path, extra: list[str] = ()) 
                 p.wait(30)
             except subprocess.TimeoutExpired:
                 os.killpg(p.pid, signal.SIGKILL)
-    stamps = np.array([r[0] for r in rows], dtype=np.int64)
+    stamps = np.array(stamps, dtype=np.int64)
     arrivals = np.array(arrivals, dtype=np.int64)
     # drop the last 2 s: those samples may still be on their way
     keep = stamps <= stamps.max() - 2_000_000_000
@@ -136,7 +141,7 @@ def run_config(name: str, duration_s: float, work: Path, extra: list[str] = ()) 
     lat = np.array([a - left[s] for s, a in zip(stamps.tolist(), arrivals.tolist()) if s in left]) * 1e-6
     cpu = {k: (ticks1[k] - ticks0[k]) / CLK_TCK / elapsed * 100 for k in procs}
     result = {
-        'config': name, 'duration_s': round(elapsed, 1), 'samples_expected': span,
+        'config': name, 'subscriber': subscriber, 'duration_s': round(elapsed, 1), 'samples_expected': span,
         'poses_received': int(np.unique(stamps).size), 'samples_lost': int(lost),
         'lost_on_wire': int(term.get('missing_samples', -1)),
         'latency_ms': {'p50': float(np.percentile(lat, 50)), 'p99': float(np.percentile(lat, 99)),
@@ -154,7 +159,7 @@ def run_config(name: str, duration_s: float, work: Path, extra: list[str] = ()) 
 
 def show(r: dict) -> None:
     lat = r['latency_ms']
-    print(f'== {r["config"]}: {r["duration_s"]:.0f} s at 1 kHz')
+    print(f'== {r["config"]}: {r["duration_s"]:.0f} s at 1 kHz, subscriber takes {r["subscriber"]}')
     print(f'  samples lost: {r["samples_lost"]} of {r["samples_expected"]} (on the wire: '
           f'{r["lost_on_wire"]})   [target 0]')
     print(f'  latency backend -> /mmd/pose in another process: p50 {lat["p50"]:.2f} ms, '
@@ -196,6 +201,9 @@ def main() -> None:
     parser.add_argument('--duration', type=float, default=None, help='seconds per configuration')
     parser.add_argument('--only', choices=['pose_node', 'split'], default=None)
     parser.add_argument('--repeat', type=int, default=1, help='runs of each configuration')
+    parser.add_argument('--subscriber', choices=['objects', 'bytes'], default='objects',
+                        help='objects: the subscriber builds PoseStamped objects (rclpy\'s usual '
+                             'way); bytes: it takes the serialised message and reads the stamp')
     parser.add_argument('--param', action='append', default=[], metavar='NAME:=VALUE',
                         help='an extra parameter for the terminal (pose_node or encoder_node), '
                              'e.g. frames_per_transfer:=2; repeatable')
@@ -210,7 +218,7 @@ def main() -> None:
     try:
         for k in range(args.repeat):
             for name in names:
-                r = run_config(name, duration, work / f'{name}_{k}', args.param)
+                r = run_config(name, duration, work / f'{name}_{k}', args.param, args.subscriber)
                 show(r)
                 results.append(r)
     finally:
@@ -223,7 +231,8 @@ def main() -> None:
         load = os.getloadavg()
     except OSError:
         load = None
-    print(json.dumps({'benchmark': 'ros', 'duration_s': duration, 'params': args.param, 'load_average': load,
+    print(json.dumps({'benchmark': 'ros', 'duration_s': duration, 'params': args.param,
+                      'subscriber': args.subscriber, 'load_average': load,
                       'repeat': args.repeat, 'medians': summary, 'results': results}))
 
 

@@ -143,6 +143,14 @@ def test_rows_are_messages_rclpy_reads(device):
         batch.add(r.tobytes())
     s, v = batch.take()
     assert list(s) == list(stamps) and np.array_equal(v, values) and batch.foreign == 0
+    # the stamp read straight from rclpy's own serialisation, as the lean subscriber reads it
+    from geometry_msgs.msg import PoseStamped
+    from rclpy.serialization import serialize_message
+
+    from mmd_ros.nodes.convert import header, stamp_of_serialized
+    for ns in (1_700_000_000_999_999_999, 5):
+        assert stamp_of_serialized(serialize_message(PoseStamped(header=header(ns, 'mmd_lower')))) == ns
+    assert stamp_of_serialized(rows.poses(stamps, poses)[1].tobytes()) == stamps[1]
 
 
 def test_the_scenario_restarts_when_it_ends(device):

@@ -27,7 +27,7 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
-from mmd_ros.nodes.convert import from_time
+from mmd_ros.nodes.convert import from_time, stamp_of_serialized
 from mmd_ros.nodes.qos import DIAGNOSTICS, data_qos
 
 __all__ = ['CalibrationLog', 'MmdClient', 'guided_calibration', 'next_placement']
@@ -46,7 +46,8 @@ class MmdClient:
     """Talks to the device in ``namespace`` (see the module docstring).
 
     topics : which per-sample topics to collect: 'pose', 'reference', 'raw' (stamps only),
-        'fk_status'
+        'pose_stamps' (the poses' stamps and arrival times only, read from the serialised
+        message without building message objects: what a lean consumer costs)
     """
 
     def __init__(self, namespace: str = '/mmd', *, topics: tuple[str, ...] = ('pose', 'reference'),
@@ -58,6 +59,7 @@ class MmdClient:
         self._lock = threading.Lock()
         self.poses: list[tuple[int, float, float, float, float, float, float, float]] = []
         self.pose_arrivals: list[int] = []
+        self.pose_stamps: list[int] = []
         self.reference: dict[int, np.ndarray] = {}
         self.raw_stamps: list[int] = []
         self.raw_counts: list[np.ndarray] = []
@@ -67,6 +69,8 @@ class MmdClient:
         n = self.node
         if 'pose' in topics:
             n.create_subscription(PoseStamped, f'{self.ns}/pose', self._on_pose, qos)
+        if 'pose_stamps' in topics:
+            n.create_subscription(PoseStamped, f'{self.ns}/pose', self._on_pose_bytes, qos, raw=True)
         if 'reference' in topics:
             n.create_subscription(JointState, f'{self.ns}/reference/pose', self._on_reference, qos)
         if 'raw' in topics:
@@ -94,6 +98,14 @@ class MmdClient:
         arrival = time.time_ns()
         with self._lock:
             self.poses.append(row)
+            self.pose_stamps.append(row[0])
+            self.pose_arrivals.append(arrival)
+
+    def _on_pose_bytes(self, data: bytes) -> None:
+        arrival = time.time_ns()
+        stamp = stamp_of_serialized(data)
+        with self._lock:
+            self.pose_stamps.append(stamp)
             self.pose_arrivals.append(arrival)
 
     def _on_reference(self, msg: JointState) -> None:

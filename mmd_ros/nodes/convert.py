@@ -9,6 +9,8 @@ objects, turned into arrays here.
 
 from __future__ import annotations
 
+import struct
+
 import numpy as np
 from builtin_interfaces.msg import Time
 from numpy.typing import NDArray
@@ -21,7 +23,7 @@ from mmd_ros.logs.layout import BAR_NAMES, FRAME_LOWER, REFERENCE_POSE_NAMES
 __all__ = [
     'DIAGNOSTIC_ARRAY', 'FK_STATUS_NAMES', 'HEADER', 'JS', 'POSE', 'POSE_COV', 'RawBatch', 'Rows',
     'STRING', 'from_time', 'header', 'joint_state_values', 'pose_from_msg', 'string_bytes',
-    'string_msg', 'thermal_names', 'to_time',
+    'stamp_of_serialized', 'string_msg', 'thermal_names', 'to_time',
 ]
 
 JS = 'sensor_msgs/msg/JointState'
@@ -47,6 +49,14 @@ def to_time(stamp_ns: int) -> Time:
 
 def from_time(t: Time) -> int:
     return int(t.sec) * 1_000_000_000 + int(t.nanosec)
+
+
+def stamp_of_serialized(data: bytes) -> int:
+    """``header.stamp`` [ns] of a serialised message whose first field is a std_msgs/Header
+    (PoseStamped, JointState, ...), read without deserialising it: after the 4-byte CDR
+    encapsulation header (byte 1 = 1: little-endian), int32 sec and uint32 nanosec."""
+    sec, nanosec = struct.unpack_from('<iI' if data[1] == 1 else '>iI', data, 4)
+    return sec * 1_000_000_000 + nanosec
 
 
 def header(stamp_ns: int, frame_id: str = '') -> Header:
