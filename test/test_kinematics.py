@@ -9,7 +9,9 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from mmd_ros.core.device import find_config, load_device
-from mmd_ros.core.kinematics import ForwardKinematics, inverse_kinematics, jacobian, pose_covariance
+from mmd_ros.core.kinematics import (
+    COMPILED, ForwardKinematics, inverse_kinematics, jacobian, pose_covariance,
+)
 from mmd_ros.core.rotation import (
     angles_to_quaternion, matrix_to_angles, quaternion_to_angles, rotation_matrix,
 )
@@ -96,6 +98,43 @@ def test_streaming_warm_start_tracks_a_trajectory_in_few_iterations():
         assert np.max(np.abs(sol.pose - p[k])) < 1e-12
         iters.append(sol.iterations)
     assert np.median(iters) <= 2
+
+
+def test_compiled_streaming_solver_does_what_the_python_one_does():
+    """The compiled solver (_fastkin.c, the 1 kHz path) against ForwardKinematics.solve, sample
+    after sample: a noisy motion, a broken sample, a jump that needs damped steps, impossible
+    lengths, and an iteration cap that leaves samples unconverged (the warm start restarts)."""
+    assert COMPILED, 'mmd_ros.core._fastkin was not built: install gcc and the Python headers'
+    rng = np.random.default_rng(11)
+    t = np.arange(3000) * 1e-3
+    p = np.column_stack([0.1 * np.sin(t), 0.05 * np.cos(2 * t), 0.3 + 0.01 * t,
+                         0.05 * np.sin(t), 0.02 * t, 0.6 * np.sin(0.5 * t)])
+    d = inverse_kinematics(GEOMETRY, p) + rng.normal(0, 50e-9, (len(t), 6))
+    d[700, 3] = np.nan
+    d[1500:] = inverse_kinematics(GEOMETRY, p[1500:] + [0.08, -0.06, 0.02, 0.2, -0.2, 0.5])
+    d[2200] = [0.25, 0.376, 0.25, 0.376, 0.25, 0.0001]
+    for max_iter in (20, 3):
+        runs = []
+        for compiled in (False, True):
+            fk = ForwardKinematics(GEOMETRY, max_iter=max_iter)
+            # transfer by transfer, as the nodes call it: the warm start carries across calls
+            parts = [fk.solve_stream(d[k:k + 8], compiled=compiled) for k in range(0, len(t), 8)]
+            runs.append({f: np.concatenate([getattr(q, f) for q in parts])
+                         for f in ('poses', 'converged', 'iterations', 'residual_m', 'jacobians')})
+        py, c = runs
+        assert np.array_equal(py['converged'], c['converged'])
+        assert np.array_equal(py['iterations'], c['iterations'])
+        for f in ('poses', 'residual_m', 'jacobians'):
+            assert np.array_equal(np.isnan(py[f]), np.isnan(c[f])), f
+            ok = np.isfinite(py[f])
+            assert np.allclose(py[f][ok], c[f][ok], rtol=1e-9, atol=1e-12), f
+        assert not c['converged'][700] and np.isnan(c['poses'][700]).all()
+        assert not c['converged'][2200]
+        if max_iter == 20:
+            assert c['converged'].sum() == len(t) - 2
+            assert c['iterations'][1500] > 3  # the jump took damped steps from a stale start
+        else:
+            assert 0 < c['converged'].sum() < len(t) - 2
 
 
 def test_impossible_lengths_are_flagged_not_returned():

@@ -220,31 +220,13 @@ def _solve(fk: ForwardKinematics, lengths: FloatArray, scale: FloatArray
            ) -> tuple[FloatArray, NDArray[np.bool_], NDArray[np.int64], FloatArray, FloatArray]:
     """Streaming FK of N samples as :meth:`Pipeline.process_sample` does it: FK on d / s with the
     nominal geometry, translation times s. Samples with a NaN length are not solved."""
-    n = lengths.shape[0]
-    poses = np.full((n, 6), np.nan)
-    converged = np.zeros(n, dtype=bool)
-    iterations = np.zeros(n, dtype=np.int64)
-    residual = np.full(n, np.nan)
-    jacobians = np.full((n, 6, 6), np.nan)
-    rows = lengths.tolist()
-    scales = scale.tolist()
-    solve = fk.solve
-    isfinite = math.isfinite
-    for i in range(n):
-        d = rows[i]
-        if not all(isfinite(v) for v in d):
-            continue
-        s = scales[i]
-        sol = solve([v / s for v in d])
-        pose = sol.pose
-        poses[i] = pose
-        converged[i] = sol.converged
-        iterations[i] = sol.iterations
-        residual[i] = sol.residual_m
-        jacobians[i] = sol.jacobian
+    scale = np.asarray(scale, dtype=np.float64)
+    sol = fk.solve_stream(lengths / scale[:, None])
+    poses = sol.poses
     poses[:, :3] *= scale[:, None]
+    residual = sol.residual_m
     residual[~np.isfinite(residual)] = np.nan
-    return poses, converged, iterations, residual, jacobians
+    return poses, sol.converged, sol.iterations, residual, sol.jacobians
 
 
 @dataclass
