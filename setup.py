@@ -20,7 +20,7 @@ CONSOLE_SCRIPTS = [
 # The streaming forward kinematics of the 1 kHz path, compiled (plain C, no numpy headers).
 # optional: without a C compiler the package installs and uses the same algorithm in Python.
 EXTENSIONS = [
-    Extension('mmd_ros.core._fastkin', ['mmd_ros/core/_fastkin.c'],
+    Extension('mmd_ros.core._fast', ['mmd_ros/core/_fast.c'],
               extra_compile_args=['-O2'], optional=True),
 ]
 

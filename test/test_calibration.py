@@ -10,6 +10,7 @@ from hypothesis import strategies as st
 from mmd_ros.core.calibration import (
     BarCalibration, Calibration, CdfBank, CentreDistanceFunction, load_calibration,
 )
+from mmd_ros.core.compiled import AVAILABLE as COMPILED
 from mmd_ros.core.errors import CalibrationError, ConfigError
 
 TABLE2_MM = np.array([250.0105, 278.0341, 299.9308, 322.9806, 340.9278, 357.0020, 376.0216])
@@ -58,10 +59,16 @@ def test_cdf_bank_equals_individual_cdfs():
                                               rng.choice([1, -1])), TABLE2_MM * 1e-3) for _ in range(6)]
     bank = CdfBank(cdfs)
     counts = np.column_stack([np.linspace(c.counts[0] - 500, c.counts[-1] + 500, 5000) for c in cdfs])
-    d, out = bank(counts)
-    for k, cdf in enumerate(cdfs):
-        dk, ok = cdf(counts[:, k])
-        assert np.array_equal(d[:, k], dk) and np.array_equal(out[:, k], ok)
+    counts[:7] = np.array([c.counts for c in cdfs]).T  # exactly on the knots
+    counts[9, 2] = np.nan
+    # the compiled helpers (the 1 kHz path) and numpy give the same numbers, bit for bit
+    assert COMPILED, 'mmd_ros.core._fast was not built: install gcc and the Python headers'
+    for compiled in (False, True):
+        d, out = bank(counts, compiled=compiled)
+        for k, cdf in enumerate(cdfs):
+            dk, ok = cdf(counts[:, k])
+            assert np.array_equal(d[:, k], dk, equal_nan=True) and np.array_equal(out[:, k], ok)
+        assert np.isnan(d[9, 2]) and not out[9, 2]
     single, _ = bank(counts[7])
     assert np.array_equal(single, d[7])
 

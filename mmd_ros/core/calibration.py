@@ -18,6 +18,7 @@ import numpy as np
 import yaml
 from numpy.typing import ArrayLike, NDArray
 
+from mmd_ros.core.compiled import fast
 from mmd_ros.core.errors import CalibrationError, ConfigError
 from mmd_ros.core.units import M_PER_MM
 from mmd_ros.core.yamlio import atomic_write_text, parse_yaml, read_yaml
@@ -221,9 +222,24 @@ class CdfBank:
         self.slopes = np.diff(self.distances_m, axis=1) / np.diff(self.counts, axis=1)
         self._rows = np.arange(len(cdfs))
 
-    def __call__(self, counts: ArrayLike) -> tuple[FloatArray, NDArray[np.bool_]]:
-        """counts : array_like, shape (..., k) → (distances_m, out_of_range), shape (..., k)."""
+    def __call__(self, counts: ArrayLike, *, compiled: bool | None = None
+                 ) -> tuple[FloatArray, NDArray[np.bool_]]:
+        """counts : array_like, shape (..., k) → (distances_m, out_of_range), shape (..., k).
+
+        compiled : evaluate with :mod:`mmd_ros.core.compiled` (default: when it was built)
+        """
         c = np.asarray(counts, dtype=np.float64)
+        if compiled is None:
+            compiled = fast is not None
+        elif compiled and fast is None:
+            raise CalibrationError('the compiled helpers were not built (no C compiler when '
+                                   'mmd_ros was installed)')
+        if compiled and c.ndim == 2 and c.shape[1] == len(self._rows):
+            c = np.ascontiguousarray(c)
+            dist = np.empty_like(c)
+            out = np.empty(c.shape, dtype=bool)
+            fast.cdf_eval(c, self.counts, self.distances_m, self.slopes, dist, out)
+            return dist, out
         n = self.counts.shape[1]
         idx = np.clip(np.sum(c[..., None] >= self.counts, axis=-1) - 1, 0, n - 2)
         q0 = self.counts[self._rows, idx]

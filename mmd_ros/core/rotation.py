@@ -83,15 +83,16 @@ def angles_to_quaternion(angles: ArrayLike) -> NDArray[np.float64]:
     returns : ndarray, shape (..., 4), unit norm, w >= 0 not enforced
     """
     a = np.asarray(angles, dtype=np.float64) * 0.5
-    cf, sf = np.cos(a[..., 0]), np.sin(a[..., 0])
-    ct, st = np.cos(a[..., 1]), np.sin(a[..., 1])
-    cp, sp = np.cos(a[..., 2]), np.sin(a[..., 2])
-    return np.stack([
-        sf * ct * cp - cf * st * sp,
-        cf * st * cp + sf * ct * sp,
-        cf * ct * sp - sf * st * cp,
-        cf * ct * cp + sf * st * sp,
-    ], axis=-1)
+    c, s = np.cos(a), np.sin(a)  # (one call each: a live transfer has only 8 rows)
+    cf, ct, cp = c[..., 0], c[..., 1], c[..., 2]
+    sf, st, sp = s[..., 0], s[..., 1], s[..., 2]
+    ctcp, stsp, ctsp, stcp = ct * cp, st * sp, ct * sp, st * cp
+    out = np.empty(a.shape[:-1] + (4,))
+    np.subtract(sf * ctcp, cf * stsp, out=out[..., 0])
+    np.add(cf * stcp, sf * ctsp, out=out[..., 1])
+    np.subtract(cf * ctsp, sf * stcp, out=out[..., 2])
+    np.add(cf * ctcp, sf * stsp, out=out[..., 3])
+    return out
 
 
 def quaternion_to_angles(q: ArrayLike) -> NDArray[np.float64]:

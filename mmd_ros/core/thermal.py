@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from mmd_ros.core.calibration import CentreDistanceFunction
+from mmd_ros.core.calibration import CdfBank, CentreDistanceFunction
 from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.errors import ModelError
 
@@ -92,6 +92,12 @@ class ThermalCompensation:
         self._sensitivity = np.array([
             -(device.rod_cte_per_c * fixed + device.scale_cte_per_c * (r.distance_m - fixed))
             for r in self.references])
+        # Eq. (11) of every reference bar in one pass of their CDFs (when they have as many
+        # points each, as the calibration routine makes them)
+        self._channels = [r.channel for r in self.references]
+        self._offsets_m = np.array([r.distance_m + r.zero_m for r in self.references])
+        self._bank = (CdfBank([r.cdf for r in self.references])
+                      if len({r.cdf.counts.size for r in self.references}) == 1 else None)
 
     def sensitivity_m_per_c(self) -> FloatArray:
         """d eps / dT of each reference bar, shape (k,) [m/°C] (negative: a warm bar reads short)."""
@@ -103,6 +109,8 @@ class ThermalCompensation:
         counts : ndarray, shape (N, 8) — raw counts of all channels
         returns : ndarray, shape (N, k) [m]
         """
+        if self._bank is not None:
+            return self._bank(counts[:, self._channels])[0] - self._offsets_m
         cols = [r.cdf(counts[:, r.channel])[0] - r.distance_m - r.zero_m for r in self.references]
         return np.stack(cols, axis=1) if cols else np.zeros((counts.shape[0], 0))
 
