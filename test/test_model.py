@@ -119,3 +119,34 @@ def test_node_stages_transfer_by_transfer_give_the_batch_result():
     assert np.all(np.diagonal(cov, axis1=1, axis2=2) > 0)
     without = Kinematics(DEVICE, model.length_sigma_m, with_covariance=False)
     assert without.solve(comp.lengths_m, comp.plate_scale).covariance is None
+
+
+def test_kinematics_diagnostics_count_what_the_samples_show():
+    """The kinematics figures of /diagnostics (kept per transfer at 1 kHz) against the
+    per-sample outputs: iterations, residual, unconverged and out-of-range samples."""
+    from mmd_ros.core.kinematics import inverse_kinematics
+    from mmd_ros.nodes.compute import Kinematics
+    from mmd_ros.nodes.reports import kinematics_report
+    t = np.arange(64) * 1e-3
+    poses = np.column_stack([0.01 * np.sin(t), 0 * t, 0.3 + 0 * t, 0 * t, 0.02 * t, 0 * t])
+    lengths = inverse_kinematics(DEVICE.geometry, poses) + np.random.default_rng(2).normal(0, 5e-8, (64, 6))
+    lengths[10, 4] = np.nan                                      # a bar out of its span
+    lengths[40] = [0.25, 0.376, 0.25, 0.376, 0.25, 0.0001]       # no pose has these lengths
+    scale = np.full(64, 1.0 + 2e-6)
+    kinematics = Kinematics(DEVICE, 0.3e-6)
+    outs = [kinematics.solve(lengths[a:a + 8], scale[a:a + 8]) for a in range(0, 64, 8)]
+    its = np.concatenate([o.iterations for o in outs])
+    res = np.concatenate([o.residual_m for o in outs])
+    valid = np.concatenate([o.valid for o in outs])
+    values = kinematics_report(kinematics).values
+    solved = np.arange(64) != 10
+    assert values['samples'] == 64 and values['out_of_range'] == 1
+    assert values['not_converged'] == 1 and values['poses_published'] == 62 == valid.sum()
+    assert values['iterations_mean'] == round(its[solved].mean(), 3)
+    assert values['iterations_max'] == its.max() == kinematics.fk.max_iter
+    assert values['residual_max_m'] == np.nanmax(res) and np.isnan(res[10])
+    # the next period starts afresh
+    kinematics.solve(lengths[:8], scale[:8])
+    again = kinematics_report(kinematics).values
+    assert again['iterations_max'] < kinematics.fk.max_iter
+    assert again['samples'] == 72 and again['out_of_range'] == 1  # totals since the start

@@ -134,19 +134,21 @@ class PoseNode(CalibrationService, Node):
         self.calibration.on_counter_reset(stamp_ns)
 
     def _on_batch(self, stamps, counts, batch) -> None:
-        self.calibration.feed(stamps, counts)
+        # poses first (what CNC tooling waits for), then the calibration routine's capture, the
+        # covariance (computed only now) and the rest of the transfer's topics
         comp = self.compensator.process(stamps, counts)
+        if comp is not None:
+            kin = self.kinematics.solve(comp.lengths_m, comp.plate_scale)
+            valid = kin.valid if kin.valid.any() else None
+            if valid is not None:
+                s = stamps[valid]
+                poses = kin.poses[valid]
+                self.out_pose.rows(self.rows.poses(s, poses), s)
+        self.calibration.feed(stamps, counts)
         if comp is None:
             return
-        kin = self.kinematics.solve(comp.lengths_m, comp.plate_scale)
-        # poses first (what CNC tooling waits for), then the covariance (computed only now) and
-        # the rest of the transfer's topics
-        if kin.valid.any():
-            s = stamps[kin.valid]
-            poses = kin.poses[kin.valid]
-            self.out_pose.rows(self.rows.poses(s, poses), s)
-            if kin.covariance is not None:
-                self.out_pose_cov.rows(self.rows.poses(s, poses, kin.covariance), s)
+        if valid is not None and kin.covariance is not None:
+            self.out_pose_cov.rows(self.rows.poses(s, poses, kin.covariance), s)
         self.out_lengths.rows(self.rows.lengths.encode(stamps, comp.lengths_m), stamps)
         self.out_thermal.rows(self.rows.thermal.encode(stamps, comp.thermal_values()), stamps)
         self.out_status.rows(self.rows.fk_status.encode(stamps, kin.status_values()), stamps)

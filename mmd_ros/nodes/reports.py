@@ -80,7 +80,7 @@ def kinematics_report(kin: Kinematics) -> Report:
     if st.period_out_of_range:
         r.worse(WARN, f'{st.period_out_of_range} sample(s) with a bar out of its calibrated range: '
                 'no pose for them')
-    its = st.period_iterations
+    solved = st.period_solved
     now = time.monotonic()
     elapsed = now - st.period_t0
     r.values.update({
@@ -88,13 +88,13 @@ def kinematics_report(kin: Kinematics) -> Report:
         'poses_published': st.poses,
         'not_converged': st.not_converged,
         'out_of_range': st.out_of_range,
-        'iterations_mean': round(float(np.mean(its)), 3) if its else math.nan,
-        'iterations_max': int(max(its)) if its else 0,
-        'residual_max_m': st.period_residual_max_m if its else math.nan,
+        'iterations_mean': round(st.period_iterations_sum / solved, 3) if solved else math.nan,
+        'iterations_max': st.period_iterations_max,
+        'residual_max_m': st.period_residual_max_m if solved else math.nan,
         'rate_hz': round(st.period_samples / elapsed, 1) if elapsed > 0 else math.nan,
     })
     st.period_t0 = now
     st.period_samples = st.period_not_converged = st.period_out_of_range = 0
-    st.period_iterations = []
+    st.period_solved = st.period_iterations_sum = st.period_iterations_max = 0
     st.period_residual_max_m = 0.0
     return r
