@@ -1,4 +1,5 @@
-"""Forward-kinematics benchmarks: per-sample (warm start, 1 kHz trajectory) and batch throughput.
+"""Forward-kinematics benchmarks: per-sample (warm start, 1 kHz trajectory), per transfer as the
+nodes solve it (8 samples, compiled and Python) and batch throughput.
 
 Prints the figures and a final JSON line. Targets (issue 2): per-sample median <= 50 us,
 batch >= 300,000 samples/s at N = 100,000. Never fails on timing.
@@ -12,6 +13,7 @@ import time
 
 import numpy as np
 
+from mmd_ros.core.compiled import AVAILABLE as COMPILED
 from mmd_ros.core.device import find_config, load_device
 from mmd_ros.core.kinematics import ForwardKinematics, inverse_kinematics
 
@@ -38,6 +40,20 @@ def main() -> None:
         iterations.append(sol.iterations)
     per_sample = [statistics.median(times[k:k + 5000]) * 1e6 for k in range(0, len(times), 5000)]
 
+    # the nodes' path: a transfer of 8 samples at a time through solve_stream, on noisy lengths
+    noisy = lengths + np.random.default_rng(1).normal(0, 50e-9, lengths.shape)
+    transfer = {}
+    for compiled in ([False, True] if COMPILED else [False]):
+        fk.reset()
+        t_transfer = []
+        for k in range(0, len(noisy), 8):
+            t0 = time.perf_counter()
+            fk.solve_stream(noisy[k:k + 8], compiled=compiled)
+            t_transfer.append(time.perf_counter() - t0)
+        transfer['compiled' if compiled else 'python'] = {
+            'median_us': statistics.median(t_transfer) * 1e6,
+            'p99_us': float(np.percentile(t_transfer, 99) * 1e6)}
+
     rng = np.random.default_rng(0)
     n = 100_000
     poses = np.column_stack([rng.uniform(-0.08, 0.08, (n, 2)), rng.uniform(0.27, 0.33, n),
@@ -56,6 +72,7 @@ def main() -> None:
         'per_sample_median_us_by_block': per_sample,
         'per_sample_p99_us': float(np.percentile(times, 99) * 1e6),
         'per_sample_median_iterations': statistics.median(iterations),
+        'transfer_of_8_us': transfer,
         'batch_samples_per_s_median': statistics.median(rates),
         'batch_samples_per_s_runs': rates,
         'batch_n': n,
@@ -64,6 +81,11 @@ def main() -> None:
     print(f'per-sample FK (warm start, 1 kHz trajectory): median {result["per_sample_median_us"]:.1f} us '
           f'(blocks {", ".join(f"{v:.1f}" for v in per_sample)}), p99 {result["per_sample_p99_us"]:.1f} us, '
           f'median {result["per_sample_median_iterations"]} iterations   [target <= 50 us]')
+    for path, v in transfer.items():
+        print(f'a transfer of 8 noisy samples (solve_stream, {path}): median {v["median_us"]:.1f} us, '
+              f'p99 {v["p99_us"]:.1f} us')
+    if not COMPILED:
+        print('(the compiled helpers were not built: no C compiler when mmd_ros was installed)')
     print(f'batch FK, N = {n}: median {result["batch_samples_per_s_median"]:,.0f} samples/s over 5 runs, '
           f'{result["batch_mean_iterations"]:.2f} iterations on average   [target >= 300,000]')
     print(json.dumps(result))

@@ -29,7 +29,7 @@ from mmd_ros.hardware import (
     Transport, decode_frames, encode_frames,
 )
 from mmd_ros.hardware.protocol import (
-    EP_COMMAND_OUT, EP_REPLY_IN, EP_SAMPLES_IN, FLAG_COUNTER_RESET, FRAME_DTYPE,
+    EP_COMMAND_OUT, EP_REPLY_IN, EP_SAMPLES_IN, FLAG_COUNTER_RESET, FLAG_FIFO_OVERFLOW, FRAME_DTYPE,
     FRAME_SIZE, Opcode, Status, decode_info, decode_reply, encode_command, wrap_counts,
 )
 
@@ -161,6 +161,50 @@ def test_stream_reset_and_duplicate_rules_across_transfers():
     assert not s.feed(frames([2, 3], [9, 10])).counter_reset  # acked: flag clear
     b = s.feed(frames([4, 5], [0, 1], FLAG_COUNTER_RESET))  # flag rises with seq advancing
     assert b.counter_reset and s.stats.resets == 3
+
+
+@pytest.mark.parametrize('seed', range(8))
+def test_compiled_decoding_gives_what_numpy_gives(seed):
+    """FrameStream's compiled path (continuing transfers, the 1 kHz case) against its numpy
+    path, batch for batch and counter for counter, on a stream with every fault: counter and
+    sequence wrap, gaps, duplicates, bad CRCs, trailing bytes, resets, status bits, overflows."""
+    from mmd_ros.core.compiled import AVAILABLE
+    assert AVAILABLE, 'mmd_ros.core._fast was not built: install gcc and the Python headers'
+    rng = np.random.default_rng(seed)
+    n = 4000
+    counts = np.cumsum(rng.integers(-(2**29), 2**29, (n, 8)), axis=0) + rng.integers(-2**40, 2**40, 8)
+    seqs = (np.arange(n) + 2**32 - 900) % 2**32
+    flags = np.zeros(n, np.int64)
+    flags[1500:1530] = FLAG_COUNTER_RESET                    # a reset, flag held for 30 frames
+    flags[rng.integers(0, n, 20)] |= FLAG_FIFO_OVERFLOW
+    status = np.where(rng.random(n) < 0.01, rng.integers(1, 2**16, n), 0)
+    frames = bytearray(encode_frames(seqs, np.arange(n) * 10**6, counts, status, flags))
+    order = np.arange(n)
+    order = np.delete(order, rng.integers(0, n, 40))       # gaps
+    dup = rng.integers(1, len(order), 10)
+    order = np.insert(order, dup, order[dup - 1])           # duplicates
+    for bad in rng.integers(0, n, 10):                      # damaged frames
+        frames[bad * 64 + int(rng.integers(0, 60))] ^= 0xFF
+    payload = b''.join(bytes(frames[i * 64:(i + 1) * 64]) for i in order)
+    cuts = np.sort(rng.choice(np.arange(1, len(order)), 600, replace=False)) * 64
+    transfers = [payload[a:b] for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(payload)])]
+    transfers[300] += b'\x01\x02'                          # trailing bytes
+    streams = [FrameStream(compiled=False), FrameStream(compiled=True)]
+    took = []  # what the compiled path returned for each transfer (None: the numpy path)
+    compiled_path = streams[1]._continue_compiled
+    streams[1]._continue_compiled = lambda raw, t: took.append(compiled_path(raw, t)) or took[-1]
+    for data in transfers:
+        a, b = (s.feed(data, 7) for s in streams)
+        for f in ('seq', 'device_time_ns', 'counts', 'channel_status', 'flags', 'missing_before'):
+            x, y = getattr(a, f), getattr(b, f)
+            assert x.dtype == y.dtype and np.array_equal(x, y), f
+        assert (a.counter_reset, a.reset_index, a.crc_errors) == (b.counter_reset, b.reset_index, b.crc_errors)
+        assert a.raw == b.raw
+    assert streams[0].stats == streams[1].stats
+    st_ = streams[1].stats
+    assert st_.resets >= 1 and st_.gaps > 0 and st_.crc_errors > 0 and st_.sequence_errors > 0
+    assert st_.overflows > 0 and st_.signal_errors > 0 and st_.framing_errors == 1
+    assert 300 < sum(t is not None for t in took) < len(transfers) - 20
 
 
 # ------------------------------------------------------------------ the simulated device through pyusb

@@ -4,6 +4,8 @@
  *
  *   solve_stream   ForwardKinematics.solve, sample after sample (mmd_ros/core/kinematics.py)
  *   cdf_eval       CdfBank.__call__, the piecewise-linear CDFs of Eq. (10) (calibration.py)
+ *   decode_continuing   FrameStream.feed for a transfer that continues the stream
+ *                       (mmd_ros/hardware/stream.py)
  *
  * On a transfer of 8 samples numpy and scalar Python spend their time in call overhead, not
  * arithmetic; here the same work takes a few microseconds.
@@ -28,6 +30,7 @@
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 #include <math.h>
+#include <stdint.h>
 #include <string.h>
 
 typedef struct {
@@ -383,9 +386,172 @@ done:
     return result;
 }
 
+/* ---------------------------------------------------------------------------------------------
+ * Sample frames of the encoder terminal (msg_docs/usb_protocol.md): the common case of
+ * FrameStream.feed, a transfer of valid frames that continue the stream. Anything else (a bad
+ * frame, trailing bytes, a sequence step <= 0, a counter reset starting, the first transfer)
+ * returns None and FrameStream's numpy path handles the transfer, as it does every transfer
+ * without the compiled helpers.
+ */
+#define FRAME_SIZE 64
+#define FRAME_CRC_SPAN 60
+#define N_CHANNELS 8
+#define MAGIC 0x444D
+#define PROTOCOL_VERSION 1
+#define TYPE_SAMPLE 0x53
+#define FLAG_COUNTER_RESET 0x0001
+#define FLAG_FIFO_OVERFLOW 0x0002
+
+static uint32_t crc_table[256];
+
+static void crc_init(void)
+{
+    for (uint32_t i = 0; i < 256; i++) {
+        uint32_t c = i;
+        for (int k = 0; k < 8; k++)
+            c = c & 1 ? 0xEDB88320u ^ (c >> 1) : c >> 1;
+        crc_table[i] = c;
+    }
+}
+
+/* CRC-32 of IEEE 802.3 (zlib.crc32). */
+static uint32_t crc32_of(const unsigned char *p, size_t n)
+{
+    uint32_t c = 0xFFFFFFFFu;
+    for (size_t i = 0; i < n; i++)
+        c = crc_table[(c ^ p[i]) & 0xFF] ^ (c >> 8);
+    return c ^ 0xFFFFFFFFu;
+}
+
+static uint16_t le16(const unsigned char *p) { return (uint16_t)(p[0] | p[1] << 8); }
+static uint32_t le32(const unsigned char *p)
+{
+    return (uint32_t)p[0] | (uint32_t)p[1] << 8 | (uint32_t)p[2] << 16 | (uint32_t)p[3] << 24;
+}
+static uint64_t le64(const unsigned char *p) { return (uint64_t)le32(p) | (uint64_t)le32(p + 4) << 32; }
+
+PyDoc_STRVAR(decode_continuing_doc,
+"decode_continuing(data, last_seq, reset_seen, last_raw, last_counts,\n"
+"                  seq, time_ns, counts, channel_status, flags, missing, raw_last)\n"
+"    -> None | (last_seq, reset_seen, gaps, missing_samples, overflows, signal_errors)\n\n"
+"Decode a transfer of N = len(data) / 64 sample frames that continue a stream whose last\n"
+"accepted frame had the unwrapped sequence number last_seq, raw counters last_raw (8,) int64\n"
+"and unwrapped counts last_counts (8,) int64, as FrameStream's fast path does. Fills seq (N,)\n"
+"uint32, time_ns (N,) int64, counts (N, 8) int64 (unwrapped), channel_status and flags (N,)\n"
+"uint16, missing (N,) int64 (samples missing before each frame) and raw_last (8,) int64 (the\n"
+"last frame's raw counters). Returns None, having changed nothing that matters, when the\n"
+"transfer needs the general path.");
+
+static PyObject *decode_continuing(PyObject *self, PyObject *args)
+{
+    (void)self;
+    Py_buffer data;
+    long long last_seq;
+    int reset_seen;
+    PyObject *o[9];
+    if (!PyArg_ParseTuple(args, "y*LpOOOOOOOOO", &data, &last_seq, &reset_seen, &o[0], &o[1],
+                          &o[2], &o[3], &o[4], &o[5], &o[6], &o[7], &o[8]))
+        return NULL;
+    Py_buffer b[9];
+    int got = 0;
+    PyObject *result = NULL;
+    const Py_ssize_t n = data.len / FRAME_SIZE;
+    if (n == 0 || data.len != n * FRAME_SIZE) {
+        result = Py_None;
+        Py_INCREF(result);
+        goto done;
+    }
+    struct { int w; Py_ssize_t count, size; const char *fmt, *name; } spec[] = {
+        {0, N_CHANNELS, 8, "q", "last_raw"},
+        {0, N_CHANNELS, 8, "q", "last_counts"},
+        {1, n, 4, "I", "seq"},
+        {1, n, 8, "q", "time_ns"},
+        {1, n * N_CHANNELS, 8, "q", "counts"},
+        {1, n, 2, "H", "channel_status"},
+        {1, n, 2, "H", "flags"},
+        {1, n, 8, "q", "missing"},
+        {1, N_CHANNELS, 8, "q", "raw_last"},
+    };
+    for (int k = 0; k < 9; k++) {
+        if (get_buffer(o[k], &b[got], spec[k].w, spec[k].count, spec[k].size, spec[k].fmt,
+                       spec[k].name) < 0)
+            goto done;
+        got++;
+    }
+    {
+        const unsigned char *p = (const unsigned char *)data.buf;
+        const int64_t *last_raw = (const int64_t *)b[0].buf, *last_counts = (const int64_t *)b[1].buf;
+        uint32_t *seq = (uint32_t *)b[2].buf;
+        int64_t *tns = (int64_t *)b[3].buf, *counts = (int64_t *)b[4].buf;
+        uint16_t *status = (uint16_t *)b[5].buf, *flags = (uint16_t *)b[6].buf;
+        int64_t *missing = (int64_t *)b[7].buf, *raw_last = (int64_t *)b[8].buf;
+        /* check the whole transfer before anything is written that the caller keeps */
+        uint32_t prev = (uint32_t)last_seq;
+        int any_flagged = 0;
+        for (Py_ssize_t i = 0; i < n; i++) {
+            const unsigned char *f = p + i * FRAME_SIZE;
+            if (le16(f) != MAGIC || f[2] != PROTOCOL_VERSION || f[3] != TYPE_SAMPLE
+                    || crc32_of(f, FRAME_CRC_SPAN) != le32(f + 60))
+                goto general;
+            uint32_t s = le32(f + 4);
+            int32_t step = (int32_t)(s - prev);     /* signed step in (-2^31, 2^31) */
+            if (step <= 0)
+                goto general;
+            prev = s;
+            any_flagged |= (le16(f + 50) & FLAG_COUNTER_RESET) != 0;
+        }
+        if (any_flagged && !reset_seen)
+            goto general;
+        long long gaps = 0, lost = 0, overflows = 0, signal_errors = 0;
+        int64_t raw_prev[N_CHANNELS], acc[N_CHANNELS];
+        for (int c = 0; c < N_CHANNELS; c++) {
+            raw_prev[c] = last_raw[c];
+            acc[c] = last_counts[c];
+        }
+        prev = (uint32_t)last_seq;
+        for (Py_ssize_t i = 0; i < n; i++) {
+            const unsigned char *f = p + i * FRAME_SIZE;
+            const uint32_t s = le32(f + 4);
+            const int64_t step = (int32_t)(s - prev);
+            prev = s;
+            seq[i] = s;
+            tns[i] = (int64_t)le64(f + 8);
+            missing[i] = step - 1;
+            last_seq += step;
+            gaps += step > 1;
+            lost += step - 1;
+            for (int c = 0; c < N_CHANNELS; c++) {
+                const int64_t raw = (int32_t)le32(f + 16 + 4 * c);
+                acc[c] += (int32_t)(uint32_t)(raw - raw_prev[c]);  /* counter wrap */
+                raw_prev[c] = raw;
+                counts[i * N_CHANNELS + c] = acc[c];
+            }
+            status[i] = le16(f + 48);
+            flags[i] = le16(f + 50);
+            overflows += (flags[i] & FLAG_FIFO_OVERFLOW) != 0;
+            signal_errors += status[i] != 0;
+        }
+        for (int c = 0; c < N_CHANNELS; c++)
+            raw_last[c] = raw_prev[c];
+        reset_seen = (flags[n - 1] & FLAG_COUNTER_RESET) != 0;
+        result = Py_BuildValue("LNLLLL", last_seq, PyBool_FromLong(reset_seen), gaps, lost,
+                               overflows, signal_errors);
+        goto done;
+    }
+general:
+    result = Py_None;
+    Py_INCREF(result);
+done:
+    for (int k = 0; k < got; k++)
+        PyBuffer_Release(&b[k]);
+    PyBuffer_Release(&data);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"solve_stream", solve_stream, METH_VARARGS, solve_stream_doc},
     {"cdf_eval", cdf_eval, METH_VARARGS, cdf_eval_doc},
+    {"decode_continuing", decode_continuing, METH_VARARGS, decode_continuing_doc},
     {NULL, NULL, 0, NULL},
 };
 
@@ -397,5 +563,6 @@ static struct PyModuleDef module = {
 
 PyMODINIT_FUNC PyInit__fast(void)
 {
+    crc_init();
     return PyModule_Create(&module);
 }

@@ -8,7 +8,9 @@ so a reply never has to be fished out of the sample stream. Everything is little
 protected by CRC-32 (IEEE 802.3, the polynomial of zlib and Ethernet).
 
 Encoding and decoding of frames work on whole batches with numpy (no Python loop per frame), so
-the same decoder serves the live driver at 1 kHz and the replay of long logs.
+the same decoder serves the live driver at 1 kHz and the replay of long logs. (The live stream's
+common case, valid frames that continue it, is also decoded by compiled code:
+:class:`~mmd_ros.hardware.stream.FrameStream`.)
 
 Sample frame, 64 bytes (offsets in bytes)::
 

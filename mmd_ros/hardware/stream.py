@@ -29,9 +29,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from mmd_ros.core.compiled import fast
 from mmd_ros.hardware.protocol import (
     CHANNEL_STATUS_QUADRATURE_ERROR_SHIFT, CHANNEL_STATUS_SIGNAL_LOST_SHIFT, FLAG_COUNTER_RESET,
-    FLAG_FIFO_OVERFLOW, N_CHANNELS, DecodedFrames, decode_frames,
+    FLAG_FIFO_OVERFLOW, FRAME_SIZE, N_CHANNELS, DecodedFrames, decode_frames,
 )
 
 __all__ = ['DriverStats', 'FrameStream', 'SampleBatch']
@@ -174,10 +175,17 @@ class FrameStream:
     """Stateful decoder of the sample stream of one terminal (one counter epoch at a time).
 
     stats : the :class:`DriverStats` to update (a fresh one when omitted)
+    compiled : decode the common transfer (valid frames that continue the stream) with
+        :mod:`mmd_ros.core.compiled`, about 5 us instead of 50 for 8 frames; everything else
+        takes the numpy path. Default: when it was built.
     """
 
-    def __init__(self, stats: DriverStats | None = None) -> None:
+    def __init__(self, stats: DriverStats | None = None, *, compiled: bool | None = None) -> None:
         self.stats = stats if stats is not None else DriverStats()
+        self.compiled = (fast is not None) if compiled is None else bool(compiled)
+        if self.compiled and fast is None:
+            raise ValueError('the compiled helpers were not built (no C compiler when mmd_ros '
+                             'was installed)')
         self._last_seq: int | None = None  # unwrapped int64 sequence of the last accepted frame
         self._last_raw = np.zeros(N_CHANNELS, np.int64)
         self._last_counts = np.zeros(N_CHANNELS, np.int64)
@@ -207,6 +215,10 @@ class FrameStream:
         st = self.stats
         st.transfers += 1
         st.bytes += len(raw)
+        if self.compiled and self._last_seq is not None:
+            batch = self._continue_compiled(raw, host_time_ns)
+            if batch is not None:
+                return batch
         frames = decode_frames(raw)
         if frames.trailing_bytes:
             st.framing_errors += 1
@@ -217,6 +229,36 @@ class FrameStream:
         if frames.n == 0:
             return SampleBatch.empty(host_time_ns, bad, raw)
         return self._accept(frames, host_time_ns, bad, raw)
+
+    def _continue_compiled(self, raw: bytes, host_time_ns: int) -> SampleBatch | None:
+        """The fast path of :meth:`_accept` in compiled code, or None (nothing changed) when the
+        transfer needs the general path: a bad frame, trailing bytes, a sequence number not
+        ahead, a counter reset starting."""
+        n = len(raw) // FRAME_SIZE
+        seq = np.empty(n, np.uint32)
+        time_ns = np.empty(n, np.int64)
+        counts = np.empty((n, N_CHANNELS), np.int64)
+        status = np.empty(n, np.uint16)
+        flags = np.empty(n, np.uint16)
+        missing = np.empty(n, np.int64)
+        raw_last = np.empty(N_CHANNELS, np.int64)
+        done = fast.decode_continuing(raw, self._last_seq, self._reset_flag_seen, self._last_raw,
+                                      self._last_counts, seq, time_ns, counts, status, flags,
+                                      missing, raw_last)
+        if done is None:
+            return None
+        self._last_seq, self._reset_flag_seen, gaps, lost, overflows, signal_errors = done
+        self._last_raw = raw_last
+        self._last_counts = counts[-1]
+        st = self.stats
+        st.frames_ok += n
+        st.gaps += gaps
+        st.missing_samples += lost
+        st.overflows += overflows
+        st.signal_errors += signal_errors
+        return SampleBatch(seq=seq, device_time_ns=time_ns, counts=counts, channel_status=status,
+                           flags=flags, missing_before=missing, host_time_ns=host_time_ns,
+                           raw=raw)
 
     def _accept(self, fr: DecodedFrames, host_time_ns: int, crc_errors: int, raw: bytes) -> SampleBatch:
         st = self.stats
