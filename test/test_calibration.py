@@ -62,7 +62,8 @@ def test_cdf_bank_equals_individual_cdfs():
     counts[:7] = np.array([c.counts for c in cdfs]).T  # exactly on the knots
     counts[9, 2] = np.nan
     # the compiled helpers (the 1 kHz path) and numpy give the same numbers, bit for bit
-    assert COMPILED, 'mmd_ros.core._fast was not built: install gcc and the Python headers'
+    assert COMPILED, ('compiled helpers not in use: MMD_PURE_PYTHON is set, or _fast.c was '
+                     'not built (no gcc or Python headers)')
     for compiled in (False, True):
         d, out = bank(counts, compiled=compiled)
         for k, cdf in enumerate(cdfs):

@@ -35,13 +35,23 @@ def test_everything_but_the_nodes_imports_without_ros():
     assert int(out.stdout.strip()) >= 10
 
 
+def test_the_compiled_helpers_are_used_unless_switched_off():
+    probe = 'from mmd_ros.core.compiled import AVAILABLE; print(AVAILABLE)'
+    for value, expected in (('', 'True'), ('1', 'False')):
+        out = subprocess.run([sys.executable, '-c', probe], cwd=ROOT, capture_output=True, text=True,
+                             timeout=60, env={**os.environ, 'MMD_PURE_PYTHON': value})
+        assert out.returncode == 0, out.stderr
+        assert out.stdout.strip() == expected, (value, out.stdout, out.stderr)
+
+
 @pytest.mark.skipif(shutil.which('colcon') is None and not (Path(sys.prefix) / 'bin' / 'colcon').exists(),
                     reason='colcon-common-extensions is installed by make test')
 def test_colcon_build_installs_the_ros2_run_layout(tmp_path):
     colcon = shutil.which('colcon') or str(Path(sys.prefix) / 'bin' / 'colcon')
     src = tmp_path / 'src' / 'mmd_ros'
     shutil.copytree(ROOT, src, ignore=shutil.ignore_patterns(
-        '.git', '.venv', 'build', 'install', 'log', '*.egg-info', '__pycache__', '*.mcap', 'out'))
+        '.git', '.venv', 'build', 'install', 'log', '*.egg-info', '__pycache__', '*.mcap', 'out',
+        '*.so'))
     env = dict(os.environ)
     out = subprocess.run(
         [colcon, '--log-base', str(tmp_path / 'log'), 'build', '--base-paths', str(tmp_path / 'src'),
@@ -55,6 +65,8 @@ def test_colcon_build_installs_the_ros2_run_layout(tmp_path):
     assert (prefix / 'share' / 'mmd_ros' / 'config' / 'mmd_prototype.yaml').is_file()
     assert (prefix / 'share' / 'mmd_ros' / 'msg_docs' / 'topics.md').is_file()
     executables = {p.name for p in (prefix / 'lib' / 'mmd_ros').iterdir()}
+    # the build compiled the helpers of the 1 kHz path (the copy had none)
+    assert list(prefix.glob('lib/python3*/site-packages/mmd_ros/core/_fast*.so'))
     import re
     setup = (ROOT / 'setup.py').read_text()
     declared = set(re.findall(r"'([a-z_]+) = mmd_ros\.", setup))

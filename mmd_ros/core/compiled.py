@@ -3,20 +3,26 @@
 ``setup.py`` builds them as an optional extension: without a C compiler the package installs
 and every caller does the same work in Python (slower: a transfer of 8 samples then spends most
 of its time in interpreter and numpy call overhead). Which path runs is :data:`AVAILABLE`; the
-tests check the two paths against each other.
+tests check the two paths against each other. Setting the environment variable
+``MMD_PURE_PYTHON=1`` makes a process use the Python paths even when the helpers were built
+(to compare the two, or to rule them out when chasing a problem).
 """
 
 from __future__ import annotations
 
+import os
 from types import ModuleType
 
 __all__ = ['AVAILABLE', 'fast']
 
 fast: ModuleType | None
-try:
-    from mmd_ros.core import _fast as fast
-except ImportError:  # installed without a C compiler
+if os.environ.get('MMD_PURE_PYTHON', '') not in ('', '0'):
     fast = None
+else:
+    try:
+        from mmd_ros.core import _fast as fast
+    except ImportError:  # installed without a C compiler
+        fast = None
 
-#: The compiled helpers were built and are used.
+#: The compiled helpers are used by this process.
 AVAILABLE = fast is not None
