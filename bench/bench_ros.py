@@ -16,7 +16,7 @@ random 6-DOF motion, recording on) and this process subscribes to ``/mmd/pose`` 
 - **memory**: resident set size after warm-up and at the end, and its growth (target flat).
 
 Usage: ``python bench/bench_ros.py [--quick] [--duration S] [--repeat N] [--only pose_node|split]
-[--param NAME:=VALUE]``. Default 600 s per configuration; ``--quick`` 60 s. With ``--repeat`` the
+[--param NAME:=VALUE] [--keep DIR]``. Default 600 s per configuration; ``--quick`` 60 s. With ``--repeat`` the
 configurations alternate N times and the medians over the runs are printed too (single runs on a
 shared 2-core machine vary by a factor of 1.5 in latency). Prints the figures and a JSON line;
 never fails on timing.
@@ -138,7 +138,10 @@ def run_config(name: str, duration_s: float, work: Path, extra: list[str] = (),
     lost = span - np.unique(stamps).size
     log = np.fromfile(timing, dtype=np.int64).reshape(-1, 2)
     left = dict(zip(log[:, 0].tolist(), log[:, 1].tolist()))
-    lat = np.array([a - left[s] for s, a in zip(stamps.tolist(), arrivals.tolist()) if s in left]) * 1e-6
+    known = [(s, a - left[s]) for s, a in zip(stamps.tolist(), arrivals.tolist()) if s in left]
+    lat = np.array([d for _, d in known]) * 1e-6
+    # every sample's latency, in arrival order, for a closer look (--keep)
+    np.savez(work / 'latency.npz', stamp_ns=np.array([s for s, _ in known], np.int64), latency_ms=lat)
     cpu = {k: (ticks1[k] - ticks0[k]) / CLK_TCK / elapsed * 100 for k in procs}
     result = {
         'config': name, 'subscriber': subscriber, 'duration_s': round(elapsed, 1), 'samples_expected': span,
@@ -204,6 +207,9 @@ def main() -> None:
     parser.add_argument('--subscriber', choices=['objects', 'bytes'], default='objects',
                         help='objects: the subscriber builds PoseStamped objects (rclpy\'s usual '
                              'way); bytes: it takes the serialised message and reads the stamp')
+    parser.add_argument('--keep', type=Path, default=None, metavar='DIR',
+                        help='keep each run\'s files in DIR (node logs, MCAP, latency.npz: every '
+                             'sample\'s stamp and latency); default: a temporary directory')
     parser.add_argument('--param', action='append', default=[], metavar='NAME:=VALUE',
                         help='an extra parameter for the terminal (pose_node or encoder_node), '
                              'e.g. frames_per_transfer:=2; repeatable')
@@ -212,7 +218,7 @@ def main() -> None:
     os.environ['ROS_DOMAIN_ID'] = str(60 + os.getpid() % 40)
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     os.environ.setdefault('AMENT_PREFIX_PATH', sys.prefix)
-    work = Path(tempfile.mkdtemp(prefix='bench_ros_'))
+    work = args.keep or Path(tempfile.mkdtemp(prefix='bench_ros_'))
     names = [args.only] if args.only else ['pose_node', 'split']
     results = []
     try:
@@ -222,7 +228,8 @@ def main() -> None:
                 show(r)
                 results.append(r)
     finally:
-        shutil.rmtree(work, ignore_errors=True)
+        if args.keep is None:
+            shutil.rmtree(work, ignore_errors=True)
     summary = [medians([r for r in results if r['config'] == name]) for name in names]
     if args.repeat > 1:
         for m in summary:
