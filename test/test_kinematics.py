@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from mmd_ros.core.compiled import AVAILABLE as COMPILED
+from mmd_ros.core.compiled import AVAILABLE as COMPILED, NOT_IN_USE
 from mmd_ros.core.device import find_config, load_device
 from mmd_ros.core.kinematics import ForwardKinematics, inverse_kinematics, jacobian, pose_covariance
 from mmd_ros.core.rotation import (
@@ -103,8 +103,7 @@ def test_compiled_streaming_solver_does_what_the_python_one_does():
     """The compiled solver (_fast.c, the 1 kHz path) against ForwardKinematics.solve, sample
     after sample: a noisy motion, a broken sample, a jump that needs damped steps, impossible
     lengths, and an iteration cap that leaves samples unconverged (the warm start restarts)."""
-    assert COMPILED, ('compiled helpers not in use: MMD_PURE_PYTHON is set, or _fast.c was '
-                     'not built (no gcc or Python headers)')
+    assert COMPILED, NOT_IN_USE
     rng = np.random.default_rng(11)
     t = np.arange(3000) * 1e-3
     p = np.column_stack([0.1 * np.sin(t), 0.05 * np.cos(2 * t), 0.3 + 0.01 * t,

@@ -18,7 +18,7 @@ import numpy as np
 import yaml
 from numpy.typing import ArrayLike, NDArray
 
-from mmd_ros.core.compiled import fast
+from mmd_ros.core.compiled import NOT_IN_USE, fast
 from mmd_ros.core.errors import CalibrationError, ConfigError
 from mmd_ros.core.units import M_PER_MM
 from mmd_ros.core.yamlio import atomic_write_text, parse_yaml, read_yaml
@@ -232,8 +232,7 @@ class CdfBank:
         if compiled is None:
             compiled = fast is not None
         elif compiled and fast is None:
-            raise CalibrationError('the compiled helpers were not built (no C compiler when '
-                                   'mmd_ros was installed)')
+            raise CalibrationError(NOT_IN_USE)
         if compiled and c.ndim == 2 and c.shape[1] == len(self._rows):
             c = np.ascontiguousarray(c)
             dist = np.empty_like(c)

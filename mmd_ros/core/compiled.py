@@ -13,7 +13,7 @@ from __future__ import annotations
 import os
 from types import ModuleType
 
-__all__ = ['AVAILABLE', 'fast']
+__all__ = ['AVAILABLE', 'NOT_IN_USE', 'fast']
 
 fast: ModuleType | None
 if os.environ.get('MMD_PURE_PYTHON', '') not in ('', '0'):
@@ -26,3 +26,8 @@ else:
 
 #: The compiled helpers are used by this process.
 AVAILABLE = fast is not None
+
+#: What to tell someone who asked for the compiled path when it is not there.
+NOT_IN_USE = ('the compiled helpers are not in use: MMD_PURE_PYTHON is set, or '
+              'mmd_ros/core/_fast.c was not built (no C compiler or Python headers when mmd_ros '
+              'was installed)')

@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from mmd_ros.core.compiled import fast
+from mmd_ros.core.compiled import NOT_IN_USE, fast
 from mmd_ros.hardware.protocol import (
     CHANNEL_STATUS_QUADRATURE_ERROR_SHIFT, CHANNEL_STATUS_SIGNAL_LOST_SHIFT, FLAG_COUNTER_RESET,
     FLAG_FIFO_OVERFLOW, FRAME_SIZE, N_CHANNELS, DecodedFrames, decode_frames,
@@ -184,8 +184,7 @@ class FrameStream:
         self.stats = stats if stats is not None else DriverStats()
         self.compiled = (fast is not None) if compiled is None else bool(compiled)
         if self.compiled and fast is None:
-            raise ValueError('the compiled helpers were not built (no C compiler when mmd_ros '
-                             'was installed)')
+            raise ValueError(NOT_IN_USE)
         self._last_seq: int | None = None  # unwrapped int64 sequence of the last accepted frame
         self._last_raw = np.zeros(N_CHANNELS, np.int64)
         self._last_counts = np.zeros(N_CHANNELS, np.int64)
