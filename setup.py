@@ -17,8 +17,9 @@ CONSOLE_SCRIPTS = [
     'pose_node = mmd_ros.nodes.pose_node:main',
 ]
 
-# The streaming forward kinematics of the 1 kHz path, compiled (plain C, no numpy headers).
-# optional: without a C compiler the package installs and uses the same algorithm in Python.
+# The compiled helpers of the 1 kHz path (mmd_ros.core.compiled: streaming FK, CDFs, frame
+# decoding; plain C, no numpy headers). Optional: without a C compiler the package installs and
+# runs the same algorithms in Python.
 EXTENSIONS = [
     Extension('mmd_ros.core._fast', ['mmd_ros/core/_fast.c'],
               extra_compile_args=['-O2'], optional=True),

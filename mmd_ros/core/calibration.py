@@ -18,7 +18,7 @@ import numpy as np
 import yaml
 from numpy.typing import ArrayLike, NDArray
 
-from mmd_ros.core.compiled import NOT_IN_USE, fast
+from mmd_ros.core.compiled import fast, use_compiled
 from mmd_ros.core.errors import CalibrationError, ConfigError
 from mmd_ros.core.units import M_PER_MM
 from mmd_ros.core.yamlio import atomic_write_text, parse_yaml, read_yaml
@@ -226,14 +226,10 @@ class CdfBank:
                  ) -> tuple[FloatArray, NDArray[np.bool_]]:
         """counts : array_like, shape (..., k) → (distances_m, out_of_range), shape (..., k).
 
-        compiled : evaluate with :mod:`mmd_ros.core.compiled` (default: when it was built)
+        compiled : evaluate with :mod:`mmd_ros.core.compiled` (default: when it is in use)
         """
         c = np.asarray(counts, dtype=np.float64)
-        if compiled is None:
-            compiled = fast is not None
-        elif compiled and fast is None:
-            raise CalibrationError(NOT_IN_USE)
-        if compiled and c.ndim == 2 and c.shape[1] == len(self._rows):
+        if use_compiled(compiled) and c.ndim == 2 and c.shape[1] == len(self._rows):
             c = np.ascontiguousarray(c)
             dist = np.empty_like(c)
             out = np.empty(c.shape, dtype=bool)

@@ -13,7 +13,9 @@ from __future__ import annotations
 import os
 from types import ModuleType
 
-__all__ = ['AVAILABLE', 'NOT_IN_USE', 'fast']
+from mmd_ros.core.errors import MmdError
+
+__all__ = ['AVAILABLE', 'NOT_IN_USE', 'CompiledUnavailable', 'fast', 'use_compiled']
 
 fast: ModuleType | None
 if os.environ.get('MMD_PURE_PYTHON', '') not in ('', '0'):
@@ -31,3 +33,17 @@ AVAILABLE = fast is not None
 NOT_IN_USE = ('the compiled helpers are not in use: MMD_PURE_PYTHON is set, or '
               'mmd_ros/core/_fast.c was not built (no C compiler or Python headers when mmd_ros '
               'was installed)')
+
+
+class CompiledUnavailable(MmdError):
+    """The compiled path was asked for and is not in use."""
+
+
+def use_compiled(compiled: bool | None) -> bool:
+    """Whether a caller takes the compiled path: ``compiled`` as asked, or (None) whenever it is
+    in use. Raises :class:`CompiledUnavailable` when it is asked for and not there."""
+    if compiled is None:
+        return AVAILABLE
+    if compiled and not AVAILABLE:
+        raise CompiledUnavailable(NOT_IN_USE)
+    return bool(compiled)

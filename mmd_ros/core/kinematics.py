@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.linalg import lapack
 
-from mmd_ros.core.compiled import NOT_IN_USE, fast
+from mmd_ros.core.compiled import fast, use_compiled
 from mmd_ros.core.errors import KinematicsError
 from mmd_ros.core.rotation import angle_rate_axes, rotation_matrix
 
@@ -269,7 +269,6 @@ class ForwardKinematics:
         self._home = self._find_home()
         self._home_lengths = inverse_kinematics(geometry, self._home)
         self._home_jinv = np.linalg.inv(jacobian(geometry, self._home))
-        self._home_jinv_c = np.ascontiguousarray(self._home_jinv)
         self._ab_array = np.ascontiguousarray(np.hstack([geometry.upper, geometry.lower]))
         self._history: list[list[float]] = []
 
@@ -372,11 +371,7 @@ class ForwardKinematics:
         n = d.shape[0]
         if d.shape[1:] != (6,):
             raise KinematicsError(f'lengths must have shape (N, 6), got {d.shape}')
-        if compiled is None:
-            compiled = fast is not None
-        if compiled:
-            if fast is None:
-                raise KinematicsError(NOT_IN_USE)
+        if use_compiled(compiled):
             out = StreamSolution(np.empty((n, 6)), np.empty(n, dtype=bool),
                                  np.empty(n, dtype=np.int64), np.empty(n), np.empty((n, 6, 6)))
             history = np.zeros((2, 6))
@@ -384,7 +379,7 @@ class ForwardKinematics:
                 history[:len(self._history)] = self._history
             kept = fast.solve_stream(
                 (self._step_m, self._step_rad, self.max_step_rad, self.max_iter), self._ab_array,
-                self._home, self._home_lengths, self._home_jinv_c, d, history, len(self._history),
+                self._home, self._home_lengths, self._home_jinv, d, history, len(self._history),
                 out.poses, out.converged, out.iterations, out.residual_m, out.jacobians)
             self._history = history[:kept].tolist()
             return out
