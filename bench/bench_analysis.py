@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 
 from mmd_ros.analysis import analyze, write_report
-from mmd_ros.cli.cmd_simulate import SimulationSpec, simulate_to_log
+from mmd_ros.twin.recording import SimulationSpec, simulate_to_log
 from mmd_ros.logs.layout import read_run
 
 

@@ -13,8 +13,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from mmd_ros.cli.cmd_process import process_run, write_processed
-from mmd_ros.cli.cmd_simulate import SimulationSpec, simulate_to_log
+from mmd_ros.logs.processing import process_run, write_processed
+from mmd_ros.twin.recording import SimulationSpec, simulate_to_log
 from mmd_ros.core.model import Model
 from mmd_ros.logs.layout import read_run
 

@@ -59,7 +59,7 @@ def rss_mb(pid: int) -> float:
 
 def factory_calibration(path: Path) -> None:
     """The calibration pose_node would write by itself (the twin's, seed 1, before power-on)."""
-    from mmd_ros.cli.cmd_simulate import ambient_profile
+    from mmd_ros.twin.recording import ambient_profile
     from mmd_ros.core.device import find_config, load_device
     from mmd_ros.hardware.twin_source import TwinSource
     from mmd_ros.twin import Effects, TwinDevice, make_scenario

@@ -19,9 +19,9 @@ import time
 from pathlib import Path
 
 from mmd_ros.analysis.demo import close_the_loop
-from mmd_ros.cli.cmd_process import process_run, summarize, write_processed
-from mmd_ros.cli.cmd_simulate import SimulationSpec, simulate_to_log
-from mmd_ros.cli.progress import heading
+from mmd_ros.logs.processing import process_run, summarize, write_processed
+from mmd_ros.twin.recording import SimulationSpec, simulate_to_log
+from mmd_ros.core.progress import heading
 from mmd_ros.core.accuracy import ComponentStats, format_stats
 from mmd_ros.core.calibration import Calibration
 from mmd_ros.core.model import Model

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from mmd_ros.analysis import analyze, write_report
-from mmd_ros.cli.cmd_simulate import SimulationSpec, simulate_to_log
+from mmd_ros.twin.recording import SimulationSpec, simulate_to_log
 from mmd_ros.cli.main import main
 from mmd_ros.core.device import find_config, load_device
 from mmd_ros.core.model import HysteresisTerm, Model, TermContext, load_model

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mmd_ros.cli.cmd_simulate import SimulationSpec, ambient_profile, simulate_to_log
+from mmd_ros.twin.recording import SimulationSpec, ambient_profile, simulate_to_log
 from mmd_ros.cli.main import main
 from mmd_ros.core.accuracy import pose_error
 from mmd_ros.core.device import find_config, load_device

@@ -11,7 +11,7 @@ import pytest
 
 from mmd_ros.analysis.errors import AnalysisError
 from mmd_ros.analysis.iso230 import approaches, detect_dwells, evaluate, evaluate_run, figure_table
-from mmd_ros.cli.cmd_simulate import SimulationSpec, simulate_to_log
+from mmd_ros.twin.recording import SimulationSpec, simulate_to_log
 from mmd_ros.cli.main import main
 
 UM = 1e-6

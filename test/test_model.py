@@ -89,7 +89,7 @@ def test_streamed_samples_give_the_batch_result():
 def test_node_stages_transfer_by_transfer_give_the_batch_result():
     """What compensation_node, fk_node and pose_node compute, 8 samples per transfer, is what
     ``Pipeline.process`` gives for the whole run, covariance included."""
-    from mmd_ros.nodes.compute import Compensator, Kinematics
+    from mmd_ros.core.streaming import Compensator, Kinematics
     twin = TwinDevice(DEVICE, Effects.realistic(), seed=6)
     room = AmbientProfile.constant(20.5)
     calibration = twin.calibrate(0.0, room)
@@ -125,7 +125,7 @@ def test_kinematics_diagnostics_count_what_the_samples_show():
     """The kinematics figures of /diagnostics (kept per transfer at 1 kHz) against the
     per-sample outputs: iterations, residual, unconverged and out-of-range samples."""
     from mmd_ros.core.kinematics import inverse_kinematics
-    from mmd_ros.nodes.compute import Kinematics
+    from mmd_ros.core.streaming import Kinematics
     from mmd_ros.nodes.reports import kinematics_report
     t = np.arange(64) * 1e-3
     poses = np.column_stack([0.01 * np.sin(t), 0 * t, 0.3 + 0 * t, 0 * t, 0.02 * t, 0 * t])

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from test_nodes_support import Nodes, needs_ros, params
 
-from mmd_ros.cli.cmd_process import process_run
+from mmd_ros.logs.processing import process_run
 from mmd_ros.core.calibration import load_calibration
 from mmd_ros.core.model import Model
 from mmd_ros.logs.layout import read_run

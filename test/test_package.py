@@ -35,6 +35,40 @@ def test_everything_but_the_nodes_imports_without_ros():
     assert int(out.stdout.strip()) >= 10
 
 
+NO_CLI = """
+import sys, pkgutil, importlib
+sys.modules['mmd_ros.cli'] = None   # any import of the command-line layer now raises ImportError
+import mmd_ros
+count = 0
+for info in pkgutil.walk_packages(mmd_ros.__path__, 'mmd_ros.'):
+    if info.name.startswith('mmd_ros.cli'):
+        continue
+    importlib.import_module(info.name)
+    count += 1
+print(count)
+"""
+
+
+def test_the_library_and_the_nodes_never_import_the_cli():
+    """cli/ and nodes/ both stand on the library; neither stands on cli/ (the demo neither)."""
+    out = subprocess.run([sys.executable, '-c', NO_CLI], cwd=ROOT, capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert int(out.stdout.strip()) >= 60
+    # imports inside functions run late: look for them in the source as well
+    import ast
+    offenders = []
+    for path in sorted((ROOT / 'mmd_ros').rglob('*.py')):
+        if path.parent.name == 'cli':
+            continue
+        for node in ast.walk(ast.parse(path.read_text(encoding='utf-8'))):
+            names = ([node.module or ''] if isinstance(node, ast.ImportFrom)
+                     else [a.name for a in node.names] if isinstance(node, ast.Import) else [])
+            offenders += [f'{path.relative_to(ROOT)}:{node.lineno} {n}' for n in names
+                          if n == 'mmd_ros.cli' or n.startswith('mmd_ros.cli.')]
+    assert not offenders, offenders
+
+
 def test_the_compiled_helpers_are_used_unless_switched_off():
     probe = 'from mmd_ros.core.compiled import AVAILABLE; print(AVAILABLE)'
     for value, expected in (('', 'True'), ('1', 'False')):

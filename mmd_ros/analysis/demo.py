@@ -18,7 +18,7 @@ from pathlib import Path
 from mmd_ros.analysis.identify import Analysis, analyze
 from mmd_ros.analysis.iso230 import figure_table
 from mmd_ros.analysis.report import write_report
-from mmd_ros.cli.progress import heading
+from mmd_ros.core.progress import heading
 from mmd_ros.core.model import Model
 from mmd_ros.logs.layout import read_run
 
@@ -62,7 +62,7 @@ def close_the_loop(log: str | Path, out_dir: str | Path) -> Analysis:
     print(f'wrote {written["report"]}' + (f' and {written["model"]}' if 'model' in written else '')
           + f' in {time.perf_counter() - t0:.1f} s')
     if result.model is not None and (run.metadata.get('iso_targets') or {}).get('axis'):
-        from mmd_ros.cli.cmd_iso230 import iso230_of_run
+        from mmd_ros.analysis.iso230_report import iso230_of_run
         heading('4. ISO 230-2 of the axis, before and after (as Table 4)')
         report = iso230_of_run(run, None, {'MMD before': run.model or Model(), 'MMD after': result.model})
         print(figure_table(report.rows(), report.unit))

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from mmd_ros.cli.device_args import add_device_arguments, device_geometry
-from mmd_ros.cli.progress import Progress
+from mmd_ros.core.progress import Progress
 from mmd_ros.core.units import M_PER_MM, M_PER_UM
 from mmd_ros.design.error_budget import (
     DEFAULT_READING, METHODS, PAPER_EQ9_UM, PAPER_POSITIONS_M, PARTS, READINGS, ErrorBudget,

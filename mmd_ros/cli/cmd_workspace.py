@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from mmd_ros.cli.device_args import add_device_arguments, device_geometry
-from mmd_ros.cli.progress import Progress
+from mmd_ros.core.progress import Progress
 from mmd_ros.core.units import M_PER_MM
 from mmd_ros.design.errors import DesignError
 from mmd_ros.design.workspace import (

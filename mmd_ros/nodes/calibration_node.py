@@ -31,7 +31,7 @@ from mmd_ros.nodes.calibration_stage import (
 from mmd_ros.nodes.common import (
     COMMON_PARAMS, MODEL_PARAMS, NAMESPACE, load_device_param, load_model_param, run,
 )
-from mmd_ros.nodes.compute import calibration_created_ns
+from mmd_ros.core.streaming import calibration_created_ns
 from mmd_ros.nodes.convert import DIAGNOSTIC_ARRAY, STRING, RawBatch, from_time, string_bytes
 from mmd_ros.nodes.diagnostics import Diagnostics
 from mmd_ros.nodes.outlets import Outlet

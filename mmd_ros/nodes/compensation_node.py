@@ -25,7 +25,7 @@ from mmd_ros.core.errors import MmdError
 from mmd_ros.nodes.common import (
     COMMON_PARAMS, MODEL_PARAMS, NAMESPACE, load_device_param, load_model_param, run,
 )
-from mmd_ros.nodes.compute import Compensator
+from mmd_ros.core.streaming import Compensator
 from mmd_ros.nodes.convert import DIAGNOSTIC_ARRAY, JS, STRING, RawBatch, Rows, from_time, string_bytes
 from mmd_ros.nodes.diagnostics import ERROR, Diagnostics, Events
 from mmd_ros.nodes.outlets import Outlet

@@ -25,7 +25,7 @@ from mmd_ros.core.errors import MmdError
 from mmd_ros.core.model import Model
 from mmd_ros.logs.layout import BAR_NAMES
 from mmd_ros.nodes.common import COMMON_PARAMS, NAMESPACE, load_device_param, run
-from mmd_ros.nodes.compute import Kinematics
+from mmd_ros.core.streaming import Kinematics
 from mmd_ros.nodes.convert import DIAGNOSTIC_ARRAY, JS, POSE, POSE_COV, RawBatch, Rows
 from mmd_ros.nodes.diagnostics import Diagnostics
 from mmd_ros.nodes.outlets import Outlet

@@ -38,7 +38,7 @@ def live_step(out_dir: Path, *, stream_s: float = 20.0, heading=print) -> int:
     except ImportError as exc:
         print(f'skipped: ROS 2 (rclpy) is not available here ({exc})')
         return 0
-    from mmd_ros.cli.cmd_process import process_run, summarize
+    from mmd_ros.logs.processing import process_run, summarize
     from mmd_ros.core.accuracy import ComponentStats, format_stats
     from mmd_ros.core.model import Model
     from mmd_ros.logs.layout import read_run

@@ -30,7 +30,7 @@ from mmd_ros.nodes.calibration_stage import (
 from mmd_ros.nodes.common import (
     COMMON_PARAMS, MODEL_PARAMS, NAMESPACE, load_device_param, load_model_param, run,
 )
-from mmd_ros.nodes.compute import Compensator, Kinematics
+from mmd_ros.core.streaming import Compensator, Kinematics
 from mmd_ros.nodes.convert import (
     DIAGNOSTIC_ARRAY, JS, POSE, POSE_COV, STRING, Rows, string_bytes,
 )

@@ -9,7 +9,7 @@ from datetime import datetime, timezone
 import numpy as np
 
 from mmd_ros.core.calibration import Calibration
-from mmd_ros.nodes.compute import Compensator, Kinematics
+from mmd_ros.core.streaming import Compensator, Kinematics
 from mmd_ros.nodes.diagnostics import ERROR, OK, WARN, Report
 
 __all__ = ['calibration_age_s', 'compensation_report', 'kinematics_report']

@@ -160,7 +160,7 @@ class TerminalStage:
 
     # -- simulation ----------------------------------------------------------------------------
     def _make_sim(self) -> SimUsbBackend:
-        from mmd_ros.cli.cmd_simulate import ambient_profile
+        from mmd_ros.twin.recording import ambient_profile
         from mmd_ros.twin import Effects, TwinDevice, make_scenario
         cfg = self.cfg
         effects = Effects.preset(cfg.sim_effects).with_assignments(cfg.sim_effect_params.split())

@@ -1,0 +1,125 @@
+"""ISO 230-2 evaluation of one axis of a logged run, for the MMD under one or more models, the
+reference instrument and their difference (``mmd iso230-2``, the demo)."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from mmd_ros.analysis.data import run_pipeline
+from mmd_ros.analysis.errors import AnalysisError
+from mmd_ros.analysis.iso230 import (
+    AXIS_NAMES, FIGURE_LABELS, FIGURES, IsoResult, axis_index, evaluate_run, figure_table,
+    target_table,
+)
+from mmd_ros.core.calibration import load_calibration
+from mmd_ros.core.errors import CalibrationError
+from mmd_ros.core.model import Model
+from mmd_ros.core.units import M_PER_MM
+from mmd_ros.logs.layout import RunLog
+
+__all__ = ['INSTRUMENTS', 'Iso230Report', 'iso230_of_run', 'parse_targets']
+
+INSTRUMENTS = ('mmd', 'reference', 'error')
+
+
+class Iso230Report:
+    """Results of one log: per instrument (and per model) an :class:`IsoResult`."""
+
+    def __init__(self, log: str, axis: str, results: dict[str, IsoResult], models: dict[str, str]) -> None:
+        self.log, self.axis, self.results, self.models = log, axis, results, models
+
+    @property
+    def unit(self) -> str:
+        return next(iter(self.results.values())).unit
+
+    def rows(self) -> list[tuple[str, dict[str, float]]]:
+        """Table rows: each instrument, and the paper's 'MMD - reference' deviation of the
+        figures (Tables 3–4) for each MMD row."""
+        rows = [(name if name in self.models or name == 'reference' else f'{name} (per sample)',
+                 r.figures_report()) for name, r in self.results.items()]
+        ref = self.results.get('reference')
+        if ref is not None:
+            rf = ref.figures_report()
+            for name, r in self.results.items():
+                if name in self.models:
+                    f = r.figures_report()
+                    rows.append((f'{name} − reference figures', {k: f[k] - rf[k] for k in f}))
+        return rows
+
+    def as_dict(self) -> dict[str, Any]:
+        return {'log': self.log, 'axis': self.axis, 'unit': self.unit, 'models': self.models,
+                'results': {k: v.as_dict() for k, v in self.results.items()},
+                'table': [{'row': n, **{k: (None if not math.isfinite(v) else v) for k, v in f.items()}}
+                          for n, f in self.rows()]}
+
+    def markdown(self, figures: dict[str, str] | None = None) -> str:
+        lines = [f'# ISO 230-2 evaluation of axis {self.axis}', '', f'Log: `{self.log}`', '']
+        for tag, text in self.models.items():
+            lines.append(f'- {tag}: {text}')
+        lines += ['', '## Axis figures (the paper\'s Tables 3–4)', '',
+                  figure_table(self.rows(), self.unit, markdown=True), '',
+                  '## All figures', '',
+                  figure_table(self.rows(), self.unit, markdown=True,
+                               figures=[(k, FIGURE_LABELS[k]) for k in FIGURES]), '']
+        for name, r in self.results.items():
+            lines += [f'## {name}: per target (n = {r.n} approaches per direction)', '',
+                      target_table(r, markdown=True), '']
+            if figures and name in figures:
+                lines += [f'![{name}]({figures[name]})', '']
+        return '\n'.join(lines)
+
+
+def iso230_of_run(run: RunLog, axis: str | None = None, models: dict[str, Model] | None = None, *,
+                  instruments: tuple[str, ...] = INSTRUMENTS, targets: np.ndarray | None = None,
+                  min_dwell_s: float = 0.15, calibration_path: str | None = None) -> Iso230Report:
+    """ISO 230-2 of one axis of a run, for the MMD under each model and the reference.
+
+    models : label -> model (default: the log's, else CDF + thermal) — e.g. before and after
+    targets : target positions [m or rad]; default the log's ``iso_targets``, else clustered
+    """
+    meta = run.metadata.get('iso_targets') or {}
+    axis = axis or meta.get('axis')
+    if not axis:
+        raise AnalysisError(f'{run.path} does not say which axis was tested; pass --axis')
+    k = axis_index(axis)
+    if targets is None and meta.get('positions') and axis_index(str(meta.get('axis'))) == k:
+        targets = np.asarray(meta['positions'], dtype=np.float64)
+    calibration = load_calibration(calibration_path) if calibration_path else run.calibration
+    if calibration is None:
+        raise CalibrationError(f'{run.path} carries no calibration; pass --calibration FILE')
+    ref = None
+    if run.reference_pose is not None and np.isfinite(run.reference_pose[:, k]).mean() > 0.5:
+        ref = run.reference_pose[:, k]
+    models = models or {'MMD': run.model or Model()}
+    signals: dict[str, np.ndarray] = {}
+    for label, model in models.items():
+        proc = run_pipeline(run.device, calibration, model, run.times_s, run.counts)
+        pose = np.where(proc.valid, proc.poses[:, k], np.nan)
+        if 'mmd' in instruments:
+            signals[label] = pose
+        if 'error' in instruments and ref is not None:
+            signals[f'{label} - reference'] = pose - ref  # evaluated as a deviation itself
+    if 'reference' in instruments and ref is not None:
+        signals['reference'] = ref
+    if not signals:
+        raise AnalysisError('nothing to evaluate: the log has no reference for the error or '
+                            'reference instruments')
+    detect = ref if ref is not None else next(iter(signals.values()))
+    results = evaluate_run(run.times_s, AXIS_NAMES[k], signals, detect, targets, min_dwell_s=min_dwell_s)
+    texts = {label: f'{len(m.terms)} term(s): {", ".join(t.type_name for t in m.terms) or "CDF + thermal only"}'
+             for label, m in models.items()}
+    return Iso230Report(str(run.path), AXIS_NAMES[k], results, texts)
+
+
+def parse_targets(text: str | None, axis: str) -> np.ndarray | None:
+    """Target positions given as text (comma separated, mm or degrees) in SI, or None."""
+    if not text:
+        return None
+    try:
+        values = np.array([float(v) for v in text.split(',') if v.strip()])
+    except ValueError:
+        raise AnalysisError(f'--targets must be numbers separated by commas, got {text!r}') from None
+    return np.radians(values) if axis_index(axis) >= 3 else values * M_PER_MM

@@ -1,0 +1,138 @@
+"""A simulated run written as an MCAP log in our layout: the twin calibrated on its reference
+plate, a scenario, the raw counts and the reference instrument (``mmd simulate``, the demo,
+the tests and benchmarks)."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mmd_ros.core.calibration import Calibration
+from mmd_ros.core.device import DeviceDescription, find_config, load_device
+from mmd_ros.core.errors import ConfigError
+from mmd_ros.core.progress import Progress
+from mmd_ros.core.yamlio import read_yaml
+from mmd_ros.logs.layout import (
+    BAR_NAMES, FRAME_LOWER, REFERENCE_POSE_NAMES, RUN_METADATA, TOPIC_CALIBRATION, TOPIC_DEVICE,
+    TOPIC_RAW, TOPIC_REF_LENGTHS, TOPIC_REF_POSE,
+)
+from mmd_ros.logs.writer import LogWriter
+from mmd_ros.twin.effects import Effects
+from mmd_ros.twin.errors import TwinError
+from mmd_ros.twin.scenarios import make_scenario
+from mmd_ros.twin.thermal import AmbientProfile
+from mmd_ros.twin.twin import TwinDevice
+
+__all__ = ['EPOCH_S', 'SimulationSpec', 'ambient_profile', 'simulate_to_log']
+
+#: Default time stamp of the twin's clock zero: 2024-01-01T00:00:00Z [s since the epoch].
+EPOCH_S = 1_704_067_200
+#: Samples written per chunk of simulation.
+CHUNK = 50_000
+
+
+@dataclass
+class SimulationSpec:
+    """Everything that defines a simulated log (all of it is written into the log)."""
+
+    scenario: str = 'iso_linear'
+    scenario_params: tuple[str, ...] = ()
+    effects: str = 'realistic'
+    effect_params: tuple[str, ...] = ()
+    seed: int = 1
+    device: str = 'mmd_prototype.yaml'
+    ambient: str = 'section_4_1'
+    calibrate_at_s: float = 0.0
+    start_s: float = 600.0
+    reference: str | None = None
+    sample_rate_hz: float | None = None
+    epoch_s: int = EPOCH_S
+
+
+def ambient_profile(spec: str) -> AmbientProfile:
+    """``section_4_1`` (the 20 h test of section 4.1), ``constant:T`` [°C], or a YAML file
+    holding an :class:`AmbientProfile` (``initial_c`` and a list of ``ramps`` with
+    ``duration_s``, ``end_c``, ``time_constant_s``)."""
+    if spec == 'section_4_1':
+        return AmbientProfile.section_4_1()
+    if spec.startswith('constant:'):
+        try:
+            return AmbientProfile.constant(float(spec.split(':', 1)[1]))
+        except ValueError:
+            pass
+    elif spec.endswith(('.yaml', '.yml')):
+        try:
+            return AmbientProfile.from_dict(read_yaml(spec))
+        except TwinError as exc:
+            raise ConfigError(spec, '(file)', f'is not an ambient profile: {exc}') from None
+    raise ConfigError('--ambient', spec, 'must be section_4_1, constant:T or a profile .yaml')
+
+
+def simulate_to_log(spec: SimulationSpec, out: Path, *, progress: bool = True
+                    ) -> tuple[DeviceDescription, Calibration, dict[str, Any]]:
+    """Calibrate the twin on its reference plate, run the scenario, write the log.
+
+    Returns the device, the calibration and a summary of the run.
+    """
+    device = load_device(find_config(spec.device))
+    effects = Effects.preset(spec.effects).with_assignments(spec.effect_params)
+    twin = TwinDevice(device, effects, seed=spec.seed)
+    room = ambient_profile(spec.ambient)
+    calibration = twin.calibrate(spec.calibrate_at_s, room)
+    scenario = make_scenario(spec.scenario, spec.scenario_params)
+    chunks = twin.stream(scenario, room, start_s=spec.start_s, reference=spec.reference,
+                         sample_rate_hz=spec.sample_rate_hz, chunk_samples=CHUNK)
+    rate = spec.sample_rate_hz or device.sample_rate_hz
+    epoch_ns = int(spec.epoch_s) * 1_000_000_000
+    total = 0
+    bar = None
+    first = None
+    with LogWriter(out) as log:
+        for chunk in chunks:
+            if first is None:
+                first = chunk
+                t0 = epoch_ns + int(round(spec.start_s * 1e9))
+                log.write_string(TOPIC_DEVICE, t0, device.to_yaml())
+                log.write_string(TOPIC_CALIBRATION, t0, calibration.to_yaml())
+                meta = dict(chunk.metadata)
+                meta['simulation'] = {k: list(v) if isinstance(v, tuple) else v
+                                      for k, v in spec.__dict__.items()}
+                if chunk.targets is not None:
+                    meta['iso_targets'] = {'axis': chunk.targets.axis,
+                                           'positions': chunk.targets.positions.tolist()}
+                log.write_metadata(RUN_METADATA, {k: json.dumps(v) for k, v in meta.items()})
+                n_expected = _expected_samples(chunk)
+                bar = Progress('simulating', n_expected, enabled=progress)
+            stamps = epoch_ns + np.round((spec.start_s + chunk.times_s) * 1e9).astype(np.int64)
+            streams = [(TOPIC_RAW, 'sensor_msgs/msg/JointState',
+                        log.joint_state_rows(device.channel_names, stamps, chunk.counts.astype(np.float64)))]
+            if chunk.reference_kind == 'bar_lengths':
+                streams.append((TOPIC_REF_LENGTHS, 'sensor_msgs/msg/JointState',
+                                log.joint_state_rows(BAR_NAMES, stamps, chunk.reference)))
+            else:
+                streams.append((TOPIC_REF_POSE, 'sensor_msgs/msg/JointState',
+                                log.joint_state_rows(REFERENCE_POSE_NAMES, stamps, chunk.reference,
+                                                     FRAME_LOWER)))
+            log.write_rows(streams, stamps)
+            total += chunk.n_samples
+            if bar:
+                bar.update(total)
+    if bar:
+        bar.close()
+    assert first is not None
+    summary = {
+        'log': str(out), 'samples': total, 'duration_s': total / rate, 'sample_rate_hz': rate,
+        'scenario': scenario.to_dict(), 'effects': effects.to_dict(), 'seed': spec.seed,
+        'reference': first.reference_kind, 'ambient': spec.ambient,
+        'ambient_at_calibration_c': calibration.ambient_c,
+    }
+    return device, calibration, summary
+
+
+def _expected_samples(chunk: Any) -> float:
+    n = chunk.metadata.get('n_samples')
+    return float(n) if isinstance(n, (int, float)) else float(CHUNK)
