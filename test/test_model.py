@@ -124,14 +124,15 @@ def test_node_stages_transfer_by_transfer_give_the_batch_result():
 def test_kinematics_diagnostics_count_what_the_samples_show():
     """The kinematics figures of /diagnostics (kept per transfer at 1 kHz) against the
     per-sample outputs: iterations, residual, unconverged and out-of-range samples."""
-    from mmd_ros.core.kinematics import inverse_kinematics
+    from mmd_ros.core.kinematics import FkStatus, inverse_kinematics
     from mmd_ros.core.streaming import Kinematics
     from mmd_ros.nodes.reports import kinematics_report
     t = np.arange(64) * 1e-3
     poses = np.column_stack([0.01 * np.sin(t), 0 * t, 0.3 + 0 * t, 0 * t, 0.02 * t, 0 * t])
     lengths = inverse_kinematics(DEVICE.geometry, poses) + np.random.default_rng(2).normal(0, 5e-8, (64, 6))
     lengths[10, 4] = np.nan                                      # a bar out of its span
-    lengths[40] = [0.25, 0.376, 0.25, 0.376, 0.25, 0.0001]       # no pose has these lengths
+    lengths[40] = [0.25, 0.376, 0.25, 0.376, 0.25, 0.376]        # no pose has these lengths
+    lengths[50, 2] = 0.2                                         # shorter than any bar
     scale = np.full(64, 1.0 + 2e-6)
     kinematics = Kinematics(DEVICE, 0.3e-6)
     outs = [kinematics.solve(lengths[a:a + 8], scale[a:a + 8]) for a in range(0, 64, 8)]
@@ -139,11 +140,16 @@ def test_kinematics_diagnostics_count_what_the_samples_show():
     res = np.concatenate([o.residual_m for o in outs])
     valid = np.concatenate([o.valid for o in outs])
     values = kinematics_report(kinematics).values
+    status = np.concatenate([o.status for o in outs])
     solved = np.arange(64) != 10
     assert values['samples'] == 64 and values['out_of_range'] == 1
-    assert values['not_converged'] == 1 and values['poses_published'] == 62 == valid.sum()
+    assert values['not_converged'] == 2 and values['poses_published'] == 61 == valid.sum()
+    assert values['fk_not_converged'] == 1 and values['fk_bar_range'] == 1
+    assert status[40] == FkStatus.NOT_CONVERGED and status[50] == FkStatus.BAR_RANGE
+    assert status[10] == FkStatus.OUT_OF_SPAN and its[50] == 0
     assert values['iterations_mean'] == round(its[solved].mean(), 3)
-    assert values['iterations_max'] == its.max() == kinematics.fk.max_iter
+    # the warm start and both home seeds were tried
+    assert values['iterations_max'] == its.max() == 3 * kinematics.fk.max_iter
     assert values['residual_max_m'] == np.nanmax(res) and np.isnan(res[10])
     # the next period starts afresh
     kinematics.solve(lengths[:8], scale[:8])

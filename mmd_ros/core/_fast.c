@@ -1,15 +1,18 @@
 /*
- * Compiled helpers of the 1 kHz path (pose_node, fk_node, compensation_node). Each does what a
- * Python function of mmd_ros does, and a test checks the two against each other:
+ * Compiled helpers of mmd_ros. Each does what a Python function of mmd_ros does, and a test
+ * checks the two against each other:
  *
  *   solve_stream        ForwardKinematics.solve, sample after sample (core/kinematics.py)
+ *   solve_batch         ForwardKinematics._solve_chunk, every sample on its own (kinematics.py)
+ *   pose_covariance     propagate_covariance, J^-1 S J^-T per sample (kinematics.py)
  *   cdf_eval            CdfBank.__call__, the piecewise-linear CDFs of Eq. (10) (calibration.py)
  *   decode_continuing   FrameStream.feed for a transfer that continues the stream
  *                       (hardware/stream.py)
  *
  * On a transfer of 8 samples numpy and scalar Python spend their time in call overhead, not
- * arithmetic; here the same work takes a few microseconds. Buffers are filled in place
- * (C order, checked for format and size); no numpy C API is needed.
+ * arithmetic; here the same work takes a few microseconds. The batch functions release the GIL,
+ * so that threads run them on every core. Buffers are filled in place (C order, checked for
+ * format and size); no numpy C API is needed.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -18,18 +21,37 @@
 #include <string.h>
 
 /* ---------------------------------------------------------------------------------------------
- * Streaming forward kinematics. pose_node solves each transfer's samples one after another,
- * warm-started from the previous solutions; a transfer of 8 noisy samples took 340 us in Python
- * and 11-15 us through solve_stream (measured). The algorithm is ForwardKinematics.solve's, step
- * for step:
+ * Forward kinematics (core/kinematics.py, ForwardKinematics). One sample:
  *
- *   start: 2 u - v from the last two solutions u, v; else the last solution; else the home
- *          pose plus one step with the home Jacobian inverse;
- *   loop:  rows, res = Jacobian and d - IK(p); residual = max |res|; solve rows s = res
- *          (LU with partial pivoting; an exactly zero pivot ends the loop, not converged);
+ *   the lengths must be finite (else OUT_OF_SPAN) and within the bars' range (else BAR_RANGE);
+ *   seeds, in turn until one is accepted: the warm start (stream: 2 u - v from the last two
+ *          accepted poses, or the last one; batch: the caller's guess), then the home pose plus
+ *          one step with the home Jacobian inverse, then the home pose;
+ *   Newton from a seed: rows, res = Jacobian and d - IK(p); residual = max |res|; solve rows s =
+ *          res (LU with partial pivoting; an exactly zero pivot ends the loop, not converged);
  *          damp s when its largest angle exceeds max_step; p += s; converged when the
- *          translation step < step_m and the largest angle step < step_rad.
+ *          translation step < step_m and the largest angle step < step_rad;
+ *   acceptance of a converged pose: every bar within the joints' tilt limits at both plates
+ *          (else IMPLAUSIBLE), the Jacobian's condition number within max_cond (else
+ *          ILL_CONDITIONED), and for the stream's warm start a pose change since the last
+ *          accepted pose no faster than max_speed (else DISCONTINUOUS: a jump, re-seeded).
+ *
+ * A sample no seed solves is not a measurement: NaN pose, and the furthest stage any seed
+ * reached as its status. The constants travel in one float64 array laid out as P_* below
+ * (ForwardKinematics._packed builds it).
  */
+enum {
+    ST_OK = 0, ST_RESEEDED = 1, ST_OUT_OF_SPAN = 2, ST_BAR_RANGE = 3, ST_NOT_CONVERGED = 4,
+    ST_IMPLAUSIBLE = 5, ST_ILL_CONDITIONED = 6, ST_DISCONTINUOUS = 7,
+};
+enum {
+    P_AB = 0, P_HOME = 36, P_HOME_LENGTHS = 42, P_HOME_JINV = 48, P_STEP_M = 84,
+    P_STEP_RAD = 85, P_MAX_STEP = 86, P_MAX_ITER = 87, P_D_LO = 88, P_D_HI = 89,
+    P_COS_UPPER = 90, P_COS_LOWER = 91, P_MAX_COND = 92, P_RADIUS = 93, P_MAX_SPEED = 94,
+    P_DT = 95, P_SIZE = 96,
+};
+#define STATE_SIZE 14      /* stream state: history (2, 6), n_history, elapsed [s] */
+
 typedef struct {
     double ab[6][6];          /* per bar: a (upper, {U}) x y z, then b (lower, {L}) x y z */
     double home[6];
@@ -37,18 +59,54 @@ typedef struct {
     double home_jinv[36];     /* row major */
     double step_m, step_rad, max_step;
     long max_iter;
+    double d_lo, d_hi;        /* accepted centre distances [m] */
+    double cos_upper, cos_lower;  /* cosines of the largest accepted tilts */
+    double max_cond;
+    double inv_radius;        /* 1 / platform radius: the angle columns' scale */
+    double radius;
+    double max_speed;         /* [m/s], angles times the platform radius */
+    double dt;                /* sample period when the caller gives none [s] */
 } Problem;
 
-/* Jacobian rows (dd/dp, row major 6x6) and residual d - IK(p), as ForwardKinematics._evaluate. */
-static void evaluate(const Problem *pb, const double p[6], const double d[6], double rows[36],
-                     double res[6])
+static int problem_from(const double *v, Problem *pb)
 {
+    memcpy(pb->ab, v + P_AB, sizeof pb->ab);
+    memcpy(pb->home, v + P_HOME, sizeof pb->home);
+    memcpy(pb->home_lengths, v + P_HOME_LENGTHS, sizeof pb->home_lengths);
+    memcpy(pb->home_jinv, v + P_HOME_JINV, sizeof pb->home_jinv);
+    pb->step_m = v[P_STEP_M];
+    pb->step_rad = v[P_STEP_RAD];
+    pb->max_step = v[P_MAX_STEP];
+    pb->max_iter = (long)v[P_MAX_ITER];
+    pb->d_lo = v[P_D_LO];
+    pb->d_hi = v[P_D_HI];
+    pb->cos_upper = v[P_COS_UPPER];
+    pb->cos_lower = v[P_COS_LOWER];
+    pb->max_cond = v[P_MAX_COND];
+    pb->radius = v[P_RADIUS];
+    pb->inv_radius = 1.0 / v[P_RADIUS];
+    pb->max_speed = v[P_MAX_SPEED];
+    pb->dt = v[P_DT];
+    if (pb->max_iter < 1 || !(pb->radius > 0.0)) {
+        PyErr_SetString(PyExc_ValueError, "problem: max_iter must be >= 1 and radius > 0");
+        return -1;
+    }
+    return 0;
+}
+
+/* Jacobian rows (dd/dp, row major 6x6), residual d - IK(p) and the upper plate's normal R e_z,
+ * as ForwardKinematics._evaluate. */
+static void evaluate(const Problem *pb, const double p[6], const double d[6], double rows[36],
+                     double res[6], double normal[3])
+{
+    /* the operations and their grouping are _evaluate_soa's, so that both round alike */
     const double x = p[0], y = p[1], z = p[2];
     const double cf = cos(p[3]), sf = sin(p[3]);
     const double ct = cos(p[4]), st = sin(p[4]);
     const double cp = cos(p[5]), sp = sin(p[5]);
-    const double r00 = cp * ct, r01 = -sp * cf + cp * st * sf, r02 = sp * sf + cp * st * cf;
-    const double r10 = sp * ct, r11 = cp * cf + sp * st * sf, r12 = -cp * sf + sp * st * cf;
+    const double stsf = st * sf, stcf = st * cf;
+    const double r00 = cp * ct, r01 = cp * stsf - sp * cf, r02 = sp * sf + cp * stcf;
+    const double r10 = sp * ct, r11 = cp * cf + sp * stsf, r12 = sp * stcf - cp * sf;
     const double r20 = -st, r21 = ct * sf, r22 = ct * cf;
     const double w0x = cp * ct, w0y = sp * ct;
     for (int i = 0; i < 6; i++) {
@@ -56,9 +114,10 @@ static void evaluate(const Problem *pb, const double p[6], const double d[6], do
         const double rax = r00 * a[0] + r01 * a[1] + r02 * a[2];
         const double ray = r10 * a[0] + r11 * a[1] + r12 * a[2];
         const double raz = r20 * a[0] + r21 * a[1] + r22 * a[2];
-        const double lx = rax + x - b[0], ly = ray + y - b[1], lz = raz + z - b[2];
+        const double lx = rax + (x - b[0]), ly = ray + (y - b[1]), lz = raz + (z - b[2]);
         const double length = sqrt(lx * lx + ly * ly + lz * lz);
-        const double nx = lx / length, ny = ly / length, nz = lz / length;
+        const double inv = 1.0 / length;
+        const double nx = lx * inv, ny = ly * inv, nz = lz * inv;
         const double mx = ray * nz - raz * ny, my = raz * nx - rax * nz, mz = rax * ny - ray * nx;
         double *r = rows + 6 * i;
         r[0] = nx;
@@ -69,11 +128,15 @@ static void evaluate(const Problem *pb, const double p[6], const double d[6], do
         r[5] = mz;
         res[i] = d[i] - length;
     }
+    normal[0] = r02;
+    normal[1] = r12;
+    normal[2] = r22;
 }
 
-/* Solve A x = b (6x6, row major) by LU with partial pivoting; A and b are overwritten.
- * Returns 0, or the 1-based index of an exactly zero pivot (LAPACK dgesv's info). */
-static int solve6(double A[36], double b[6], double x[6])
+/* LU factorisation with partial pivoting of a 6x6 row-major matrix, in place; ipiv[k] is the
+ * row exchanged with row k. Returns 0, or the 1-based index of an exactly zero pivot (LAPACK
+ * dgetrf's info). */
+static int lu6(double A[36], int ipiv[6])
 {
     for (int k = 0; k < 6; k++) {
         int piv = k;
@@ -84,6 +147,7 @@ static int solve6(double A[36], double b[6], double x[6])
                 piv = i;
             }
         }
+        ipiv[k] = piv;
         if (A[6 * piv + k] == 0.0)
             return k + 1;
         if (piv != k) {
@@ -92,25 +156,72 @@ static int solve6(double A[36], double b[6], double x[6])
                 A[6 * k + j] = A[6 * piv + j];
                 A[6 * piv + j] = t;
             }
-            double t = b[k];
-            b[k] = b[piv];
-            b[piv] = t;
         }
         for (int i = k + 1; i < 6; i++) {
             double f = A[6 * i + k] / A[6 * k + k];
             A[6 * i + k] = f;
             for (int j = k + 1; j < 6; j++)
                 A[6 * i + j] -= f * A[6 * k + j];
-            b[i] -= f * b[k];
         }
     }
-    for (int i = 5; i >= 0; i--) {
-        double s = b[i];
-        for (int j = i + 1; j < 6; j++)
-            s -= A[6 * i + j] * x[j];
-        x[i] = s / A[6 * i + i];
-    }
     return 0;
+}
+
+/* Solve A x = b with the factors of lu6; b is overwritten by x. */
+static inline void lu_solve6(const double LU[36], const int ipiv[6], double b[6])
+{
+    double x[6];
+    memcpy(x, b, sizeof x);
+    for (int k = 0; k < 6; k++) {
+        const int p = ipiv[k];
+        const double t = x[k];
+        x[k] = x[p];
+        x[p] = t;
+    }
+    for (int k = 0; k < 6; k++)
+        for (int i = k + 1; i < 6; i++)
+            x[i] -= LU[6 * i + k] * x[k];
+    for (int i = 5; i >= 0; i--) {
+        double s = x[i];
+        for (int j = i + 1; j < 6; j++)
+            s -= LU[6 * i + j] * x[j];
+        x[i] = s / LU[6 * i + i];
+    }
+    memcpy(b, x, sizeof x);
+}
+
+/* The inverse (row major) from the factors of lu6: lu_solve6 of the six unit vectors, all
+ * columns at once (the same operations on each column, in the same order). */
+static void lu_inverse6(const double LU[36], const int ipiv[6], double X[36])
+{
+    for (int i = 0; i < 36; i++)
+        X[i] = i % 7 == 0 ? 1.0 : 0.0;
+    for (int k = 0; k < 6; k++) {
+        const int p = ipiv[k];
+        for (int c = 0; c < 6; c++) {
+            const double t = X[6 * k + c];
+            X[6 * k + c] = X[6 * p + c];
+            X[6 * p + c] = t;
+        }
+    }
+    for (int k = 0; k < 6; k++)
+        for (int i = k + 1; i < 6; i++) {
+            const double f = LU[6 * i + k];
+            for (int c = 0; c < 6; c++)
+                X[6 * i + c] -= f * X[6 * k + c];
+        }
+    for (int i = 5; i >= 0; i--) {
+        double s[6];
+        for (int c = 0; c < 6; c++)
+            s[c] = X[6 * i + c];
+        for (int j = i + 1; j < 6; j++) {
+            const double f = LU[6 * i + j];
+            for (int c = 0; c < 6; c++)
+                s[c] -= f * X[6 * j + c];
+        }
+        for (int c = 0; c < 6; c++)
+            X[6 * i + c] = s[c] / LU[6 * i + i];
+    }
 }
 
 static int all_finite(const double *v, int n)
@@ -121,73 +232,147 @@ static int all_finite(const double *v, int n)
     return 1;
 }
 
-/* One sample. history: up to two previous solutions (oldest first), updated. */
-static void solve_one(const Problem *pb, const double d[6], double history[12], long *n_history,
-                      double pose[6], unsigned char *converged, long long *iterations,
-                      double *residual, double jac[36])
+/* Newton from p (updated). Leaves the Jacobian rows, their LU factors and the plate normal of
+ * the last evaluation; adds the evaluations to *iters. Returns 1 when converged. */
+static int newton(const Problem *pb, const double d[6], double p[6], double rows[36],
+                  double LU[36], int ipiv[6], double normal[3], double *residual, long *iters)
 {
-    double p[6], rows[36], res[6], A[36], s[6];
-    if (*n_history == 2) {
-        for (int j = 0; j < 6; j++)
-            p[j] = 2.0 * history[6 + j] - history[j];
-    } else if (*n_history == 1) {
-        memcpy(p, history, sizeof p);
-    } else {
-        for (int j = 0; j < 6; j++) {
-            double acc = 0.0;
-            for (int k = 0; k < 6; k++)
-                acc += (d[k] - pb->home_lengths[k]) * pb->home_jinv[6 * j + k];
-            p[j] = pb->home[j] + acc;
-        }
-    }
-    int ok = 0, evaluated = 0;
-    long it = 0;
-    double resid = INFINITY;
-    for (it = 1; it <= pb->max_iter; it++) {
-        evaluate(pb, p, d, rows, res);
-        evaluated = 1;
-        resid = 0.0;
+    double res[6];
+    for (long it = 1; it <= pb->max_iter; it++) {
+        evaluate(pb, p, d, rows, res, normal);
+        (*iters)++;
+        double r = 0.0;
         for (int i = 0; i < 6; i++)
-            resid = fabs(res[i]) > resid ? fabs(res[i]) : resid;
-        memcpy(A, rows, sizeof A);
-        if (solve6(A, res, s) != 0)
-            break;
-        double rot = fmax(fabs(s[3]), fmax(fabs(s[4]), fabs(s[5])));
+            r = fabs(res[i]) > r ? fabs(res[i]) : r;
+        *residual = r;
+        memcpy(LU, rows, 36 * sizeof(double));
+        if (lu6(LU, ipiv) != 0)
+            return 0;
+        lu_solve6(LU, ipiv, res);               /* res now holds the step */
+        double rot = fmax(fabs(res[3]), fmax(fabs(res[4]), fabs(res[5])));
         if (rot > pb->max_step) { /* damp wild steps far from the solution */
             double f = pb->max_step / rot;
             for (int j = 0; j < 6; j++)
-                s[j] *= f;
+                res[j] *= f;
         }
         for (int j = 0; j < 6; j++)
-            p[j] += s[j];
-        double trans = fmax(fabs(s[0]), fmax(fabs(s[1]), fabs(s[2])));
-        if (trans < pb->step_m && rot < pb->step_rad) {
-            ok = all_finite(p, 6);
-            break;
+            p[j] += res[j];
+        double trans = fmax(fabs(res[0]), fmax(fabs(res[1]), fabs(res[2])));
+        if (trans < pb->step_m && rot < pb->step_rad)
+            return all_finite(p, 6);
+    }
+    return 0;
+}
+
+/* Acceptance of a converged pose from its last evaluation: tilts, then the condition number
+ * (1-norm, angle columns scaled by 1 / radius) with the inverse J^-1 (row major) it needs. */
+static int check(const Problem *pb, const double rows[36], const double LU[36],
+                 const int ipiv[6], const double normal[3], double *cond, double jinv[36])
+{
+    for (int i = 0; i < 6; i++) {
+        const double *n = rows + 6 * i;
+        const double cos_upper = n[0] * normal[0] + n[1] * normal[1] + n[2] * normal[2];
+        if (!(n[2] >= pb->cos_lower) || !(cos_upper >= pb->cos_upper))
+            return ST_IMPLAUSIBLE;
+    }
+    lu_inverse6(LU, ipiv, jinv);
+    double norm_j = 0.0, norm_inv = 0.0;
+    for (int k = 0; k < 6; k++) {
+        double sj = 0.0, si = 0.0;
+        for (int i = 0; i < 6; i++) {
+            sj += fabs(k < 3 ? rows[6 * i + k] : rows[6 * i + k] * pb->inv_radius);
+            si += fabs(i < 3 ? jinv[6 * i + k] : jinv[6 * i + k] / pb->inv_radius);
+        }
+        norm_j = sj > norm_j ? sj : norm_j;
+        norm_inv = si > norm_inv ? si : norm_inv;
+    }
+    *cond = norm_j * norm_inv;
+    if (!(*cond <= pb->max_cond))
+        return ST_ILL_CONDITIONED;
+    return ST_OK;
+}
+
+/* Whether p is within max_speed * elapsed of prev (angles times the platform radius). */
+static int continuous(const Problem *pb, const double p[6], const double prev[6], double elapsed)
+{
+    double m = 0.0;
+    for (int j = 0; j < 6; j++) {
+        double v = fabs(p[j] - prev[j]) * (j < 3 ? 1.0 : pb->radius);
+        m = v > m ? v : m;
+    }
+    return m <= pb->max_speed * elapsed;
+}
+
+typedef struct {
+    double pose[6];
+    int status;
+    long iterations;
+    double residual;
+    double condition;
+    double rows[36];
+    double jinv[36];
+} Result;
+
+static void set_nan(double *v, int n)
+{
+    for (int i = 0; i < n; i++)
+        v[i] = NAN;
+}
+
+/* One sample from its seeds. first: the warm start or guess (NULL: none); prev (with first):
+ * the last accepted pose it must be continuous with (NULL: no such test). */
+static void solve_seeds(const Problem *pb, const double d[6], const double *first,
+                        const double *prev, double elapsed, Result *out)
+{
+    double rows[36], LU[36], normal[3];
+    int ipiv[6];
+    out->iterations = 0;
+    out->residual = NAN;
+    out->condition = NAN;
+    set_nan(out->pose, 6);
+    set_nan(out->rows, 36);
+    set_nan(out->jinv, 36);
+    if (!all_finite(d, 6)) {
+        out->status = ST_OUT_OF_SPAN;
+        return;
+    }
+    for (int i = 0; i < 6; i++) {
+        if (!(d[i] >= pb->d_lo && d[i] <= pb->d_hi)) {
+            out->status = ST_BAR_RANGE;
+            return;
         }
     }
-    if (it > pb->max_iter)
-        it = pb->max_iter;
-    if (ok) {
-        if (*n_history == 2) {
-            memcpy(history, history + 6, 6 * sizeof(double));
-            memcpy(history + 6, p, 6 * sizeof(double));
+    int worst = ST_NOT_CONVERGED;
+    for (int k = first ? 0 : 1; k < 3; k++) {
+        double p[6];
+        if (k == 0) {
+            memcpy(p, first, sizeof p);
+        } else if (k == 1) {
+            for (int j = 0; j < 6; j++) {
+                double acc = 0.0;
+                for (int m = 0; m < 6; m++)
+                    acc += (d[m] - pb->home_lengths[m]) * pb->home_jinv[6 * j + m];
+                p[j] = pb->home[j] + acc;
+            }
         } else {
-            memcpy(history + 6 * *n_history, p, 6 * sizeof(double));
-            *n_history += 1;
+            memcpy(p, pb->home, sizeof p);
         }
-    } else {
-        *n_history = 0;
+        int status = ST_NOT_CONVERGED;
+        if (newton(pb, d, p, rows, LU, ipiv, normal, &out->residual, &out->iterations)) {
+            status = check(pb, rows, LU, ipiv, normal, &out->condition, out->jinv);
+            if (status == ST_OK && k == 0 && prev && !continuous(pb, p, prev, elapsed))
+                status = ST_DISCONTINUOUS;
+        }
+        if (status == ST_OK) {
+            out->status = k == (first ? 0 : 1) ? ST_OK : ST_RESEEDED;
+            memcpy(out->pose, p, sizeof p);
+            memcpy(out->rows, rows, sizeof rows);
+            return;
+        }
+        worst = status > worst ? status : worst;
     }
-    memcpy(pose, p, sizeof p);
-    *converged = (unsigned char)ok;
-    *iterations = it;
-    *residual = resid;
-    if (evaluated)
-        memcpy(jac, rows, sizeof rows);
-    else
-        for (int k = 0; k < 36; k++)
-            jac[k] = NAN;
+    out->status = worst;
+    set_nan(out->jinv, 36);
 }
 
 static int format_is(const Py_buffer *view, const char *fmt)
@@ -219,98 +404,290 @@ static int get_buffer(PyObject *obj, Py_buffer *view, int writable, Py_ssize_t c
     return 0;
 }
 
+/* Buffers of one call: acquired in turn, released together. An optional one (None) stays
+ * NULL. */
+typedef struct {
+    Py_buffer views[16];
+    int got;
+} Buffers;
+
+typedef struct {
+    PyObject *obj;
+    int writable;
+    Py_ssize_t count, itemsize;
+    const char *fmt, *name;
+    int optional;
+} Spec;
+
+static int acquire(Buffers *bufs, const Spec *spec, int n, void **ptrs)
+{
+    for (int k = 0; k < n; k++) {
+        if (spec[k].optional && spec[k].obj == Py_None) {
+            ptrs[k] = NULL;
+            continue;
+        }
+        if (get_buffer(spec[k].obj, &bufs->views[bufs->got], spec[k].writable, spec[k].count,
+                       spec[k].itemsize, spec[k].fmt, spec[k].name) < 0)
+            return -1;
+        ptrs[k] = bufs->views[bufs->got].buf;
+        bufs->got++;
+    }
+    return 0;
+}
+
+static void release(Buffers *bufs)
+{
+    for (int k = 0; k < bufs->got; k++)
+        PyBuffer_Release(&bufs->views[k]);
+    bufs->got = 0;
+}
+
+/* Rows of an (N, 6) float64 buffer, or -1 (error set). */
+static Py_ssize_t rows_of(PyObject *obj, const char *name)
+{
+    Py_buffer view;
+    if (get_buffer(obj, &view, 0, -1, 8, "d", name) < 0)
+        return -1;
+    Py_ssize_t n = view.len / (6 * 8);
+    int ok = view.len == n * 6 * 8;
+    PyBuffer_Release(&view);
+    if (!ok) {
+        PyErr_Format(PyExc_ValueError, "%s: need shape (N, 6)", name);
+        return -1;
+    }
+    return n;
+}
+
 PyDoc_STRVAR(solve_stream_doc,
-"solve_stream(constants, home, home_lengths, home_jinv, lengths, history, n_history,\n"
-"             poses, converged, iterations, residual, jacobians) -> n_history\n\n"
+"solve_stream(problem, lengths, dt, state, poses, status, converged, iterations, residual,\n"
+"             condition, jacobians) -> None\n\n"
 "Forward kinematics of N consecutive samples, as ForwardKinematics.solve called on each.\n"
-"constants: (step_m, step_rad, max_step_rad, max_iter); ab (6, 6) float64 joints [a | b];\n"
-"home (6,), home_lengths (6,), home_jinv (6, 6); lengths (N, 6) [m]; history (2, 6) and\n"
-"n_history: the warm start, updated in place. Rows with a non-finite length are not solved\n"
-"(NaN, not converged, 0 iterations). Outputs: poses (N, 6) float64, converged (N,) bool,\n"
-"iterations (N,) int64, residual (N,) float64, jacobians (N, 6, 6) float64.");
+"problem: (96,) float64 packed by ForwardKinematics._packed; lengths (N, 6) [m]; dt (N,)\n"
+"float64 time since the previous sample [s], or None (the problem's sample period); state\n"
+"(14,) float64: the warm start (history (2, 6), n_history, seconds since the last accepted\n"
+"sample), updated in place. Outputs: poses (N, 6) float64 (NaN unless accepted), status (N,)\n"
+"int8 (FkStatus), converged (N,) bool (accepted), iterations (N,) int64, residual (N,)\n"
+"float64, condition (N,) float64, jacobians (N, 6, 6) float64.");
 
 static PyObject *solve_stream(PyObject *self, PyObject *args)
 {
     (void)self;
-    double step_m, step_rad, max_step;
-    long max_iter, n_history;
-    PyObject *o_ab, *o_home, *o_hl, *o_hj, *o_len, *o_hist, *o_pose, *o_conv, *o_iter, *o_res,
-        *o_jac;
-    if (!PyArg_ParseTuple(args, "(dddl)OOOOOOlOOOOO", &step_m, &step_rad, &max_step, &max_iter,
-                          &o_ab, &o_home, &o_hl, &o_hj, &o_len, &o_hist, &n_history, &o_pose,
-                          &o_conv, &o_iter, &o_res, &o_jac))
+    PyObject *o[11];
+    if (!PyArg_ParseTuple(args, "OOOOOOOOOOO", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6],
+                          &o[7], &o[8], &o[9], &o[10]))
         return NULL;
-    if (max_iter < 1 || n_history < 0 || n_history > 2) {
-        PyErr_SetString(PyExc_ValueError, "max_iter must be >= 1 and n_history 0, 1 or 2");
+    const Py_ssize_t n = rows_of(o[1], "lengths");
+    if (n < 0)
         return NULL;
-    }
-    Py_buffer b[11];
-    int got = 0;
-    PyObject *result = NULL;
-    Problem pb;
-    pb.step_m = step_m;
-    pb.step_rad = step_rad;
-    pb.max_step = max_step;
-    pb.max_iter = max_iter;
-    if (get_buffer(o_len, &b[got], 0, -1, 8, "d", "lengths") < 0)
-        return NULL;
-    got++;
-    const Py_ssize_t n = b[0].len / (6 * 8);
-    if (b[0].len != n * 6 * 8) {
-        PyErr_SetString(PyExc_ValueError, "lengths: need shape (N, 6)");
-        goto done;
-    }
-    struct { PyObject *o; int w; Py_ssize_t count, size; const char *fmt, *name; } spec[] = {
-        {o_ab, 0, 36, 8, "d", "ab"},
-        {o_home, 0, 6, 8, "d", "home"},
-        {o_hl, 0, 6, 8, "d", "home_lengths"},
-        {o_hj, 0, 36, 8, "d", "home_jinv"},
-        {o_hist, 1, 12, 8, "d", "history"},
-        {o_pose, 1, 6 * n, 8, "d", "poses"},
-        {o_conv, 1, n, 1, "?", "converged"},
-        {o_iter, 1, n, 8, "q", "iterations"},
-        {o_res, 1, n, 8, "d", "residual"},
-        {o_jac, 1, 36 * n, 8, "d", "jacobians"},
+    Spec spec[] = {
+        {o[0], 0, P_SIZE, 8, "d", "problem", 0},
+        {o[1], 0, 6 * n, 8, "d", "lengths", 0},
+        {o[2], 0, n, 8, "d", "dt", 1},
+        {o[3], 1, STATE_SIZE, 8, "d", "state", 0},
+        {o[4], 1, 6 * n, 8, "d", "poses", 0},
+        {o[5], 1, n, 1, "b", "status", 0},
+        {o[6], 1, n, 1, "?", "converged", 0},
+        {o[7], 1, n, 8, "q", "iterations", 0},
+        {o[8], 1, n, 8, "d", "residual", 0},
+        {o[9], 1, n, 8, "d", "condition", 0},
+        {o[10], 1, 36 * n, 8, "d", "jacobians", 0},
     };
-    for (size_t k = 0; k < sizeof spec / sizeof spec[0]; k++) {
-        if (get_buffer(spec[k].o, &b[got], spec[k].w, spec[k].count, spec[k].size,
-                       spec[k].fmt, spec[k].name) < 0)
-            goto done;
-        got++;
-    }
-    memcpy(pb.ab, b[1].buf, sizeof pb.ab);
-    memcpy(pb.home, b[2].buf, sizeof pb.home);
-    memcpy(pb.home_lengths, b[3].buf, sizeof pb.home_lengths);
-    memcpy(pb.home_jinv, b[4].buf, sizeof pb.home_jinv);
+    Buffers bufs = {.got = 0};
+    void *ptr[11];
+    Problem pb;
+    PyObject *result = NULL;
+    if (acquire(&bufs, spec, 11, ptr) < 0 || problem_from((const double *)ptr[0], &pb) < 0)
+        goto done;
     {
-        const double *lengths = (const double *)b[0].buf;
-        double *history = (double *)b[5].buf;
-        double *poses = (double *)b[6].buf;
-        unsigned char *conv = (unsigned char *)b[7].buf;
-        long long *iters = (long long *)b[8].buf;
-        double *resid = (double *)b[9].buf;
-        double *jac = (double *)b[10].buf;
+        const double *lengths = ptr[1], *dt = ptr[2];
+        double *state = ptr[3], *poses = ptr[4], *resid = ptr[8], *cond = ptr[9], *jac = ptr[10];
+        signed char *status = ptr[5];
+        unsigned char *conv = ptr[6];
+        long long *iters = ptr[7];
+        double *history = state;
+        long n_history = (long)state[12];
+        double elapsed = state[13];
+        if (n_history < 0 || n_history > 2) {
+            PyErr_SetString(PyExc_ValueError, "state: n_history must be 0, 1 or 2");
+            goto done;
+        }
+        Result r;
         for (Py_ssize_t i = 0; i < n; i++) {
             const double *d = lengths + 6 * i;
-            if (!all_finite(d, 6)) { /* not solved */
+            double warm[6];
+            elapsed += dt ? dt[i] : pb.dt;
+            if (n_history == 2)
                 for (int j = 0; j < 6; j++)
-                    poses[6 * i + j] = NAN;
-                for (int j = 0; j < 36; j++)
-                    jac[36 * i + j] = NAN;
-                conv[i] = 0;
-                iters[i] = 0;
-                resid[i] = NAN;
-                continue;
+                    warm[j] = 2.0 * history[6 + j] - history[j];
+            else if (n_history == 1)
+                memcpy(warm, history, sizeof warm);
+            solve_seeds(&pb, d, n_history ? warm : NULL,
+                        n_history ? history + 6 * (n_history - 1) : NULL, elapsed, &r);
+            if (r.status <= ST_RESEEDED) {
+                if (n_history == 2) {
+                    memmove(history, history + 6, 6 * sizeof(double));
+                    memcpy(history + 6, r.pose, 6 * sizeof(double));
+                } else {
+                    memcpy(history + 6 * n_history, r.pose, 6 * sizeof(double));
+                    n_history++;
+                }
+                elapsed = 0.0;
+            } else if (r.status != ST_OUT_OF_SPAN) {
+                n_history = 0;   /* a failed sample: the next starts from the home seeds */
             }
-            solve_one(&pb, d, history, &n_history, poses + 6 * i, conv + i, iters + i,
-                      resid + i, jac + 36 * i);
+            memcpy(poses + 6 * i, r.pose, sizeof r.pose);
+            status[i] = (signed char)r.status;
+            conv[i] = r.status <= ST_RESEEDED;
+            iters[i] = r.iterations;
+            resid[i] = r.residual;
+            cond[i] = r.condition;
+            memcpy(jac + 36 * i, r.rows, sizeof r.rows);
         }
+        state[12] = (double)n_history;
+        state[13] = elapsed;
     }
-    result = PyLong_FromLong(n_history);
+    Py_INCREF(Py_None);
+    result = Py_None;
 done:
-    for (int k = 0; k < got; k++)
-        PyBuffer_Release(&b[k]);
+    release(&bufs);
     return result;
+}
+
+PyDoc_STRVAR(solve_batch_doc,
+"solve_batch(problem, lengths, guess, poses, status, converged, iterations, residual,\n"
+"            condition, jacobian_inverse) -> None\n\n"
+"Forward kinematics of N independent samples, as ForwardKinematics._solve_chunk; releases\n"
+"the GIL. problem as for solve_stream; lengths (N, 6) [m]; guess (N, 6) float64 start poses,\n"
+"or None (the home seeds only). Outputs as for solve_stream; jacobian_inverse (N, 6, 6)\n"
+"float64 (dp/dd, NaN unless accepted) or None.");
+
+static PyObject *solve_batch(PyObject *self, PyObject *args)
+{
+    (void)self;
+    PyObject *o[10];
+    if (!PyArg_ParseTuple(args, "OOOOOOOOOO", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6],
+                          &o[7], &o[8], &o[9]))
+        return NULL;
+    const Py_ssize_t n = rows_of(o[1], "lengths");
+    if (n < 0)
+        return NULL;
+    Spec spec[] = {
+        {o[0], 0, P_SIZE, 8, "d", "problem", 0},
+        {o[1], 0, 6 * n, 8, "d", "lengths", 0},
+        {o[2], 0, 6 * n, 8, "d", "guess", 1},
+        {o[3], 1, 6 * n, 8, "d", "poses", 0},
+        {o[4], 1, n, 1, "b", "status", 0},
+        {o[5], 1, n, 1, "?", "converged", 0},
+        {o[6], 1, n, 8, "q", "iterations", 0},
+        {o[7], 1, n, 8, "d", "residual", 0},
+        {o[8], 1, n, 8, "d", "condition", 0},
+        {o[9], 1, 36 * n, 8, "d", "jacobian_inverse", 1},
+    };
+    Buffers bufs = {.got = 0};
+    void *ptr[10];
+    Problem pb;
+    PyObject *result = NULL;
+    if (acquire(&bufs, spec, 10, ptr) < 0 || problem_from((const double *)ptr[0], &pb) < 0)
+        goto done;
+    {
+        const double *lengths = ptr[1], *guess = ptr[2];
+        double *poses = ptr[3], *resid = ptr[7], *cond = ptr[8], *jinv = ptr[9];
+        signed char *status = ptr[4];
+        unsigned char *conv = ptr[5];
+        long long *iters = ptr[6];
+        Py_BEGIN_ALLOW_THREADS
+        Result r;
+        for (Py_ssize_t i = 0; i < n; i++) {
+            solve_seeds(&pb, lengths + 6 * i, guess ? guess + 6 * i : NULL, NULL, 0.0, &r);
+            memcpy(poses + 6 * i, r.pose, sizeof r.pose);
+            status[i] = (signed char)r.status;
+            conv[i] = r.status <= ST_RESEEDED;
+            iters[i] = r.iterations;
+            resid[i] = r.residual;
+            cond[i] = r.condition;
+            if (jinv)
+                memcpy(jinv + 36 * i, r.jinv, sizeof r.jinv);
+        }
+        Py_END_ALLOW_THREADS
+    }
+    Py_INCREF(Py_None);
+    result = Py_None;
+done:
+    release(&bufs);
+    return result;
+}
+
+PyDoc_STRVAR(pose_covariance_doc,
+"pose_covariance(jinv, length_cov, scale, out) -> None\n\n"
+"Pose covariance of N samples, as propagate_covariance: out_n = D_n J_n^-1 S_n J_n^-T D_n;\n"
+"releases the GIL. jinv (N, 6, 6) float64; length_cov (N, 6, 6) or (6, 6) float64, S_n\n"
+"[m^2]; scale (N,) float64, D_n = diag(s, s, s, 1, 1, 1), or None (D = I); out (N, 6, 6).");
+
+static PyObject *pose_covariance(PyObject *self, PyObject *args)
+{
+    (void)self;
+    PyObject *o[4];
+    if (!PyArg_ParseTuple(args, "OOOO", &o[0], &o[1], &o[2], &o[3]))
+        return NULL;
+    Py_buffer view;
+    if (get_buffer(o[0], &view, 0, -1, 8, "d", "jinv") < 0)
+        return NULL;
+    const Py_ssize_t n = view.len / (36 * 8);
+    const int shaped = view.len == n * 36 * 8;
+    PyBuffer_Release(&view);
+    if (!shaped) {
+        PyErr_SetString(PyExc_ValueError, "jinv: need shape (N, 6, 6)");
+        return NULL;
+    }
+    if (get_buffer(o[1], &view, 0, -1, 8, "d", "length_cov") < 0)
+        return NULL;
+    const int per_sample = view.len == n * 36 * 8 && n != 1;
+    const int shared = view.len == 36 * 8;
+    PyBuffer_Release(&view);
+    if (!per_sample && !shared) {
+        PyErr_SetString(PyExc_ValueError, "length_cov: need shape (N, 6, 6) or (6, 6)");
+        return NULL;
+    }
+    Spec spec[] = {
+        {o[0], 0, 36 * n, 8, "d", "jinv", 0},
+        {o[1], 0, per_sample ? 36 * n : 36, 8, "d", "length_cov", 0},
+        {o[2], 0, n, 8, "d", "scale", 1},
+        {o[3], 1, 36 * n, 8, "d", "out", 0},
+    };
+    Buffers bufs = {.got = 0};
+    void *ptr[4];
+    if (acquire(&bufs, spec, 4, ptr) < 0) {
+        release(&bufs);
+        return NULL;
+    }
+    const double *jinv = ptr[0], *cov = ptr[1], *scale = ptr[2];
+    double *out = ptr[3];
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t s = 0; s < n; s++) {
+        const double *J = jinv + 36 * s, *S = cov + (per_sample ? 36 * s : 0);
+        double T[36], D[6];
+        for (int j = 0; j < 6; j++)
+            D[j] = scale && j < 3 ? scale[s] : 1.0;
+        /* T = J^-1 S, then out = T J^-T, each row and column times D */
+        for (int i = 0; i < 6; i++)
+            for (int k = 0; k < 6; k++) {
+                double acc = 0.0;
+                for (int m = 0; m < 6; m++)
+                    acc += J[6 * i + m] * S[6 * m + k];
+                T[6 * i + k] = acc;
+            }
+        for (int i = 0; i < 6; i++)
+            for (int k = 0; k < 6; k++) {
+                double acc = 0.0;
+                for (int m = 0; m < 6; m++)
+                    acc += T[6 * i + m] * J[6 * k + m];
+                out[36 * s + 6 * i + k] = acc * D[i] * D[k];
+            }
+    }
+    Py_END_ALLOW_THREADS
+    release(&bufs);
+    Py_INCREF(Py_None);
+    return Py_None;
 }
 
 PyDoc_STRVAR(cdf_eval_doc,
@@ -551,6 +928,8 @@ done:
 
 static PyMethodDef methods[] = {
     {"solve_stream", solve_stream, METH_VARARGS, solve_stream_doc},
+    {"solve_batch", solve_batch, METH_VARARGS, solve_batch_doc},
+    {"pose_covariance", pose_covariance, METH_VARARGS, pose_covariance_doc},
     {"cdf_eval", cdf_eval, METH_VARARGS, cdf_eval_doc},
     {"decode_continuing", decode_continuing, METH_VARARGS, decode_continuing_doc},
     {NULL, NULL, 0, NULL},
@@ -558,7 +937,7 @@ static PyMethodDef methods[] = {
 
 static struct PyModuleDef module = {
     PyModuleDef_HEAD_INIT, "_fast",
-    "Compiled helpers of the 1 kHz path (see mmd_ros.core.compiled).", -1, methods,
+    "Compiled helpers of mmd_ros (see mmd_ros.core.compiled).", -1, methods,
     NULL, NULL, NULL, NULL,
 };
 

@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 from mmd_ros.core.calibration import Calibration, CdfBank
 from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.errors import CalibrationError
-from mmd_ros.core.kinematics import ForwardKinematics
+from mmd_ros.core.kinematics import FkStatus, ForwardKinematics, propagate_covariance
 from mmd_ros.core.model import Model, TermContext
 from mmd_ros.core.thermal import ReferenceBar, ThermalCompensation, ThermalState
 
@@ -46,8 +46,11 @@ class Compensated:
 class ProcessResult:
     """Poses of N samples.
 
-    poses : ndarray, shape (N, 6) — [x, y, z, phi, theta, psi] of {U} in {L} [m, rad]
+    poses : ndarray, shape (N, 6) — [x, y, z, phi, theta, psi] of {U} in {L} [m, rad]; NaN
+        where FK gave no plausible pose
     valid : ndarray, shape (N,) — converged and no bar out of range; only these are measurements
+    status : ndarray of int8, shape (N,) — :class:`FkStatus`; OUT_OF_SPAN wherever a bar is out
+        of its calibrated span (as live, where such samples are not solved)
     covariance : ndarray, shape (N, 6, 6), or None — pose covariance [m, rad]^2
     """
 
@@ -56,6 +59,7 @@ class ProcessResult:
     poses: FloatArray
     converged: NDArray[np.bool_]
     valid: NDArray[np.bool_]
+    status: NDArray[np.int8]
     iterations: NDArray[np.int64]
     residual_m: FloatArray
     condition: FloatArray
@@ -73,6 +77,7 @@ class SampleResult:
     pose: FloatArray
     converged: bool
     valid: bool
+    status: FkStatus
     iterations: int
     residual_m: float
     covariance: FloatArray | None
@@ -103,7 +108,7 @@ class Pipeline:
         self.thermal = ThermalCompensation(
             device, references, mode=self.model.thermal_mode,
             plate_expansion=self.model.plate_expansion, ambient_at_zero_c=calibration.ambient_c)
-        self.fk = ForwardKinematics(device.geometry)
+        self.fk = ForwardKinematics.for_device(device)
         self._pose_terms = [t for t in self.model.terms if t.needs_pose]
         self._length_terms = [t for t in self.model.terms if not t.needs_pose]
 
@@ -113,14 +118,16 @@ class Pipeline:
         self.model.reset()
 
     # -- lengths -------------------------------------------------------------------------------
-    def compensate(self, times_s: FloatArray, counts: FloatArray) -> Compensated:
+    def compensate(self, times_s: FloatArray, counts: FloatArray, *,
+                   compiled: bool | None = None) -> Compensated:
         """Compensated bar lengths of N consecutive samples, with the terms that need no pose.
 
         times_s : ndarray, shape (N,) [s]
         counts : ndarray, shape (N, 8) — raw counts of all channels
+        compiled : CDFs with the compiled helper (default: when it is in use)
         """
         counts = np.asarray(counts, dtype=np.float64)
-        cdf_lengths, out = self.cdfs(counts[:, self.channels])
+        cdf_lengths, out = self.cdfs(counts[:, self.channels], compiled=compiled)
         thermal = self.thermal.state(counts, cdf_lengths)
         lengths = cdf_lengths - thermal.bar_error_m
         if self._length_terms:
@@ -144,37 +151,40 @@ class Pipeline:
 
     # -- batch ---------------------------------------------------------------------------------
     def process(self, times_s: FloatArray, counts: FloatArray, *,
-                with_covariance: bool = False, with_condition: bool = False) -> ProcessResult:
-        """Poses of N consecutive samples (one run, in time order)."""
-        times_s = np.asarray(times_s, dtype=np.float64)
-        comp = self.compensate(times_s, counts)
-        sol = self._solve_batch(comp, with_covariance or with_condition, with_condition)
-        if self._pose_terms:
-            comp = self.add_pose_terms(comp, times_s, counts, sol[0])
-            sol = self._solve_batch(comp, with_covariance or with_condition, with_condition)
-        poses, converged, iterations, residual, condition, jinv = sol
-        valid = converged & ~np.any(comp.out_of_range, axis=1)
-        cov = None
-        if with_covariance and jinv is not None:
-            cov = self._covariance(jinv, comp.thermal.plate_scale)
-        return ProcessResult(times_s, comp, poses, converged, valid, iterations, residual,
-                             condition, cov)
+                with_covariance: bool = False, compiled: bool | None = None) -> ProcessResult:
+        """Poses of N consecutive samples (one run, in time order).
 
-    def _solve_batch(self, comp: Compensated, with_inverse: bool, with_condition: bool):
+        compiled : FK and covariance with the compiled helpers (default: when they are in
+            use); False: numpy, the reference (the same results, bit for bit)
+        """
+        times_s = np.asarray(times_s, dtype=np.float64)
+        comp = self.compensate(times_s, counts, compiled=compiled)
+        sol = self._solve_batch(comp, with_covariance, compiled)
+        if self._pose_terms:
+            comp = self.add_pose_terms(comp, times_s, counts, sol.poses)
+            sol = self._solve_batch(comp, with_covariance, compiled)
+        out_of_range = np.any(comp.out_of_range, axis=1)
+        valid = sol.converged & ~out_of_range
+        status = np.where(out_of_range, np.int8(FkStatus.OUT_OF_SPAN), sol.status)
+        cov = None
+        if with_covariance:
+            cov = self._covariance(sol.jacobian_inverse, comp.thermal.plate_scale, compiled)
+        return ProcessResult(times_s, comp, sol.poses, sol.converged, valid, status,
+                             sol.iterations, sol.residual_m, sol.condition, cov)
+
+    def _solve_batch(self, comp: Compensated, with_inverse: bool, compiled: bool | None):
+        """FK of d / s with the nominal joints, translations times s (the module docstring)."""
         scale = comp.thermal.plate_scale
         sol = self.fk.solve_series(comp.lengths_m / scale[:, None], with_inverse=with_inverse,
-                                   with_condition=with_condition)
-        poses = sol.poses.copy()
-        poses[:, :3] *= scale[:, None]
-        return poses, sol.converged, sol.iterations, sol.residual_m, sol.condition, sol.jacobian_inverse
+                                   compiled=compiled)
+        sol.poses[:, :3] *= scale[:, None]
+        return sol
 
-    def _covariance(self, jinv: FloatArray, scale: FloatArray) -> FloatArray:
+    def _covariance(self, jinv: FloatArray, scale: FloatArray,
+                    compiled: bool | None = None) -> FloatArray:
         """J^-1 (sigma^2 I) J^-T with the translation rows scaled back by the plate expansion."""
         sigma = self.model.length_sigma_m
-        cov = sigma * sigma * (jinv @ np.swapaxes(jinv, -1, -2))
-        s = np.ones(jinv.shape[:1] + (6,))
-        s[:, :3] = scale[:, None]
-        return cov * s[:, :, None] * s[:, None, :]
+        return propagate_covariance(jinv, sigma * sigma * np.eye(6), scale, compiled=compiled)
 
     # -- stream --------------------------------------------------------------------------------
     def process_sample(self, time_s: float, counts: FloatArray, *,
@@ -200,7 +210,8 @@ class Pipeline:
         if with_covariance and sol.converged:
             jinv = np.linalg.inv(sol.jacobian)
             cov = self._covariance(jinv[None], comp.thermal.plate_scale)[0]
+        status = FkStatus.OUT_OF_SPAN if out.any() else sol.status
         return SampleResult(comp.lengths_m[0], out, comp.thermal.reference_error_m[0],
                             float(comp.thermal.temp_change_c[0]), pose, sol.converged,
-                            bool(sol.converged and not out.any()), sol.iterations,
+                            bool(sol.converged and not out.any()), status, sol.iterations,
                             sol.residual_m if math.isfinite(sol.residual_m) else math.nan, cov)

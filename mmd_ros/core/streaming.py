@@ -26,7 +26,7 @@ from numpy.typing import NDArray
 from mmd_ros.core.calibration import Calibration
 from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.errors import MmdError
-from mmd_ros.core.kinematics import ForwardKinematics
+from mmd_ros.core.kinematics import FkStatus, ForwardKinematics
 from mmd_ros.core.model import Model
 from mmd_ros.core.pipeline import Pipeline
 
@@ -124,7 +124,7 @@ class Compensator:
             self.calibration_source = source
             self.problem = problem
             self._pipeline = pipeline
-            self._fk = ForwardKinematics(self.device.geometry) if pipeline is not None else None
+            self._fk = ForwardKinematics.for_device(self.device) if pipeline is not None else None
             self._t0 = None
             if pipeline is not None:
                 self.hold_from_ns = None
@@ -160,7 +160,7 @@ class Compensator:
         times = (np.asarray(stamps_ns, dtype=np.int64) - t0).astype(np.float64) * 1e-9
         comp = pipeline.compensate(times, counts)
         if self.needs_pose and fk is not None:
-            first = _solve(fk, comp.lengths_m, comp.thermal.plate_scale)[0]
+            first = _solve(fk, comp.lengths_m, comp.thermal.plate_scale).poses
             comp = pipeline.add_pose_terms(comp, times, counts, first)
         out = comp.out_of_range
         lengths = np.where(out, np.nan, comp.lengths_m)
@@ -180,15 +180,17 @@ class Compensator:
 @dataclass(frozen=True)
 class KinematicsOut:
     """Poses of N samples: poses (N, 6) [m, rad]; valid (N,): published as a measurement;
-    converged, iterations, residual_m (NaN when not solved); jacobians (N, 6, 6) and
-    plate_scale (N,) of the solutions; sigma_m: the bar-length uncertainty, or None when no
-    covariance is wanted."""
+    converged, status (:class:`FkStatus`), iterations, residual_m and condition (NaN when not
+    solved); jacobians (N, 6, 6) and plate_scale (N,) of the solutions; sigma_m: the bar-length
+    uncertainty, or None when no covariance is wanted."""
 
     poses: FloatArray
     valid: NDArray[np.bool_]
     converged: NDArray[np.bool_]
+    status: NDArray[np.int8]
     iterations: NDArray[np.int64]
     residual_m: FloatArray
+    condition: FloatArray
     jacobians: FloatArray
     plate_scale: FloatArray
     sigma_m: float | None
@@ -210,23 +212,21 @@ class KinematicsOut:
         return cov * s[:, :, None] * s[:, None, :]
 
     def status_values(self) -> FloatArray:
-        """Values of /mmd/fk_status: converged, valid, iterations, residual [m], condition."""
-        n = self.valid.size
+        """Values of /mmd/fk_status: converged, valid, iterations, residual [m], condition,
+        status (:class:`FkStatus`)."""
         return np.column_stack([self.converged, self.valid, self.iterations, self.residual_m,
-                                np.full(n, np.nan)]).astype(np.float64)
+                                self.condition, self.status]).astype(np.float64)
 
 
-def _solve(fk: ForwardKinematics, lengths: FloatArray, scale: FloatArray
-           ) -> tuple[FloatArray, NDArray[np.bool_], NDArray[np.int64], FloatArray, FloatArray]:
+def _solve(fk: ForwardKinematics, lengths: FloatArray, scale: FloatArray,
+           dt_s: FloatArray | None = None):
     """Streaming FK of N samples as :meth:`Pipeline.process_sample` does it: FK on d / s with the
-    nominal geometry, translation times s. Samples with a NaN length are not solved."""
+    nominal geometry, translation times s. Samples with a NaN length are not solved.
+    Returns the :class:`StreamSolution` with the translations scaled."""
     scale = np.asarray(scale, dtype=np.float64)[:, None]
-    sol = fk.solve_stream(lengths / scale)
-    poses = sol.poses
-    poses[:, :3] *= scale
-    residual = sol.residual_m
-    residual[np.isinf(residual)] = np.nan
-    return poses, sol.converged, sol.iterations, residual, sol.jacobians
+    sol = fk.solve_stream(lengths / scale, dt_s=dt_s)
+    sol.poses[:, :3] *= scale
+    return sol
 
 
 @dataclass
@@ -235,6 +235,9 @@ class _KinStats:
     poses: int = 0
     not_converged: int = 0
     out_of_range: int = 0
+    by_status: NDArray[np.int64] = field(default_factory=lambda: np.zeros(len(FkStatus), np.int64))
+    period_by_status: NDArray[np.int64] = field(
+        default_factory=lambda: np.zeros(len(FkStatus), np.int64))
     period_samples: int = 0
     period_not_converged: int = 0
     period_out_of_range: int = 0
@@ -253,14 +256,27 @@ class Kinematics:
 
     def __init__(self, device: DeviceDescription, sigma_m: float, *,
                  with_covariance: bool = True) -> None:
-        self.fk = ForwardKinematics(device.geometry)
+        self.fk = ForwardKinematics.for_device(device)
         self.sigma_m = float(sigma_m)
         self.with_covariance = with_covariance
         self.stats = _KinStats()
+        self._last_stamp_ns: int | None = None
 
-    def solve(self, lengths_m: FloatArray, plate_scale: FloatArray) -> KinematicsOut:
+    def solve(self, lengths_m: FloatArray, plate_scale: FloatArray,
+              stamps_ns: NDArray[np.int64] | None = None) -> KinematicsOut:
+        """Poses of N consecutive samples. stamps_ns (N,): their stamps, for the continuity
+        test at the measured rate (default: the device's sample period between samples)."""
         plate_scale = np.asarray(plate_scale, dtype=np.float64)
-        poses, converged, iterations, residual, jac = _solve(self.fk, lengths_m, plate_scale)
+        dt = None
+        if stamps_ns is not None and len(stamps_ns):
+            stamps = np.asarray(stamps_ns, dtype=np.int64)
+            last = self._last_stamp_ns
+            dt = np.diff(stamps, prepend=stamps[0] if last is None else last) * 1e-9
+            if last is None:
+                dt[0] = self.fk.limits.sample_period_s
+            self._last_stamp_ns = int(stamps[-1])
+        sol = _solve(self.fk, lengths_m, plate_scale, dt)
+        poses, converged, iterations, residual = sol.poses, sol.converged, sol.iterations, sol.residual_m
         in_range = np.isfinite(lengths_m).all(axis=1)
         valid = converged & in_range
         # (a transfer's figures with few numpy calls: this runs at 1 kHz / 8; samples not
@@ -276,6 +292,9 @@ class Kinematics:
         st.period_not_converged += n_solved - n_valid
         st.out_of_range += n - n_solved
         st.period_out_of_range += n - n_solved
+        counts = np.bincount(sol.status, minlength=len(FkStatus))
+        st.by_status += counts
+        st.period_by_status += counts
         if n_solved:
             st.period_solved += n_solved
             st.period_iterations_sum += int(iterations.sum())
@@ -283,5 +302,6 @@ class Kinematics:
             r = float(np.fmax.reduce(residual))
             if r > st.period_residual_max_m:
                 st.period_residual_max_m = r
-        return KinematicsOut(poses, valid, converged, iterations, residual, jac, plate_scale,
+        return KinematicsOut(poses, valid, converged, sol.status, iterations, residual,
+                             sol.condition, sol.jacobians, plate_scale,
                              self.sigma_m if self.with_covariance else None)

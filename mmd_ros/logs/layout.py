@@ -26,7 +26,7 @@ from mmd_ros.logs.reader import JointStates, LogReader
 from mmd_ros.logs.writer import LogWriter
 
 __all__ = [
-    'FRAME_LOWER', 'FRAME_UPPER', 'REFERENCE_POSE_NAMES', 'RunLog', 'TOPIC_BAR_LENGTHS',
+    'FK_STATUS_NAMES', 'FRAME_LOWER', 'FRAME_UPPER', 'REFERENCE_POSE_NAMES', 'RunLog', 'TOPIC_BAR_LENGTHS',
     'TOPIC_CALIBRATION', 'TOPIC_DEVICE', 'TOPIC_DIAGNOSTICS', 'TOPIC_FK_STATUS', 'TOPIC_MODEL',
     'TOPIC_POSE', 'TOPIC_POSE_COV', 'TOPIC_RAW', 'TOPIC_REF_LENGTHS', 'TOPIC_REF_POSE',
     'TOPIC_THERMAL', 'read_run', 'write_run',
@@ -43,6 +43,8 @@ TOPIC_THERMAL = '/mmd/thermal'
 TOPIC_POSE = '/mmd/pose'
 TOPIC_POSE_COV = '/mmd/pose_with_covariance'
 TOPIC_FK_STATUS = '/mmd/fk_status'
+#: Names of /mmd/fk_status, live and in processed logs (msg_docs/topics.md).
+FK_STATUS_NAMES = ['converged', 'valid', 'iterations', 'residual', 'condition', 'status']
 TOPIC_DIAGNOSTICS = '/diagnostics'
 
 FRAME_LOWER = 'mmd_lower'

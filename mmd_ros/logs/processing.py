@@ -14,12 +14,13 @@ from numpy.typing import NDArray
 from mmd_ros.core.accuracy import error_stats, length_error, pose_error
 from mmd_ros.core.calibration import load_calibration
 from mmd_ros.core.errors import CalibrationError
+from mmd_ros.core.kinematics import FkStatus
 from mmd_ros.core.model import Model
 from mmd_ros.core.pipeline import Pipeline
 from mmd_ros.core.progress import Progress
 from mmd_ros.logs.layout import (
-    BAR_NAMES, FRAME_LOWER, TOPIC_BAR_LENGTHS, TOPIC_CALIBRATION, TOPIC_DEVICE, TOPIC_FK_STATUS,
-    TOPIC_MODEL, TOPIC_POSE, TOPIC_POSE_COV, TOPIC_THERMAL, RunLog,
+    BAR_NAMES, FK_STATUS_NAMES, FRAME_LOWER, TOPIC_BAR_LENGTHS, TOPIC_CALIBRATION, TOPIC_DEVICE,
+    TOPIC_FK_STATUS, TOPIC_MODEL, TOPIC_POSE, TOPIC_POSE_COV, TOPIC_THERMAL, RunLog,
 )
 from mmd_ros.logs.writer import LogWriter
 
@@ -27,7 +28,6 @@ __all__ = ['ProcessedRun', 'process_run', 'summarize', 'write_csv', 'write_proce
 
 #: Samples per block: bounds memory and lets progress be shown on long logs.
 BLOCK = 65536
-FK_STATUS_NAMES = ['converged', 'valid', 'iterations', 'residual', 'condition']
 
 
 @dataclass
@@ -39,9 +39,11 @@ class ProcessedRun:
     poses: NDArray[np.float64]
     converged: NDArray[np.bool_]
     valid: NDArray[np.bool_]
+    status: NDArray[np.int8]
     out_of_range: NDArray[np.bool_]
     iterations: NDArray[np.int64]
     residual_m: NDArray[np.float64]
+    condition: NDArray[np.float64]
     reference_error_m: NDArray[np.float64]
     temp_change_c: NDArray[np.float64]
     covariance: NDArray[np.float64] | None
@@ -70,9 +72,9 @@ def process_run(run: RunLog, model: Model, *, calibration_path: str | None = Non
 
     return ProcessedRun(
         run.stamps_ns, cat(lambda p: p.compensated.lengths_m), cat(lambda p: p.poses),
-        cat(lambda p: p.converged), cat(lambda p: p.valid),
+        cat(lambda p: p.converged), cat(lambda p: p.valid), cat(lambda p: p.status),
         cat(lambda p: p.compensated.out_of_range), cat(lambda p: p.iterations),
-        cat(lambda p: p.residual_m), cat(lambda p: p.compensated.thermal.reference_error_m),
+        cat(lambda p: p.residual_m), cat(lambda p: p.condition), cat(lambda p: p.compensated.thermal.reference_error_m),
         cat(lambda p: p.compensated.thermal.temp_change_c),
         cat(lambda p: p.covariance) if with_covariance else None)
 
@@ -84,7 +86,8 @@ def write_processed(path: Path, run: RunLog, model: Model, result: ProcessedRun,
     t0 = int(stamps[0])
     ref_names = [c.name + '_error' for c in run.device.reference_channels][:result.reference_error_m.shape[1]]
     status = np.column_stack([result.converged, result.valid, result.iterations,
-                              result.residual_m, np.full(stamps.size, np.nan)]).astype(np.float64)
+                              result.residual_m, result.condition,
+                              result.status]).astype(np.float64)
     with LogWriter(path) as log:
         log.write_string(TOPIC_DEVICE, t0, run.device.to_yaml())
         log.write_string(TOPIC_CALIBRATION, t0, calibration_text)
@@ -134,6 +137,8 @@ def summarize(run: RunLog, result: ProcessedRun) -> dict[str, Any]:
         'duration_s': float(run.times_s[-1]) if n else 0.0,
         'valid': int(result.valid.sum()),
         'not_converged': int((~result.converged).sum()),
+        'fk_status': {s.name.lower(): int(c) for s, c in
+                      zip(FkStatus, np.bincount(result.status, minlength=len(FkStatus))) if c},
         'out_of_range': int(result.out_of_range.any(axis=1).sum()),
         'max_fk_iterations': int(result.iterations.max()) if n else 0,
     }

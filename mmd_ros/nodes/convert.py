@@ -18,7 +18,7 @@ from std_msgs.msg import Header, String
 
 from mmd_ros.core.rotation import angles_to_quaternion, quaternion_to_angles
 from mmd_ros.logs.cdr import JointStateLayout, PoseLayout, encode_string
-from mmd_ros.logs.layout import BAR_NAMES, FRAME_LOWER, REFERENCE_POSE_NAMES
+from mmd_ros.logs.layout import BAR_NAMES, FK_STATUS_NAMES, FRAME_LOWER, REFERENCE_POSE_NAMES
 
 __all__ = [
     'DIAGNOSTIC_ARRAY', 'FK_STATUS_NAMES', 'HEADER', 'JS', 'POSE', 'POSE_COV', 'RawBatch', 'Rows',
@@ -32,8 +32,6 @@ POSE_COV = 'geometry_msgs/msg/PoseWithCovarianceStamped'
 STRING = 'std_msgs/msg/String'
 HEADER = 'std_msgs/msg/Header'
 DIAGNOSTIC_ARRAY = 'diagnostic_msgs/msg/DiagnosticArray'
-#: Names of /mmd/fk_status (as ``mmd process`` writes it).
-FK_STATUS_NAMES = ['converged', 'valid', 'iterations', 'residual', 'condition']
 
 
 def thermal_names(reference_channels: list[str]) -> list[str]:

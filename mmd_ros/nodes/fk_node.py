@@ -4,8 +4,9 @@ Pairs each ``bar_lengths`` sample with the ``thermal`` sample of the same stamp 
 plates' scale factor), solves the forward kinematics warm-started from the previous poses and
 publishes ``pose`` (``geometry_msgs/PoseStamped``, frame ``mmd_lower``, SI units, quaternion
 x y z w), ``pose_with_covariance`` (the covariance propagated from the model's bar-length
-uncertainty) and ``fk_status`` for every sample. A sample that does not converge, or has a bar
-out of its calibrated range (NaN length), gets no pose and is counted in the diagnostics.
+uncertainty) and ``fk_status`` for every sample. A sample whose forward kinematics gives no
+plausible pose (``fk_status`` ``status`` says why), or has a bar out of its calibrated range (NaN
+length), gets no pose and is counted in the diagnostics.
 Topics, parameters: ``msg_docs/nodes.md``.
 """
 
@@ -122,7 +123,7 @@ class FkNode(Node):
                 self.unpaired += 1
 
     def _solve(self, stamps: np.ndarray, lengths: np.ndarray, scales: np.ndarray) -> None:
-        kin = self.kinematics.solve(lengths, scales)
+        kin = self.kinematics.solve(lengths, scales, stamps)
         # poses first (what CNC tooling waits for); the covariance is computed after them
         if kin.valid.any():
             s = stamps[kin.valid]

@@ -138,7 +138,7 @@ class PoseNode(CalibrationService, Node):
         # covariance (computed only now) and the rest of the transfer's topics
         comp = self.compensator.process(stamps, counts)
         if comp is not None:
-            kin = self.kinematics.solve(comp.lengths_m, comp.plate_scale)
+            kin = self.kinematics.solve(comp.lengths_m, comp.plate_scale, stamps)
             valid = kin.valid if kin.valid.any() else None
             if valid is not None:
                 s = stamps[valid]

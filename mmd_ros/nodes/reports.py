@@ -9,6 +9,7 @@ from datetime import datetime, timezone
 import numpy as np
 
 from mmd_ros.core.calibration import Calibration
+from mmd_ros.core.kinematics import FkStatus
 from mmd_ros.core.streaming import Compensator, Kinematics
 from mmd_ros.nodes.diagnostics import ERROR, OK, WARN, Report
 
@@ -70,13 +71,17 @@ def compensation_report(comp: Compensator, thermal_warn_c: float, model_source: 
 
 
 def kinematics_report(kin: Kinematics) -> Report:
-    """FK iterations and residual, not converged and out-of-range samples since the last one."""
+    """FK iterations and residual, samples without a pose (and why) and out-of-range samples
+    since the last one; the counts of each :class:`FkStatus` since the start."""
     st = kin.stats
     r = Report('kinematics', OK, 'solving')
     if st.period_samples == 0:
         r.message = 'no compensated lengths received'
     if st.period_not_converged:
-        r.worse(WARN, f'{st.period_not_converged} sample(s) did not converge: no pose for them')
+        why = ', '.join(f'{int(st.period_by_status[s])} {s.name.lower()}' for s in FkStatus
+                        if s > FkStatus.OUT_OF_SPAN and st.period_by_status[s])
+        r.worse(WARN, f'{st.period_not_converged} sample(s) without a pose ({why}): not '
+                'measurements')
     if st.period_out_of_range:
         r.worse(WARN, f'{st.period_out_of_range} sample(s) with a bar out of its calibrated range: '
                 'no pose for them')
@@ -88,6 +93,8 @@ def kinematics_report(kin: Kinematics) -> Report:
         'poses_published': st.poses,
         'not_converged': st.not_converged,
         'out_of_range': st.out_of_range,
+        **{f'fk_{s.name.lower()}': int(st.by_status[s]) for s in FkStatus
+           if s not in (FkStatus.OK, FkStatus.OUT_OF_SPAN)},
         'iterations_mean': round(st.period_iterations_sum / solved, 3) if solved else math.nan,
         'iterations_max': st.period_iterations_max,
         'residual_max_m': st.period_residual_max_m if solved else math.nan,
@@ -97,4 +104,5 @@ def kinematics_report(kin: Kinematics) -> Report:
     st.period_samples = st.period_not_converged = st.period_out_of_range = 0
     st.period_solved = st.period_iterations_sum = st.period_iterations_max = 0
     st.period_residual_max_m = 0.0
+    st.period_by_status[:] = 0
     return r
