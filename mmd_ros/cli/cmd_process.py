@@ -13,7 +13,7 @@ from mmd_ros.core.calibration import load_calibration
 from mmd_ros.core.model import Model, load_model
 from mmd_ros.core.progress import Progress
 from mmd_ros.logs.layout import read_run
-from mmd_ros.logs.processing import process_run, summarize, write_csv, write_processed
+from mmd_ros.logs.processing import process_log
 
 __all__ = ['register']
 
@@ -27,17 +27,13 @@ def run_command(args: argparse.Namespace) -> int:
     if run.problem:
         print(f'warning: {run.problem}', file=sys.stderr)
     model = load_model(args.model) if args.model else (run.model or Model())
-    progress = Progress('processing', run.counts.shape[0], enabled=not quiet)
-    result = process_run(run, model, calibration_path=args.calibration,
-                         with_covariance=args.covariance, progress=progress)
-    progress.close()
+    progress = Progress('processing', run.n_samples, enabled=not quiet)
     out = Path(args.out) if args.out else Path(args.log).with_suffix('.processed.mcap')
-    cal = run.calibration if not args.calibration else load_calibration(args.calibration)
-    write_processed(out, run, model, result, cal.to_yaml())
-    if args.csv:
-        write_csv(Path(args.csv), result)
+    cal = load_calibration(args.calibration) if args.calibration else None
+    summary = process_log(run, out, model, calibration=cal, with_covariance=args.covariance,
+                          csv=Path(args.csv) if args.csv else None, progress=progress)
+    progress.close()
     elapsed = time.perf_counter() - started
-    summary = summarize(run, result)
     summary.update(output=str(out), csv=args.csv, seconds=elapsed,
                    samples_per_s=summary['samples'] / elapsed if elapsed > 0 else None,
                    model=model.to_dict())

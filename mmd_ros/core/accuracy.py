@@ -13,7 +13,10 @@ from numpy.typing import NDArray
 
 from mmd_ros.core.units import arcsec, um
 
-__all__ = ['ComponentStats', 'error_stats', 'format_stats', 'length_error', 'pose_error']
+__all__ = [
+    'ComponentStats', 'ErrorAccumulator', 'error_stats', 'format_stats', 'length_error',
+    'pose_error',
+]
 
 FloatArray = NDArray[np.float64]
 POSE_NAMES = ['x', 'y', 'z', 'roll', 'pitch', 'yaw']
@@ -73,6 +76,70 @@ def error_stats(errors: FloatArray, valid: NDArray[np.bool_] | None = None, *,
     out += [_stats(POSE_NAMES[i], 'arcsec', arcsec(e[:, i])) for i in range(3, 6)]
     out.append(_stats('position', 'um', um(np.linalg.norm(e[:, :3], axis=1))))
     return [s for s in out if s.n > 0]
+
+
+class ErrorAccumulator:
+    """:func:`error_stats` of a run given block by block (a log too long to hold in memory):
+    count, shifted sums and largest magnitude per component, so that mean, std, rms and max|e|
+    come out as for the whole run at once (to rounding).
+
+    kind : as for :func:`error_stats`
+    """
+
+    def __init__(self, kind: str = 'pose') -> None:
+        self.kind = kind
+        self._parts: list[tuple[str, str]] | None = None
+        self._n = self._shift = self._s1 = self._s2 = self._max = None
+
+    def _columns(self, e: FloatArray) -> tuple[list[tuple[str, str]], FloatArray]:
+        if self.kind == 'lengths':
+            return [(f'bar{i + 1}', 'um') for i in range(e.shape[1])], um(e)
+        cols = np.column_stack([um(e[:, :3]), arcsec(e[:, 3:6]),
+                                um(np.linalg.norm(e[:, :3], axis=1))])
+        names = [(POSE_NAMES[i], 'um') for i in range(3)] + \
+            [(POSE_NAMES[i], 'arcsec') for i in range(3, 6)] + [('position', 'um')]
+        return names, cols
+
+    def add(self, errors: FloatArray, valid: NDArray[np.bool_] | None = None) -> None:
+        """errors : ndarray, shape (N, 6) [m, rad]; valid : ndarray, shape (N,), optional"""
+        e = np.asarray(errors, dtype=np.float64)
+        if valid is not None:
+            e = e[np.asarray(valid, dtype=bool)]
+        names, v = self._columns(e)
+        if self._parts is None:
+            k = len(names)
+            self._parts = names
+            self._n = np.zeros(k, dtype=np.int64)
+            self._shift = np.full(k, np.nan)
+            self._s1, self._s2, self._max = np.zeros(k), np.zeros(k), np.zeros(k)
+        ok = np.isfinite(v)
+        for j in range(v.shape[1]):
+            x = v[ok[:, j], j]
+            if x.size == 0:
+                continue
+            if np.isnan(self._shift[j]):
+                self._shift[j] = x[0]   # sums of x - x0 keep their digits when |mean| >> std
+            d = x - self._shift[j]
+            self._n[j] += x.size
+            self._s1[j] += d.sum()
+            self._s2[j] += (d * d).sum()
+            self._max[j] = max(self._max[j], float(np.max(np.abs(x))))
+
+    def stats(self) -> list[ComponentStats]:
+        """Per-component statistics of everything added (components never known left out)."""
+        if self._parts is None:
+            return []
+        out = []
+        for j, (name, unit) in enumerate(self._parts):
+            n = int(self._n[j])
+            if n == 0:
+                continue
+            m1 = self._s1[j] / n
+            var = max(self._s2[j] / n - m1 * m1, 0.0)
+            mean = self._shift[j] + m1
+            out.append(ComponentStats(name, unit, n, float(mean), float(np.sqrt(var)),
+                                      float(np.sqrt(var + mean * mean)), float(self._max[j])))
+        return out
 
 
 def format_stats(stats: list[ComponentStats], title: str) -> str:

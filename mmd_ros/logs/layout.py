@@ -12,7 +12,7 @@ import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 from numpy.typing import NDArray
@@ -26,7 +26,8 @@ from mmd_ros.logs.reader import JointStates, LogReader
 from mmd_ros.logs.writer import LogWriter
 
 __all__ = [
-    'FK_STATUS_NAMES', 'FRAME_LOWER', 'FRAME_UPPER', 'REFERENCE_POSE_NAMES', 'RunLog', 'TOPIC_BAR_LENGTHS',
+    'FK_STATUS_NAMES', 'FRAME_LOWER', 'FRAME_UPPER', 'REFERENCE_POSE_NAMES', 'RunBlock', 'RunLog',
+    'TOPIC_BAR_LENGTHS',
     'TOPIC_CALIBRATION', 'TOPIC_DEVICE', 'TOPIC_DIAGNOSTICS', 'TOPIC_FK_STATUS', 'TOPIC_MODEL',
     'TOPIC_POSE', 'TOPIC_POSE_COV', 'TOPIC_RAW', 'TOPIC_REF_LENGTHS', 'TOPIC_REF_POSE',
     'TOPIC_THERMAL', 'read_run', 'write_run',
@@ -53,6 +54,18 @@ FRAME_UPPER = 'mmd_upper'
 REFERENCE_POSE_NAMES = ['x', 'y', 'z', 'roll', 'pitch', 'yaw']
 BAR_NAMES = [f'bar{i}' for i in range(1, 7)]
 RUN_METADATA = 'mmd_run'
+
+
+@dataclass(frozen=True)
+class RunBlock:
+    """Consecutive samples of a run: stamps_ns (N,) [ns], counts (N, 8), and the reference
+    pose (N, 6) [m, rad] and bar lengths (N, 6) [m] at those stamps, or None when the log has
+    none."""
+
+    stamps_ns: NDArray[np.int64]
+    counts: NDArray[np.float64]
+    reference_pose: NDArray[np.float64] | None = None
+    reference_lengths: NDArray[np.float64] | None = None
 
 
 @dataclass
@@ -84,6 +97,18 @@ class RunLog:
         if self.stamps_ns.size == 0:
             return np.zeros(0)
         return (self.stamps_ns - self.stamps_ns[0]).astype(np.float64) * 1e-9
+
+    @property
+    def n_samples(self) -> int:
+        return int(self.stamps_ns.size)
+
+    def blocks(self, size: int) -> Iterator[RunBlock]:
+        """The run in blocks of ``size`` samples, in time order."""
+        for start in range(0, self.n_samples, size):
+            part = slice(start, start + size)
+            yield RunBlock(self.stamps_ns[part], self.counts[part],
+                           None if self.reference_pose is None else self.reference_pose[part],
+                           None if self.reference_lengths is None else self.reference_lengths[part])
 
 
 def write_run(path: str | os.PathLike[str], device: DeviceDescription,

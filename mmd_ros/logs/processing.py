@@ -1,18 +1,30 @@
 """Every sample of a log through the pipeline (counts → CDF → thermal → model terms → FK), and
 the processed log written back in the live pipeline's topics. Used by ``mmd process``, the demo
-and the live demo."""
+and the live demo.
+
+A run is processed in blocks of :data:`BLOCK` samples, in time order, with one
+:class:`Pipeline` (terms that carry state see every sample once, as live). :func:`process_log`
+never holds more than a few blocks: it reads the next block, computes one and writes the one
+before at the same time (three threads; the compiled helpers, zstd and numpy's copies release
+the GIL), so a log of any length is processed in bounded memory. :func:`process_run` gives the
+whole run's arrays, for callers that want them in memory.
+"""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import queue
+import threading
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Any
+from typing import IO, Any, Iterable, Iterator, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
-from mmd_ros.core.accuracy import error_stats, length_error, pose_error
-from mmd_ros.core.calibration import load_calibration
+from mmd_ros.core.accuracy import ErrorAccumulator, length_error, pose_error
+from mmd_ros.core.calibration import Calibration, load_calibration
+from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.errors import CalibrationError
 from mmd_ros.core.kinematics import FkStatus
 from mmd_ros.core.model import Model
@@ -20,19 +32,39 @@ from mmd_ros.core.pipeline import Pipeline
 from mmd_ros.core.progress import Progress
 from mmd_ros.logs.layout import (
     BAR_NAMES, FK_STATUS_NAMES, FRAME_LOWER, TOPIC_BAR_LENGTHS, TOPIC_CALIBRATION, TOPIC_DEVICE,
-    TOPIC_FK_STATUS, TOPIC_MODEL, TOPIC_POSE, TOPIC_POSE_COV, TOPIC_THERMAL, RunLog,
+    TOPIC_FK_STATUS, TOPIC_MODEL, TOPIC_POSE, TOPIC_POSE_COV, TOPIC_THERMAL, RunBlock, RunLog,
 )
+from mmd_ros.logs.errors import LogError
 from mmd_ros.logs.writer import LogWriter
 
-__all__ = ['ProcessedRun', 'process_run', 'summarize', 'write_csv', 'write_processed']
+__all__ = [
+    'BLOCK', 'ProcessedLogWriter', 'ProcessedRun', 'RunSummary', 'process_blocks', 'process_log',
+    'process_run', 'summarize', 'write_csv', 'write_processed',
+]
 
-#: Samples per block: bounds memory and lets progress be shown on long logs.
+#: Samples per block: bounds memory, keeps the working arrays small, paces the progress.
 BLOCK = 65536
+CSV_HEADER = ('stamp_ns,x_m,y_m,z_m,roll_rad,pitch_rad,yaw_rad,valid,converged,iterations,'
+              'residual_m,' + ','.join(f'bar{i}_m' for i in range(1, 7)) + ',temp_change_c')
+
+
+class RunSource(Protocol):
+    """What :func:`process_log` reads: a :class:`RunLog`, or a log read block by block."""
+
+    path: Path
+    device: DeviceDescription
+    calibration: Calibration | None
+    problem: str | None
+
+    @property
+    def n_samples(self) -> int: ...
+
+    def blocks(self, size: int) -> Iterator[RunBlock]: ...
 
 
 @dataclass
 class ProcessedRun:
-    """Every sample of a run through the pipeline (arrays of N samples)."""
+    """Samples of a run (or of a block of it) through the pipeline, arrays of N samples."""
 
     stamps_ns: NDArray[np.int64]
     lengths_m: NDArray[np.float64]
@@ -48,55 +80,159 @@ class ProcessedRun:
     temp_change_c: NDArray[np.float64]
     covariance: NDArray[np.float64] | None
 
+    @classmethod
+    def concatenate(cls, parts: list[ProcessedRun]) -> ProcessedRun:
+        values = {}
+        for f in fields(cls):
+            items = [getattr(p, f.name) for p in parts]
+            values[f.name] = None if items[0] is None else np.concatenate(items)
+        return cls(**values)
+
+
+def _resolve_calibration(source: RunSource, calibration: Calibration | str | None) -> Calibration:
+    if isinstance(calibration, str):
+        calibration = load_calibration(calibration)
+    calibration = calibration or source.calibration
+    if calibration is None:
+        raise CalibrationError(f'{source.path} carries no calibration; pass --calibration FILE')
+    return calibration
+
+
+def process_blocks(source: RunSource, model: Model, *, calibration: Calibration | str | None = None,
+                   with_covariance: bool = False, block: int = BLOCK,
+                   compiled: bool | None = None) -> Iterator[tuple[RunBlock, ProcessedRun]]:
+    """The run block by block through one pipeline: (samples, their results), in time order.
+    The next block is read in a background thread while one is computed.
+
+    calibration : a calibration or a calibration file to use instead of the log's
+    compiled : the compiled helpers (default: when they are in use); False: the numpy path
+    """
+    pipeline = Pipeline(source.device, _resolve_calibration(source, calibration), model)
+    t0 = None
+    for part in _prefetched(source.blocks(block)):
+        if t0 is None:
+            t0 = int(part.stamps_ns[0])
+        times = (part.stamps_ns - t0).astype(np.float64) * 1e-9
+        res = pipeline.process(times, part.counts, with_covariance=with_covariance,
+                               compiled=compiled)
+        comp = res.compensated
+        yield part, ProcessedRun(
+            part.stamps_ns, comp.lengths_m, res.poses, res.converged, res.valid, res.status,
+            comp.out_of_range, res.iterations, res.residual_m, res.condition,
+            comp.thermal.reference_error_m, comp.thermal.temp_change_c, res.covariance)
+
 
 def process_run(run: RunLog, model: Model, *, calibration_path: str | None = None,
-                with_covariance: bool = False, progress: Progress | None = None) -> ProcessedRun:
-    """Run the pipeline over a whole log, block by block, in time order."""
-    calibration = load_calibration(calibration_path) if calibration_path else run.calibration
-    if calibration is None:
-        raise CalibrationError(f'{run.path} carries no calibration; pass --calibration FILE')
-    pipeline = Pipeline(run.device, calibration, model)
-    times = run.times_s
+                with_covariance: bool = False, progress: Progress | None = None,
+                compiled: bool | None = None, block: int = BLOCK) -> ProcessedRun:
+    """Run the pipeline over a whole log held in memory; the whole run's arrays."""
     parts = []
-    for start in range(0, times.size, BLOCK):
-        stop = start + BLOCK
-        parts.append(pipeline.process(times[start:stop], run.counts[start:stop],
-                                      with_covariance=with_covariance))
+    for part, result in process_blocks(run, model, calibration=calibration_path,
+                                       with_covariance=with_covariance, compiled=compiled,
+                                       block=block):
+        parts.append(result)
         if progress:
-            progress.update(min(stop, times.size))
+            progress.update(sum(p.stamps_ns.size for p in parts))
     if not parts:
         raise CalibrationError(f'{run.path} has no samples')
-
-    def cat(get):
-        return np.concatenate([get(p) for p in parts])
-
-    return ProcessedRun(
-        run.stamps_ns, cat(lambda p: p.compensated.lengths_m), cat(lambda p: p.poses),
-        cat(lambda p: p.converged), cat(lambda p: p.valid), cat(lambda p: p.status),
-        cat(lambda p: p.compensated.out_of_range), cat(lambda p: p.iterations),
-        cat(lambda p: p.residual_m), cat(lambda p: p.condition), cat(lambda p: p.compensated.thermal.reference_error_m),
-        cat(lambda p: p.compensated.thermal.temp_change_c),
-        cat(lambda p: p.covariance) if with_covariance else None)
+    return ProcessedRun.concatenate(parts)
 
 
-def write_processed(path: Path, run: RunLog, model: Model, result: ProcessedRun,
-                    calibration_text: str) -> None:
-    """Write bar lengths, poses, thermal state and FK status in the live pipeline's topics."""
-    stamps = result.stamps_ns
-    t0 = int(stamps[0])
-    ref_names = [c.name + '_error' for c in run.device.reference_channels][:result.reference_error_m.shape[1]]
-    status = np.column_stack([result.converged, result.valid, result.iterations,
-                              result.residual_m, result.condition,
-                              result.status]).astype(np.float64)
-    with LogWriter(path) as log:
-        log.write_string(TOPIC_DEVICE, t0, run.device.to_yaml())
-        log.write_string(TOPIC_CALIBRATION, t0, calibration_text)
-        log.write_string(TOPIC_MODEL, t0, model.to_yaml())
+class RunSummary:
+    """Counts of samples, FK outcomes and, with a reference, the error statistics, gathered
+    block by block (:meth:`add`) and given as ``mmd process --json`` prints them."""
+
+    def __init__(self) -> None:
+        self.samples = 0
+        self.valid = 0
+        self.not_converged = 0
+        self.out_of_range = 0
+        self.max_iterations = 0
+        self.first_ns: int | None = None
+        self.last_ns: int | None = None
+        self.status = np.zeros(len(FkStatus), dtype=np.int64)
+        self.pose_error: ErrorAccumulator | None = None
+        self.length_error: ErrorAccumulator | None = None
+
+    def add(self, part: RunBlock, result: ProcessedRun) -> None:
+        n = int(result.stamps_ns.size)
+        if n == 0:
+            return
+        self.samples += n
+        self.valid += int(result.valid.sum())
+        self.not_converged += int((~result.converged).sum())
+        self.out_of_range += int(result.out_of_range.any(axis=1).sum())
+        self.max_iterations = max(self.max_iterations, int(result.iterations.max()))
+        self.status += np.bincount(result.status, minlength=len(FkStatus))
+        if self.first_ns is None:
+            self.first_ns = int(result.stamps_ns[0])
+        self.last_ns = int(result.stamps_ns[-1])
+        if part.reference_pose is not None:
+            self.pose_error = self.pose_error or ErrorAccumulator('pose')
+            self.pose_error.add(pose_error(result.poses, part.reference_pose), result.valid)
+        if part.reference_lengths is not None:
+            self.length_error = self.length_error or ErrorAccumulator('lengths')
+            self.length_error.add(length_error(result.lengths_m, part.reference_lengths),
+                                  result.valid)
+
+    def as_dict(self, source: RunSource) -> dict[str, Any]:
+        summary: dict[str, Any] = {
+            'log': str(source.path),
+            'samples': self.samples,
+            'duration_s': (self.last_ns - self.first_ns) * 1e-9 if self.samples else 0.0,
+            'valid': self.valid,
+            'not_converged': self.not_converged,
+            'fk_status': {s.name.lower(): int(c) for s, c in zip(FkStatus, self.status) if c},
+            'out_of_range': self.out_of_range,
+            'max_fk_iterations': self.max_iterations,
+        }
+        if source.problem:
+            summary['log_problem'] = source.problem
+        if self.pose_error is not None:
+            summary['pose_error'] = [s.as_dict() for s in self.pose_error.stats()]
+        if self.length_error is not None:
+            summary['length_error'] = [s.as_dict() for s in self.length_error.stats()]
+        return summary
+
+
+def summarize(run: RunLog, result: ProcessedRun) -> dict[str, Any]:
+    """Counts of samples and, with a reference in the log, the error statistics."""
+    summary = RunSummary()
+    summary.add(RunBlock(run.stamps_ns, run.counts, run.reference_pose, run.reference_lengths),
+                result)
+    return summary.as_dict(run)
+
+
+class ProcessedLogWriter:
+    """A processed log being written block by block: bar lengths, poses (NaN where not a
+    measurement), thermal state, FK status and, with covariance, poses with covariance, in the
+    live pipeline's topics; the device, calibration and model first, as latched strings."""
+
+    def __init__(self, path: Path, device: DeviceDescription, model: Model,
+                 calibration_text: str, stamp_ns: int) -> None:
+        self.device = device
+        self._log = LogWriter(path)
+        try:
+            self._log.write_string(TOPIC_DEVICE, stamp_ns, device.to_yaml())
+            self._log.write_string(TOPIC_CALIBRATION, stamp_ns, calibration_text)
+            self._log.write_string(TOPIC_MODEL, stamp_ns, model.to_yaml())
+        except BaseException:
+            self._log.close()
+            raise
+
+    def write(self, result: ProcessedRun) -> None:
+        log = self._log
+        stamps = result.stamps_ns
+        k = result.reference_error_m.shape[1]
+        ref_names = [c.name + '_error' for c in self.device.reference_channels][:k]
+        status = np.column_stack([result.converged, result.valid, result.iterations,
+                                  result.residual_m, result.condition,
+                                  result.status]).astype(np.float64)
+        poses = _masked(result.poses, result.valid)
         streams = [
             (TOPIC_BAR_LENGTHS, 'sensor_msgs/msg/JointState',
              log.joint_state_rows(BAR_NAMES, stamps, result.lengths_m)),
-            (TOPIC_POSE, 'geometry_msgs/msg/PoseStamped',
-             log.pose_rows(FRAME_LOWER, stamps, _masked(result.poses, result.valid))),
+            (TOPIC_POSE, 'geometry_msgs/msg/PoseStamped', log.pose_rows(FRAME_LOWER, stamps, poses)),
             (TOPIC_THERMAL, 'sensor_msgs/msg/JointState',
              log.joint_state_rows(ref_names + ['temp_change'], stamps,
                                   np.column_stack([result.reference_error_m, result.temp_change_c]))),
@@ -105,9 +241,78 @@ def write_processed(path: Path, run: RunLog, model: Model, result: ProcessedRun,
         ]
         if result.covariance is not None:
             streams.append((TOPIC_POSE_COV, 'geometry_msgs/msg/PoseWithCovarianceStamped',
-                            log.pose_rows(FRAME_LOWER, stamps, _masked(result.poses, result.valid),
-                                          result.covariance)))
+                            log.pose_rows(FRAME_LOWER, stamps, poses, result.covariance)))
         log.write_rows(streams, stamps)
+
+    def close(self) -> None:
+        self._log.close()
+
+    def __enter__(self) -> ProcessedLogWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def write_processed(path: Path, run: RunLog, model: Model, result: ProcessedRun,
+                    calibration_text: str) -> None:
+    """Write a processed run held in memory (:class:`ProcessedLogWriter`)."""
+    with ProcessedLogWriter(path, run.device, model, calibration_text,
+                            int(result.stamps_ns[0])) as out:
+        for start in range(0, result.stamps_ns.size, BLOCK):
+            part = slice(start, start + BLOCK)
+            out.write(ProcessedRun(**{f.name: None if getattr(result, f.name) is None
+                                      else getattr(result, f.name)[part] for f in fields(result)}))
+
+
+def process_log(source: RunSource, out: Path, model: Model, *,
+                calibration: Calibration | str | None = None, with_covariance: bool = False,
+                csv: Path | None = None, progress: Progress | None = None,
+                compiled: bool | None = None, block: int = BLOCK) -> dict[str, Any]:
+    """``mmd process``: every sample of ``source`` through the pipeline into the processed log
+    ``out`` (and ``csv``), block by block in bounded memory; returns the summary
+    (:class:`RunSummary`). Reading, computing and writing overlap (module docstring)."""
+    if Path(out).resolve() == Path(source.path).resolve():
+        raise LogError(f'{out}: the output would overwrite the log being processed; choose '
+                       'another --out')
+    cal = _resolve_calibration(source, calibration)
+    summary = RunSummary()
+    writer: ProcessedLogWriter | None = None
+    handle: IO[str] | None = None
+    pending: Future[None] | None = None
+
+    def write(part: RunBlock, result: ProcessedRun) -> None:
+        writer.write(result)  # type: ignore[union-attr]
+        if handle is not None:
+            _write_csv_rows(handle, result)
+        summary.add(part, result)
+        if progress:
+            progress.update(summary.samples)
+
+    try:
+        with ThreadPoolExecutor(1, thread_name_prefix='mmd-write') as pool:
+            for part, result in process_blocks(source, model, calibration=cal,
+                                               with_covariance=with_covariance, compiled=compiled,
+                                               block=block):
+                if writer is None:
+                    writer = ProcessedLogWriter(out, source.device, model, cal.to_yaml(),
+                                                int(part.stamps_ns[0]))
+                    if csv is not None:
+                        handle = open(csv, 'w', encoding='utf-8')  # noqa: SIM115
+                        handle.write(CSV_HEADER + '\n')
+                if pending is not None:
+                    pending.result()      # at most one block waits to be written
+                pending = pool.submit(write, part, result)
+            if pending is not None:
+                pending.result()
+    finally:
+        if writer is not None:
+            writer.close()
+        if handle is not None:
+            handle.close()
+    if summary.samples == 0:
+        raise CalibrationError(f'{source.path} has no samples')
+    return summary.as_dict(source)
 
 
 def _masked(poses: NDArray[np.float64], valid: NDArray[np.bool_]) -> NDArray[np.float64]:
@@ -117,38 +322,56 @@ def _masked(poses: NDArray[np.float64], valid: NDArray[np.bool_]) -> NDArray[np.
     return out
 
 
-def write_csv(path: Path, result: ProcessedRun) -> None:
-    header = ('stamp_ns,x_m,y_m,z_m,roll_rad,pitch_rad,yaw_rad,valid,converged,iterations,'
-              'residual_m,' + ','.join(f'bar{i}_m' for i in range(1, 7)) + ',temp_change_c')
+def _write_csv_rows(handle: IO[str], result: ProcessedRun) -> None:
     data = np.column_stack([result.poses, result.valid, result.converged, result.iterations,
                             result.residual_m, result.lengths_m, result.temp_change_c])
+    for stamp, row in zip(result.stamps_ns.tolist(), data):
+        handle.write(f'{stamp},' + ','.join(f'{v:.12g}' for v in row) + '\n')
+
+
+def write_csv(path: Path, result: ProcessedRun) -> None:
     with open(path, 'w', encoding='utf-8') as handle:
-        handle.write(header + '\n')
-        for stamp, row in zip(result.stamps_ns.tolist(), data):
-            handle.write(f'{stamp},' + ','.join(f'{v:.12g}' for v in row) + '\n')
+        handle.write(CSV_HEADER + '\n')
+        _write_csv_rows(handle, result)
 
 
-def summarize(run: RunLog, result: ProcessedRun) -> dict[str, Any]:
-    """Counts of samples and, with a reference in the log, the error statistics."""
-    n = int(result.stamps_ns.size)
-    summary: dict[str, Any] = {
-        'log': str(run.path),
-        'samples': n,
-        'duration_s': float(run.times_s[-1]) if n else 0.0,
-        'valid': int(result.valid.sum()),
-        'not_converged': int((~result.converged).sum()),
-        'fk_status': {s.name.lower(): int(c) for s, c in
-                      zip(FkStatus, np.bincount(result.status, minlength=len(FkStatus))) if c},
-        'out_of_range': int(result.out_of_range.any(axis=1).sum()),
-        'max_fk_iterations': int(result.iterations.max()) if n else 0,
-    }
-    if run.problem:
-        summary['log_problem'] = run.problem
-    if run.reference_pose is not None:
-        stats = error_stats(pose_error(result.poses, run.reference_pose), result.valid)
-        summary['pose_error'] = [s.as_dict() for s in stats]
-    if run.reference_lengths is not None:
-        stats = error_stats(length_error(result.lengths_m, run.reference_lengths), result.valid,
-                            kind='lengths')
-        summary['length_error'] = [s.as_dict() for s in stats]
-    return summary
+_DONE = object()
+
+
+def _prefetched(items: Iterable[Any], depth: int = 2) -> Iterator[Any]:
+    """``items`` produced in a background thread, up to ``depth`` ahead; an exception there is
+    raised here. Stops the producer when the consumer stops early."""
+    q: queue.Queue[Any] = queue.Queue(depth)
+    stop = threading.Event()
+
+    def offer(item: Any) -> bool:
+        while not stop.is_set():
+            try:
+                q.put(item, timeout=0.1)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def produce() -> None:
+        try:
+            for item in items:
+                if not offer(item):
+                    return
+            offer(_DONE)
+        except BaseException as exc:  # handed to the consumer
+            offer(exc)
+
+    thread = threading.Thread(target=produce, name='mmd-read', daemon=True)
+    thread.start()
+    try:
+        while True:
+            item = q.get()
+            if item is _DONE:
+                return
+            if isinstance(item, BaseException):
+                raise item
+            yield item
+    finally:
+        stop.set()
+        thread.join(timeout=5)
