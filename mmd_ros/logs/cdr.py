@@ -20,7 +20,8 @@ from numpy.typing import NDArray
 from mmd_ros.core.rotation import angles_to_quaternion
 
 __all__ = [
-    'JointStateLayout', 'PoseLayout', 'decode_string', 'encode_string', 'split_stamps',
+    'JointStateLayout', 'PendingRows', 'PoseLayout', 'decode_string', 'encode_string',
+    'split_stamps',
 ]
 
 ENCAPSULATION = b'\x00\x01\x00\x00'  # CDR_LE
@@ -96,6 +97,27 @@ class _Layout:
             return None
         block = rows[:, self.float_offset:self.float_offset + 8 * self.n_float].copy()
         return _stamps_from(rows), block.view('<f8').reshape(rows.shape[0], self.n_float)
+
+
+class PendingRows:
+    """N messages of one fixed layout, not yet encoded: a writer fills their stamps and values
+    straight into its message records (:meth:`mmd_ros.logs.writer.LogWriter.write_rows`), which
+    saves building the (N, size) byte array first. :meth:`encode` gives that array.
+
+    layout : the :class:`_Layout`; stamps_ns : (N,) [ns]; values : (N, layout.n_float)
+    """
+
+    def __init__(self, layout: _Layout, stamps_ns: NDArray[np.int64], values: NDArray[np.float64]) -> None:
+        self.layout = layout
+        self.stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
+        self.values = np.asarray(values, dtype=np.float64).reshape(len(self.stamps_ns), layout.n_float)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (len(self.stamps_ns), self.layout.size)
+
+    def encode(self) -> NDArray[np.uint8]:
+        return self.layout.encode(self.stamps_ns, self.values)
 
 
 class JointStateLayout(_Layout):

@@ -45,7 +45,7 @@ class McapWriter:
     :meth:`add_message` (one) or :meth:`add_records` (a prepared batch), then :meth:`finish`."""
 
     def __init__(self, stream: BinaryIO, *, profile: str, library: str,
-                 chunk_size: int = 1 << 20, compression: str = 'zstd') -> None:
+                 chunk_size: int = 1 << 20, compression: str = 'zstd', level: int = 1) -> None:
         if compression not in ('zstd', 'lz4', ''):
             raise ValueError(f'compression must be zstd, lz4 or empty, got {compression!r}')
         self._out = stream
@@ -54,7 +54,7 @@ class McapWriter:
         self.compression = compression
         if compression == 'zstd':
             import zstandard
-            self._compress = zstandard.ZstdCompressor(level=1).compress
+            self._compress = zstandard.ZstdCompressor(level=level).compress
         elif compression == 'lz4':
             import lz4.frame
             self._compress = lz4.frame.compress
@@ -135,10 +135,14 @@ class McapWriter:
             times = np.repeat(np.asarray(log_times[start:start + k], dtype=np.int64), len(offsets))
             offs = (np.arange(k, dtype=np.int64)[:, None] * width + offsets[None, :]).ravel()
             chans = np.tile(np.asarray(channel_ids, dtype=np.int64), k)
-            self._append(part.tobytes(), chans, times, offs)
+            self._append(np.ascontiguousarray(part).reshape(-1), chans, times, offs)
+            if self._size + width > self.chunk_size:   # no room for another sample
+                self.flush_chunk()
 
-    def _append(self, data: bytes, channels: NDArray[np.int64], times: NDArray[np.int64],
-                offsets: NDArray[np.int64]) -> None:
+    def _append(self, data: bytes | NDArray[np.uint8], channels: NDArray[np.int64],
+                times: NDArray[np.int64], offsets: NDArray[np.int64]) -> None:
+        """Records (bytes, or a contiguous uint8 array kept as it is until the chunk is
+        written) with their channels, log times and offsets in ``data``."""
         self._index_channels.append(channels)
         self._index_times.append(times)
         self._index_offsets.append(offsets + self._size)
@@ -151,7 +155,8 @@ class McapWriter:
         """Close the open chunk and write it, with its message indexes."""
         if not self._parts:
             return
-        records = b''.join(self._parts)
+        # one block of records (the usual case) is compressed where it lies, without a copy
+        records = self._parts[0] if len(self._parts) == 1 else b''.join(self._parts)
         chans = np.concatenate(self._index_channels)
         times = np.concatenate(self._index_times)
         offsets = np.concatenate(self._index_offsets)

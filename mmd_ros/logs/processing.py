@@ -35,7 +35,7 @@ from mmd_ros.logs.layout import (
     TOPIC_FK_STATUS, TOPIC_MODEL, TOPIC_POSE, TOPIC_POSE_COV, TOPIC_THERMAL, RunBlock, RunLog,
 )
 from mmd_ros.logs.errors import LogError
-from mmd_ros.logs.writer import LogWriter
+from mmd_ros.logs.writer import FAST_ZSTD_LEVEL, LogWriter
 
 __all__ = [
     'BLOCK', 'ProcessedLogWriter', 'ProcessedRun', 'RunSummary', 'process_blocks', 'process_log',
@@ -211,7 +211,7 @@ class ProcessedLogWriter:
     def __init__(self, path: Path, device: DeviceDescription, model: Model,
                  calibration_text: str, stamp_ns: int) -> None:
         self.device = device
-        self._log = LogWriter(path)
+        self._log = LogWriter(path, level=FAST_ZSTD_LEVEL)
         try:
             self._log.write_string(TOPIC_DEVICE, stamp_ns, device.to_yaml())
             self._log.write_string(TOPIC_CALIBRATION, stamp_ns, calibration_text)
