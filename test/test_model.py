@@ -156,3 +156,21 @@ def test_kinematics_diagnostics_count_what_the_samples_show():
     again = kinematics_report(kinematics).values
     assert again['iterations_max'] < kinematics.fk.max_iter
     assert again['samples'] == 72 and again['out_of_range'] == 1  # totals since the start
+
+
+def test_compiled_play_operator_equals_python():
+    """HysteresisTerm.directions (the sequential play operator that mmd analyze runs for every
+    travel it tries): compiled and Python agree sample for sample, carrying the state across
+    calls, with NaN lengths in the stream."""
+    from mmd_ros.core.compiled import AVAILABLE, NOT_IN_USE
+    assert AVAILABLE, NOT_IN_USE
+    rng = np.random.default_rng(8)
+    lengths = 0.3 + np.cumsum(rng.normal(0, 2e-6, (5000, 6)), axis=0)
+    lengths[1234, 2] = np.nan
+    outs = []
+    for compiled in (False, True):
+        term = HysteresisTerm(np.full(6, 0.3e-6), 4e-6)
+        outs.append(np.concatenate([term.directions(lengths[k:k + 777], compiled=compiled)
+                                    for k in range(0, len(lengths), 777)]))
+    np.testing.assert_array_equal(outs[0], outs[1])
+    assert set(np.unique(outs[1])) == {-1.0, 0.0, 1.0}

@@ -7,6 +7,7 @@
  *   solve_series        ForwardKinematics.solve_series: seeds, interpolated guesses, batch
  *   pose_covariance     propagate_covariance, J^-1 S J^-T per sample (kinematics.py)
  *   cdf_eval            CdfBank.__call__, the piecewise-linear CDFs of Eq. (10) (calibration.py)
+ *   play_directions     HysteresisTerm.directions, the play operator (model.py)
  *   decode_continuing   FrameStream.feed for a transfer that continues the stream
  *                       (hardware/stream.py)
  *
@@ -788,6 +789,70 @@ static PyObject *pose_covariance(PyObject *self, PyObject *args)
     return Py_None;
 }
 
+PyDoc_STRVAR(play_directions_doc,
+"play_directions(lengths, travel, play, direction, out) -> None\n\n"
+"HysteresisTerm.directions: the play (backlash) operator of half-width travel [m] on each\n"
+"column of lengths (N, k) float64, from play (k,) and direction (k,) float64 (updated in\n"
+"place); out (N, k) float64 gets the direction (-1, 0, +1) of every sample. Releases the GIL.");
+
+static PyObject *play_directions(PyObject *self, PyObject *args)
+{
+    (void)self;
+    PyObject *o[4];
+    double w;
+    if (!PyArg_ParseTuple(args, "OdOOO", &o[0], &w, &o[1], &o[2], &o[3]))
+        return NULL;
+    Py_buffer view;
+    if (get_buffer(o[1], &view, 0, -1, 8, "d", "play") < 0)
+        return NULL;
+    const Py_ssize_t k = view.len / 8;
+    PyBuffer_Release(&view);
+    if (get_buffer(o[0], &view, 0, -1, 8, "d", "lengths") < 0)
+        return NULL;
+    const Py_ssize_t total = view.len / 8;
+    PyBuffer_Release(&view);
+    if (k < 1 || total % k) {
+        PyErr_SetString(PyExc_ValueError, "lengths: need shape (N, k) with play (k,)");
+        return NULL;
+    }
+    const Py_ssize_t n = total / k;
+    Spec spec[] = {
+        {o[0], 0, n * k, 8, "d", "lengths", 0},
+        {o[1], 1, k, 8, "d", "play", 0},
+        {o[2], 1, k, 8, "d", "direction", 0},
+        {o[3], 1, n * k, 8, "d", "out", 0},
+    };
+    Buffers bufs = {.got = 0};
+    void *ptr[4];
+    if (acquire(&bufs, spec, 4, ptr) < 0) {
+        release(&bufs);
+        return NULL;
+    }
+    const double *x = ptr[0];
+    double *play = ptr[1], *dir = ptr[2], *out = ptr[3];
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t j = 0; j < k; j++) {
+        double p = play[j], d = dir[j];
+        for (Py_ssize_t i = 0; i < n; i++) {
+            const double v = x[i * k + j];
+            if (p < v - w) {
+                p = v - w;
+                d = 1.0;
+            } else if (p > v + w) {
+                p = v + w;
+                d = -1.0;
+            }
+            out[i * k + j] = d;
+        }
+        play[j] = p;
+        dir[j] = d;
+    }
+    Py_END_ALLOW_THREADS
+    release(&bufs);
+    Py_INCREF(Py_None);
+    return Py_None;
+}
+
 PyDoc_STRVAR(cdf_eval_doc,
 "cdf_eval(counts, knots, distances, slopes, lengths, out_of_range) -> None\n\n"
 "Piecewise-linear CDFs of k bars (Eq. 10), as CdfBank.__call__: column j of counts (N, k)\n"
@@ -1030,6 +1095,7 @@ static PyMethodDef methods[] = {
     {"solve_series", solve_series, METH_VARARGS, solve_series_doc},
     {"pose_covariance", pose_covariance, METH_VARARGS, pose_covariance_doc},
     {"cdf_eval", cdf_eval, METH_VARARGS, cdf_eval_doc},
+    {"play_directions", play_directions, METH_VARARGS, play_directions_doc},
     {"decode_continuing", decode_continuing, METH_VARARGS, decode_continuing_doc},
     {NULL, NULL, 0, NULL},
 };

@@ -30,6 +30,7 @@ import numpy as np
 import yaml
 from numpy.typing import NDArray
 
+from mmd_ros.core.compiled import fast, use_compiled
 from mmd_ros.core.errors import ConfigError, ModelError
 from mmd_ros.core.units import M_PER_UM
 from mmd_ros.core.yamlio import atomic_write_text, parse_yaml, read_yaml
@@ -130,14 +131,22 @@ class HysteresisTerm(ModelTerm):
         self._play: FloatArray | None = None
         self._direction = np.zeros(6)
 
-    def directions(self, lengths_m: FloatArray) -> FloatArray:
-        """Motion direction of each bar at each sample, shape (N, 6), values -1, 0, +1."""
-        out = np.empty_like(lengths_m)
-        if lengths_m.shape[0] == 0:
+    def directions(self, lengths_m: FloatArray, *, compiled: bool | None = None) -> FloatArray:
+        """Motion direction of each bar at each sample, shape (N, 6), values -1, 0, +1.
+
+        compiled : the compiled play operator (default: when in use); False: Python
+        """
+        out = np.empty(np.shape(lengths_m))
+        if out.shape[0] == 0:
             return out
-        play = lengths_m[0].copy() if self._play is None else self._play.copy()
+        play = np.array(lengths_m[0], dtype=np.float64) if self._play is None else self._play.copy()
         direction = self._direction.copy()
         w = self.travel_m
+        if use_compiled(compiled):
+            fast.play_directions(np.ascontiguousarray(lengths_m, dtype=np.float64), w, play,
+                                 direction, out)
+            self._play, self._direction = play, direction
+            return out
         for bar in range(6):  # a sequential recurrence: plain floats beat numpy rows here
             p, d = float(play[bar]), float(direction[bar])
             column = lengths_m[:, bar].tolist()
