@@ -485,18 +485,19 @@ class ForwardKinematics:
             cos_upper = n[0] * normal[0] + n[1] * normal[1] + n[2] * normal[2]
             if not n[2] >= self._cos_lower or not cos_upper >= self._cos_upper:
                 return FkStatus.IMPLAUSIBLE, math.nan, []
-        columns = [_lu_solve6(lu, [1.0 if j == k else 0.0 for j in range(6)]) for k in range(6)]
-        jinv = [[columns[k][j] for k in range(6)] for j in range(6)]
-        inv_r = self._scale[3]
-        norm_j = norm_inv = 0.0
-        for k in range(6):
-            sj = si = 0.0
-            for i in range(6):
-                sj += abs(rows[i][k] if k < 3 else rows[i][k] * inv_r)
-                si += abs(jinv[i][k] if i < 3 else jinv[i][k] / inv_r)
-            norm_j = max(norm_j, sj)
-            norm_inv = max(norm_inv, si)
-        cond = norm_j * norm_inv
+        jinv = _lu_inverse6(lu)
+        inv_r = float(self._scale[3])
+        # column sums of |J S| and |S^-1 J^-1|, rows added in order (as the compiled code)
+        col_j = [0.0] * 6
+        for row in rows:
+            col_j = [c + abs(v if k < 3 else v * inv_r) for k, (c, v) in enumerate(zip(col_j, row))]
+        col_inv = [0.0] * 6
+        for i, row in enumerate(jinv):
+            if i < 3:
+                col_inv = [c + abs(v) for c, v in zip(col_inv, row)]
+            else:
+                col_inv = [c + abs(v / inv_r) for c, v in zip(col_inv, row)]
+        cond = max(col_j) * max(col_inv)
         if not cond <= self.limits.max_condition:
             return FkStatus.ILL_CONDITIONED, cond, jinv
         return FkStatus.OK, cond, jinv
@@ -980,6 +981,28 @@ def _lu_solve6(factors: _Lu, b: list[float]) -> list[float]:
         for j in range(i + 1, 6):
             s -= lu[i][j] * x[j]
         x[i] = s / lu[i][i]
+    return x
+
+
+def _lu_inverse6(factors: _Lu) -> list[list[float]]:
+    """The inverse (rows) from the factors of :func:`_lu6`: :func:`_lu_solve6` of the six unit
+    vectors, all columns at once (``_fast.c``'s ``lu_inverse6``)."""
+    lu, ipiv = factors
+    x = [[1.0 if i == j else 0.0 for j in range(6)] for i in range(6)]
+    for k, p in enumerate(ipiv):
+        x[k], x[p] = x[p], x[k]
+    for k in range(6):
+        xk = x[k]
+        for i in range(k + 1, 6):
+            f = lu[i][k]
+            x[i] = [a - f * b for a, b in zip(x[i], xk)]
+    for i in range(5, -1, -1):
+        s = x[i]
+        for j in range(i + 1, 6):
+            f = lu[i][j]
+            s = [a - f * b for a, b in zip(s, x[j])]
+        d = lu[i][i]
+        x[i] = [v / d for v in s]
     return x
 
 
