@@ -4,6 +4,7 @@ reference instrument and their difference (``mmd iso230-2``, the demo)."""
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -74,11 +75,13 @@ class Iso230Report:
 
 def iso230_of_run(run: RunLog, axis: str | None = None, models: dict[str, Model] | None = None, *,
                   instruments: tuple[str, ...] = INSTRUMENTS, targets: np.ndarray | None = None,
-                  min_dwell_s: float = 0.15, calibration_path: str | None = None) -> Iso230Report:
+                  min_dwell_s: float = 0.15, calibration_path: str | None = None,
+                  progress: Callable[[float], None] | None = None) -> Iso230Report:
     """ISO 230-2 of one axis of a run, for the MMD under each model and the reference.
 
     models : label -> model (default: the log's, else CDF + thermal) — e.g. before and after
     targets : target positions [m or rad]; default the log's ``iso_targets``, else clustered
+    progress : called with the fraction (0..1) of the MMD processing done
     """
     meta = run.metadata.get('iso_targets') or {}
     axis = axis or meta.get('axis')
@@ -95,8 +98,11 @@ def iso230_of_run(run: RunLog, axis: str | None = None, models: dict[str, Model]
         ref = run.reference_pose[:, k]
     models = models or {'MMD': run.model or Model()}
     signals: dict[str, np.ndarray] = {}
-    for label, model in models.items():
-        proc = run_pipeline(run.device, calibration, model, run.times_s, run.counts)
+    total = max(1, len(models) * run.times_s.size)
+    for k, (label, model) in enumerate(models.items()):
+        done = k * run.times_s.size
+        tick = None if progress is None else (lambda n, done=done: progress((done + n) / total))
+        proc = run_pipeline(run.device, calibration, model, run.times_s, run.counts, progress=tick)
         pose = np.where(proc.valid, proc.poses[:, k], np.nan)
         if 'mmd' in instruments:
             signals[label] = pose

@@ -11,6 +11,7 @@ from mmd_ros.analysis.errors import AnalysisError
 from mmd_ros.analysis.iso230 import figure_table, target_table
 from mmd_ros.analysis.iso230_report import INSTRUMENTS, iso230_of_run, parse_targets
 from mmd_ros.core.model import Model, load_model
+from mmd_ros.core.progress import Progress
 from mmd_ros.logs.layout import read_run
 
 __all__ = ['register']
@@ -28,9 +29,11 @@ def run_command(args: argparse.Namespace) -> int:
     if not axis:
         raise AnalysisError(f'{args.log} does not say which axis was tested; pass --axis')
     instruments = tuple(args.instrument) if args.instrument else INSTRUMENTS
+    progress = Progress('processing', 1.0, enabled=not (args.quiet or args.json))
     report = iso230_of_run(run, axis, models, instruments=instruments,
                            targets=parse_targets(args.targets, axis), min_dwell_s=args.min_dwell,
-                           calibration_path=args.calibration)
+                           calibration_path=args.calibration, progress=progress.update)
+    progress.close()
     figures: dict[str, str] = {}
     if args.out:
         out = Path(args.out)
@@ -85,4 +88,5 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument('--out', help='folder for iso230.md, iso230.json and the plots')
     p.add_argument('--json', action='store_true', help='print the numbers as JSON on stdout')
     p.add_argument('--verbose', action='store_true', help='also print the per-target table')
+    p.add_argument('--quiet', action='store_true', help='no progress on stderr')
     p.set_defaults(func=run_command)

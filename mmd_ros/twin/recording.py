@@ -5,7 +5,7 @@ the tests and benchmarks)."""
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -21,7 +21,7 @@ from mmd_ros.logs.layout import (
     TOPIC_RAW, TOPIC_REF_LENGTHS, TOPIC_REF_POSE,
 )
 from mmd_ros.logs.writer import LogWriter
-from mmd_ros.twin.effects import Effects
+from mmd_ros.twin.effects import PRESET_AMBIENT, Effects
 from mmd_ros.twin.errors import TwinError
 from mmd_ros.twin.scenarios import make_scenario
 from mmd_ros.twin.thermal import AmbientProfile
@@ -45,7 +45,7 @@ class SimulationSpec:
     effect_params: tuple[str, ...] = ()
     seed: int = 1
     device: str = 'mmd_prototype.yaml'
-    ambient: str = 'section_4_1'
+    ambient: str | None = None          # None: the preset's room (PRESET_AMBIENT)
     calibrate_at_s: float = 0.0
     start_s: float = 600.0
     reference: str | None = None
@@ -80,6 +80,8 @@ def simulate_to_log(spec: SimulationSpec, out: Path, *, progress: bool = True
     """
     device = load_device(find_config(spec.device))
     effects = Effects.preset(spec.effects).with_assignments(spec.effect_params)
+    if spec.ambient is None:
+        spec = replace(spec, ambient=PRESET_AMBIENT[spec.effects])
     twin = TwinDevice(device, effects, seed=spec.seed)
     room = ambient_profile(spec.ambient)
     calibration = twin.calibrate(spec.calibrate_at_s, room)
