@@ -27,10 +27,18 @@ INSTRUMENTS = ('mmd', 'reference', 'error')
 
 
 class Iso230Report:
-    """Results of one log: per instrument (and per model) an :class:`IsoResult`."""
+    """Results of one log or table: per instrument (and per model) an :class:`IsoResult`.
 
-    def __init__(self, log: str, axis: str, results: dict[str, IsoResult], models: dict[str, str]) -> None:
+    models : label -> description of each result compared with the reference (the MMD under
+        each model, or the instruments of a table); their rows get the "− reference figures"
+        rows of Tables 3–4
+    source : what the results were read from ('mcap', or 'csv (... layout)')
+    """
+
+    def __init__(self, log: str, axis: str, results: dict[str, IsoResult], models: dict[str, str],
+                 source: str = 'mcap') -> None:
         self.log, self.axis, self.results, self.models = log, axis, results, models
+        self.source = source
 
     @property
     def unit(self) -> str:
@@ -51,13 +59,15 @@ class Iso230Report:
         return rows
 
     def as_dict(self) -> dict[str, Any]:
-        return {'log': self.log, 'axis': self.axis, 'unit': self.unit, 'models': self.models,
+        return {'log': self.log, 'source': self.source, 'axis': self.axis, 'unit': self.unit,
+                'models': self.models,
                 'results': {k: v.as_dict() for k, v in self.results.items()},
                 'table': [{'row': n, **{k: (None if not math.isfinite(v) else v) for k, v in f.items()}}
                           for n, f in self.rows()]}
 
     def markdown(self, figures: dict[str, str] | None = None) -> str:
-        lines = [f'# ISO 230-2 evaluation of axis {self.axis}', '', f'Log: `{self.log}`', '']
+        what = 'Log' if self.source == 'mcap' else f'Table ({self.source})'
+        lines = [f'# ISO 230-2 evaluation of axis {self.axis}', '', f'{what}: `{self.log}`', '']
         for tag, text in self.models.items():
             lines.append(f'- {tag}: {text}')
         lines += ['', '## Axis figures (the paper\'s Tables 3–4)', '',
