@@ -17,6 +17,7 @@ from mmd_ros.core.units import M_PER_MM, M_PER_UM
 from mmd_ros.design import (
     PAPER_EQ9_UM, PAPER_POSITIONS_M, READINGS, DesignError, ErrorBudget, TopEdgeCylinder, Workspace,
     WorkspaceLimits, fit_eq9, orientation_set, sample_unit_errors, tolerance_frontier)
+from mmd_ros.design.error_budget import format_with_se, round_to_se, se_decimals
 from mmd_ros.design.workspace import _segment_distance
 
 TOP = np.r_[PAPER_POSITIONS_M[0], 0.0, 0.0, 0.0]       # (100, 0, 323) mm, Fig. 3
@@ -192,6 +193,31 @@ def test_fig4_design_bounds_keep_2_um_on_the_top_edge(geometry):
     assert 1.5 < max(a.rotation_rad for a in top) / math.radians(1 / 3600) < 3.0
 
 
+def test_eq9_standard_errors_match_the_spread_over_independent_seeds(geometry):
+    # 40 independent Monte Carlo studies (N = 400 per run, 5 x 5 grid, first-order model):
+    # the jackknife standard error each reports must match the scatter of the coefficients
+    # between them. A wrong SE (e.g. batch means not divided by sqrt(G)) is off by 4x.
+    eps = np.linspace(0.0, 1.0, 5) * M_PER_UM
+    coef, se = [], []
+    for seed in range(40):
+        sf = ErrorBudget(geometry, samples=400, seed=1000 + seed, method='linear').surface(TOP, eps, eps)
+        coef.append(sf.coefficients_um)
+        se.append(sf.coefficients_se_um)
+    coef, se = np.array(coef), np.array(se)
+    ratio = coef.std(axis=0, ddof=1) / np.sqrt(np.mean(se ** 2, axis=0))
+    assert np.all((ratio > 0.7) & (ratio < 1.4)), ratio
+    z = (coef - coef.mean(axis=0)) / se
+    assert 0.75 < np.sum(z ** 2) / (6 * 39) < 1.3
+
+
+def test_values_are_rounded_to_their_standard_error():
+    assert format_with_se(1.66712, 0.0083) == '1.667 ± 0.008'
+    assert format_with_se(1.66712, 0.014) == '1.667 ± 0.014'
+    assert format_with_se(-1.2079, 0.041) == '-1.21 ± 0.04'
+    assert round_to_se(0.10634, 0.0031) == (0.106, 0.003)
+    assert se_decimals(0.25) == 2 and se_decimals(4.0) == 0
+
+
 # -- workspace statements ----------------------------------------------------------------------
 def test_workspace_statements(device, geometry):
     limits = WorkspaceLimits.from_device(device)
@@ -235,6 +261,13 @@ def test_error_budget_command_prints_json(capsys):
     assert args.func(args) == 0
     out = json.loads(capsys.readouterr().out)
     assert out['reading'] == 'onesided-max' and len(out['fig3']['eq9_fitted']) == 6
+    # every coefficient comes with its standard error and is rounded to it
+    for value, se, text in zip(out['fig3']['eq9_fitted'], out['fig3']['eq9_standard_error'],
+                               out['fig3']['eq9_text']):
+        assert 0 < se < 1 and text == format_with_se(value, se)
+        assert value == round(value, se_decimals(se))
+    assert out['fig3']['eq9_paper'] == PAPER_EQ9_UM.tolist()
+    assert 0.3 < out['tolerance']['at_design_ratio']['eps_joint_um'] < 0.6
     assert out['fig3']['eq9_paper'] == PAPER_EQ9_UM.tolist()
     assert 0.3 < out['tolerance']['at_design_ratio']['eps_joint_um'] < 0.6
 
