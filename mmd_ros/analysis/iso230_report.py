@@ -109,8 +109,8 @@ def iso230_of_run(run: RunLog, axis: str | None = None, models: dict[str, Model]
     models = models or {'MMD': run.model or Model()}
     signals: dict[str, np.ndarray] = {}
     total = max(1, len(models) * run.times_s.size)
-    for k, (label, model) in enumerate(models.items()):
-        done = k * run.times_s.size
+    for number, (label, model) in enumerate(models.items()):
+        done = number * run.times_s.size
         tick = None if progress is None else (lambda n, done=done: progress((done + n) / total))
         proc = run_pipeline(run.device, calibration, model, run.times_s, run.counts, progress=tick)
         pose = np.where(proc.valid, proc.poses[:, k], np.nan)

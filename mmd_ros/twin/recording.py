@@ -5,7 +5,7 @@ the tests and benchmarks)."""
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -52,6 +52,13 @@ class SimulationSpec:
     sample_rate_hz: float | None = None
     epoch_s: int = EPOCH_S
 
+    def __post_init__(self) -> None:
+        if self.ambient is None:
+            if self.effects not in PRESET_AMBIENT:
+                raise TwinError(f'unknown effects preset {self.effects!r}; choose one of '
+                                f'{sorted(PRESET_AMBIENT)}')
+            self.ambient = PRESET_AMBIENT[self.effects]
+
 
 def ambient_profile(spec: str) -> AmbientProfile:
     """``section_4_1`` (the 20 h test of section 4.1), ``constant:T`` [°C], or a YAML file
@@ -80,8 +87,6 @@ def simulate_to_log(spec: SimulationSpec, out: Path, *, progress: bool = True
     """
     device = load_device(find_config(spec.device))
     effects = Effects.preset(spec.effects).with_assignments(spec.effect_params)
-    if spec.ambient is None:
-        spec = replace(spec, ambient=PRESET_AMBIENT[spec.effects])
     twin = TwinDevice(device, effects, seed=spec.seed)
     room = ambient_profile(spec.ambient)
     calibration = twin.calibrate(spec.calibrate_at_s, room)
