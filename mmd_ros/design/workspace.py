@@ -387,7 +387,8 @@ class Workspace:
     def _optimum(self, axis: int, sign: float, start: FloatArray) -> FloatArray:
         """The local maximum of sign * t[axis] subject to every constraint, by SLSQP from an
         inside point (coordinates in mm; converged to 1e-10 of the objective). Returns the
-        optimiser's point [m], which may lie outside by rounding."""
+        optimiser's point [m], which may lie outside by rounding (constraints met to 1e-6 mm);
+        ``start`` itself when the optimiser ends anywhere else."""
         x0 = np.asarray(start, dtype=np.float64) / M_PER_MM
         grad = np.zeros(3)
         grad[axis] = -sign
@@ -397,7 +398,8 @@ class Workspace:
                                      'fun': lambda x: self.constraint_values(x * M_PER_MM)}],
                        options={'ftol': 1e-10, 'maxiter': 300})
         point = res.x * M_PER_MM
-        if not np.all(np.isfinite(point)) or sign * (point[axis] - start[axis]) < 0:
+        if (not np.all(np.isfinite(point)) or sign * (point[axis] - start[axis]) < 0
+                or float(np.min(self.constraint_values(point))) < -1e-6):
             return np.asarray(start, dtype=np.float64)
         return point
 
