@@ -66,8 +66,9 @@ class Iso230Report:
                           for n, f in self.rows()]}
 
     def markdown(self, figures: dict[str, str] | None = None) -> str:
-        what = 'Log' if self.source == 'mcap' else f'Table ({self.source})'
-        lines = [f'# ISO 230-2 evaluation of axis {self.axis}', '', f'{what}: `{self.log}`', '']
+        what = 'Log' if self.source == 'mcap' else 'Table'
+        tail = '' if self.source == 'mcap' else f' ({self.source})'
+        lines = [f'# ISO 230-2 evaluation of axis {self.axis}', '', f'{what}: `{self.log}`{tail}', '']
         for tag, text in self.models.items():
             lines.append(f'- {tag}: {text}')
         lines += ['', '## Axis figures (the paper\'s Tables 3–4)', '',
