@@ -85,3 +85,27 @@ def test_process_refuses_to_write_over_its_input(run_log, capsys):
     assert main(['process', str(run_log), '--out', str(run_log), '--quiet']) == 2
     assert 'overwrite the log being processed' in capsys.readouterr().err
     assert run_log.read_bytes() == before
+
+
+def test_rows_match_compiled_equals_numpy():
+    """The check that every message of a chunk holds its layout's fixed bytes: compiled and numpy
+    agree, on contiguous and strided rows, and one differing byte anywhere fixed is caught."""
+    from mmd_ros.logs.cdr import JointStateLayout, rows_match
+    assert COMPILED, NOT_IN_USE
+    layout = JointStateLayout([f'bar{i}' for i in range(1, 7)])
+    rows = layout.encode(np.arange(5000, dtype=np.int64) * 1_000_000,
+                         np.random.default_rng(0).normal(size=(5000, 6)))
+    wide = np.zeros((5000, layout.size + 40), dtype=np.uint8)
+    wide[:, 20:20 + layout.size] = rows
+    for r in (rows, wide[:, 20:20 + layout.size]):
+        assert rows_match(r, layout.template, layout._runs, compiled=True)
+        assert rows_match(r, layout.template, layout._runs, compiled=False)
+    fixed = np.concatenate([np.arange(a, a + n) for a, n in layout._runs.tolist()])
+    rng = np.random.default_rng(1)
+    for _ in range(50):
+        bad = rows.copy()
+        bad[rng.integers(5000), rng.choice(fixed)] ^= 0x20
+        assert not rows_match(bad, layout.template, layout._runs, compiled=True)
+        assert not rows_match(bad, layout.template, layout._runs, compiled=False)
+    stamps, values = layout.decode(wide[:, 20:20 + layout.size])
+    np.testing.assert_array_equal(stamps, np.arange(5000) * 1_000_000)

@@ -8,6 +8,7 @@
  *   pose_covariance     propagate_covariance, J^-1 S J^-T per sample (kinematics.py)
  *   cdf_eval            CdfBank.__call__, the piecewise-linear CDFs of Eq. (10) (calibration.py)
  *   play_directions     HysteresisTerm.directions, the play operator (model.py)
+ *   match_rows          rows_match, the fixed bytes of messages read from a log (logs/cdr.py)
  *   decode_continuing   FrameStream.feed for a transfer that continues the stream
  *                       (hardware/stream.py)
  *
@@ -789,6 +790,66 @@ static PyObject *pose_covariance(PyObject *self, PyObject *args)
     return Py_None;
 }
 
+PyDoc_STRVAR(match_rows_doc,
+"match_rows(rows, template, runs) -> bool\n\n"
+"Whether every row of rows (N, W) uint8 (rows may be strided, bytes contiguous) holds the\n"
+"bytes of template (W,) uint8 in the runs (M, 2) int64 of (start, length): the fixed bytes of\n"
+"a message layout (mmd_ros.logs.cdr.rows_match). Releases the GIL.");
+
+static PyObject *match_rows(PyObject *self, PyObject *args)
+{
+    (void)self;
+    PyObject *o_rows, *o_tpl, *o_runs;
+    if (!PyArg_ParseTuple(args, "OOO", &o_rows, &o_tpl, &o_runs))
+        return NULL;
+    Py_buffer rows, tpl, runs;
+    if (PyObject_GetBuffer(o_rows, &rows, PyBUF_RECORDS_RO) < 0)
+        return NULL;
+    if (rows.ndim != 2 || rows.itemsize != 1 || rows.strides[1] != 1 || rows.strides[0] < 0) {
+        PyBuffer_Release(&rows);
+        PyErr_SetString(PyExc_ValueError, "rows: need a (N, W) uint8 array whose rows are contiguous");
+        return NULL;
+    }
+    const Py_ssize_t n = rows.shape[0], w = rows.shape[1], stride = rows.strides[0];
+    if (get_buffer(o_tpl, &tpl, 0, w, 1, "B", "template") < 0) {
+        PyBuffer_Release(&rows);
+        return NULL;
+    }
+    if (get_buffer(o_runs, &runs, 0, -1, 8, "q", "runs") < 0) {
+        PyBuffer_Release(&rows);
+        PyBuffer_Release(&tpl);
+        return NULL;
+    }
+    const Py_ssize_t m = runs.len / 16;
+    const long long *r = runs.buf;
+    int ok = runs.len % 16 == 0;
+    for (Py_ssize_t j = 0; ok && j < m; j++)
+        ok = r[2 * j] >= 0 && r[2 * j + 1] >= 0 && r[2 * j] + r[2 * j + 1] <= w;
+    if (!ok) {
+        PyBuffer_Release(&rows);
+        PyBuffer_Release(&tpl);
+        PyBuffer_Release(&runs);
+        PyErr_SetString(PyExc_ValueError, "runs: need (M, 2) int64 (start, length) within a row");
+        return NULL;
+    }
+    const unsigned char *base = rows.buf, *t = tpl.buf;
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t i = 0; ok && i < n; i++) {
+        const unsigned char *row = base + i * stride;
+        for (Py_ssize_t j = 0; j < m; j++) {
+            if (memcmp(row + r[2 * j], t + r[2 * j], (size_t)r[2 * j + 1]) != 0) {
+                ok = 0;
+                break;
+            }
+        }
+    }
+    Py_END_ALLOW_THREADS
+    PyBuffer_Release(&rows);
+    PyBuffer_Release(&tpl);
+    PyBuffer_Release(&runs);
+    return PyBool_FromLong(ok);
+}
+
 PyDoc_STRVAR(play_directions_doc,
 "play_directions(lengths, travel, play, direction, out) -> None\n\n"
 "HysteresisTerm.directions: the play (backlash) operator of half-width travel [m] on each\n"
@@ -1096,6 +1157,7 @@ static PyMethodDef methods[] = {
     {"pose_covariance", pose_covariance, METH_VARARGS, pose_covariance_doc},
     {"cdf_eval", cdf_eval, METH_VARARGS, cdf_eval_doc},
     {"play_directions", play_directions, METH_VARARGS, play_directions_doc},
+    {"match_rows", match_rows, METH_VARARGS, match_rows_doc},
     {"decode_continuing", decode_continuing, METH_VARARGS, decode_continuing_doc},
     {NULL, NULL, 0, NULL},
 };

@@ -17,11 +17,12 @@ import struct
 import numpy as np
 from numpy.typing import NDArray
 
+from mmd_ros.core.compiled import fast, use_compiled
 from mmd_ros.core.rotation import angles_to_quaternion
 
 __all__ = [
     'JointStateLayout', 'PendingRows', 'PoseLayout', 'decode_string', 'encode_string',
-    'split_stamps',
+    'fixed_runs', 'rows_match', 'split_stamps',
 ]
 
 ENCAPSULATION = b'\x00\x01\x00\x00'  # CDR_LE
@@ -53,6 +54,26 @@ def split_stamps(stamps_ns: NDArray[np.int64]) -> tuple[NDArray[np.int32], NDArr
     return sec.astype(np.int32), (s - sec * 1_000_000_000).astype(np.uint32)
 
 
+def fixed_runs(fixed: NDArray[np.bool_]) -> NDArray[np.int64]:
+    """The runs of True in a mask, shape (M, 2) int64: (start, length)."""
+    edges = np.diff(np.concatenate([[0], fixed.astype(np.int8), [0]]))
+    starts = np.flatnonzero(edges == 1)
+    return np.column_stack([starts, np.flatnonzero(edges == -1) - starts]).astype(np.int64)
+
+
+def rows_match(rows: NDArray[np.uint8], template: NDArray[np.uint8], runs: NDArray[np.int64], *,
+               compiled: bool | None = None) -> bool:
+    """Whether every row of ``rows`` (N, W) holds ``template``'s bytes in ``runs``
+    (:func:`fixed_runs`): a whole chunk's messages checked against their layout at memcmp speed
+    (compiled), or one numpy comparison per run."""
+    if rows.shape[0] == 0:
+        return True
+    if use_compiled(compiled) and rows.strides[1] == 1:
+        return fast.match_rows(rows, template, runs)
+    return all(np.array_equal(rows[:, a:a + n], np.broadcast_to(template[a:a + n], (rows.shape[0], n)))
+               for a, n in runs.tolist())
+
+
 def _stamps_from(rows: NDArray[np.uint8]) -> NDArray[np.int64]:
     sec = rows[:, 4:8].copy().view('<i4')[:, 0].astype(np.int64)
     nsec = rows[:, 8:12].copy().view('<u4')[:, 0].astype(np.int64)
@@ -71,10 +92,14 @@ class _Layout:
         self.size = self.float_offset + 8 * n_float + len(body_after)
         template = np.frombuffer(self.prefix + b'\x00' * (8 * n_float) + body_after, np.uint8)
         self.template = template
+        # a message's stamp and numbers as fields of a structured view of its bytes
+        self._dtype = np.dtype({'names': ['sec', 'nsec', 'values'],
+                                'formats': ['<i4', '<u4', ('<f8', (n_float,))],
+                                'offsets': [4, 8, self.float_offset], 'itemsize': self.size})
         fixed = np.ones(self.size, dtype=bool)
         fixed[4:12] = False  # stamp
         fixed[self.float_offset:self.float_offset + 8 * n_float] = False
-        self._fixed = fixed
+        self._runs = fixed_runs(fixed)
 
     def encode(self, stamps_ns: NDArray[np.int64], values: NDArray[np.float64]) -> NDArray[np.uint8]:
         """(N, size) bytes of N messages. values : shape (N, n_float)."""
@@ -92,11 +117,14 @@ class _Layout:
         """Stamps (N,) and values (N, n_float) if every row matches this layout, else None."""
         if rows.ndim != 2 or rows.shape[1] != self.size:
             return None
-        if not np.array_equal(rows[:, self._fixed], np.broadcast_to(self.template[self._fixed],
-                                                                    (rows.shape[0], int(self._fixed.sum())))):
+        if not rows_match(rows, self.template, self._runs):
             return None
-        block = rows[:, self.float_offset:self.float_offset + 8 * self.n_float].copy()
-        return _stamps_from(rows), block.view('<f8').reshape(rows.shape[0], self.n_float)
+        view = rows.view(self._dtype)[:, 0] if rows.strides[1] == 1 and rows.shape[0] else None
+        if view is None:
+            block = rows[:, self.float_offset:self.float_offset + 8 * self.n_float].copy()
+            return _stamps_from(rows), block.view('<f8').reshape(rows.shape[0], self.n_float)
+        stamps = view['sec'].astype(np.int64) * 1_000_000_000 + view['nsec']
+        return stamps, view['values'].copy()
 
 
 class PendingRows:

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from mmd_ros.logs.cdr import JointStateLayout, PoseLayout, decode_string
+from mmd_ros.logs.cdr import JointStateLayout, PoseLayout, decode_string, rows_match
 from mmd_ros.logs.errors import LogError, LogFormatError
 
 __all__ = ['JointStates', 'LogReader', 'Topic']
@@ -218,9 +218,9 @@ class LogReader:
             return False
         rows = np.frombuffer(records, dtype=np.uint8, offset=start).reshape(-1, period)
         template = np.frombuffer(records, dtype=np.uint8, offset=start, count=period)
-        for off, _, _ in pattern:  # opcode, length and channel of every record must repeat
-            if not np.array_equal(rows[:, off:off + 11], np.broadcast_to(template[off:off + 11], (len(rows), 11))):
-                return False
+        # opcode, length and channel of every record must repeat
+        if not rows_match(rows, template, np.array([(off, 11) for off, _, _ in pattern], dtype=np.int64)):
+            return False
         for off, cid, length in pattern:
             ch = self._channels[cid]
             ch.block_times.append(rows[:, off + 15:off + 23].copy().view('<u8')[:, 0].astype(np.int64))
