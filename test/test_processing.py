@@ -109,3 +109,62 @@ def test_rows_match_compiled_equals_numpy():
         assert not rows_match(bad, layout.template, layout._runs, compiled=False)
     stamps, values = layout.decode(wide[:, 20:20 + layout.size])
     np.testing.assert_array_equal(stamps, np.arange(5000) * 1_000_000)
+
+
+def _read_in_blocks(path, size):
+    from mmd_ros.logs.layout import open_run
+    with open_run(path) as run:
+        blocks = list(run.blocks(size))
+        problem = run.problem
+    cat = {k: np.concatenate([getattr(b, k) for b in blocks]) if getattr(blocks[0], k) is not None
+           else None for k in ('stamps_ns', 'counts', 'reference_pose', 'reference_lengths')}
+    return blocks, cat, problem
+
+
+def test_a_log_read_block_by_block_is_the_log_read_at_once(run_log, tmp_path):
+    """open_run's blocks (two passes, a chunk at a time) hold what read_run gives, the reference
+    aligned by stamp; a log cut short gives what read_run keeps of it, and says so."""
+    data = run_log.read_bytes()
+    cut = tmp_path / 'cut.mcap'
+    cut.write_bytes(data[: len(data) * 2 // 3])
+    for path in (run_log, cut):
+        whole = read_run(path)
+        blocks, cat, problem = _read_in_blocks(path, 3000)
+        assert all(len(b.stamps_ns) == 3000 for b in blocks[:-1])
+        np.testing.assert_array_equal(cat['stamps_ns'], whole.stamps_ns)
+        np.testing.assert_array_equal(cat['counts'], whole.counts)
+        np.testing.assert_array_equal(cat['reference_pose'], whole.reference_pose)
+        assert (problem is None) == (path == run_log) and problem == whole.problem
+
+
+def test_a_reference_written_apart_from_the_counts_is_aligned(tmp_path):
+    """A log whose reference comes in other chunks than the counts (as a recorder may write
+    them), and stops half-way: every block gets the reference of its stamps, NaN after it
+    stops, and the reader holds back at most a few blocks while waiting for it."""
+    from mmd_ros.core.device import find_config, load_device
+    from mmd_ros.logs.layout import REFERENCE_POSE_NAMES, TOPIC_DEVICE, TOPIC_RAW, TOPIC_REF_POSE
+    from mmd_ros.logs.writer import LogWriter
+    device = load_device(find_config('mmd_prototype.yaml'))
+    n = 40000
+    stamps = 10**18 + np.arange(n, dtype=np.int64) * 1_000_000
+    counts = np.random.default_rng(3).integers(0, 10**6, (n, 8)).astype(np.float64)
+    ref = np.random.default_rng(4).normal(size=(n, 6))
+    path = tmp_path / 'apart.mcap'
+    with LogWriter(path, chunk_size=1 << 16) as log:
+        log.write_string(TOPIC_DEVICE, int(stamps[0]), device.to_yaml())
+        for a in range(0, n, 5000):
+            part = slice(a, a + 5000)
+            log.write_rows([(TOPIC_RAW, 'sensor_msgs/msg/JointState',
+                             log.joint_state_rows(device.channel_names, stamps[part], counts[part]))],
+                           stamps[part])
+            if a < n // 2:
+                log.write_rows([(TOPIC_REF_POSE, 'sensor_msgs/msg/JointState',
+                                 log.joint_state_rows(REFERENCE_POSE_NAMES, stamps[part], ref[part],
+                                                      'mmd_lower'))], stamps[part])
+    blocks, cat, problem = _read_in_blocks(path, 1000)
+    assert problem is None
+    np.testing.assert_array_equal(cat['stamps_ns'], stamps)
+    np.testing.assert_array_equal(cat['counts'], counts)
+    np.testing.assert_array_equal(cat['reference_pose'][: n // 2], ref[: n // 2])
+    assert np.isnan(cat['reference_pose'][n // 2:]).all()
+    np.testing.assert_array_equal(cat['reference_pose'], read_run(path).reference_pose)

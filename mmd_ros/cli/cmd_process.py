@@ -12,7 +12,8 @@ from mmd_ros.core.accuracy import format_stats
 from mmd_ros.core.calibration import load_calibration
 from mmd_ros.core.model import Model, load_model
 from mmd_ros.core.progress import Progress
-from mmd_ros.logs.layout import read_run
+from mmd_ros.logs.errors import StampsNotIncreasing
+from mmd_ros.logs.layout import open_run, read_run
 from mmd_ros.logs.processing import process_log
 
 __all__ = ['register']
@@ -23,16 +24,26 @@ def run_command(args: argparse.Namespace) -> int:
     quiet = args.json or args.quiet
     if not quiet:
         print(f'reading {args.log}', file=sys.stderr)
-    run = read_run(args.log)
-    if run.problem:
-        print(f'warning: {run.problem}', file=sys.stderr)
-    model = load_model(args.model) if args.model else (run.model or Model())
-    progress = Progress('processing', run.n_samples, enabled=not quiet)
     out = Path(args.out) if args.out else Path(args.log).with_suffix('.processed.mcap')
     cal = load_calibration(args.calibration) if args.calibration else None
-    summary = process_log(run, out, model, calibration=cal, with_covariance=args.covariance,
-                          csv=Path(args.csv) if args.csv else None, progress=progress)
-    progress.close()
+    chosen = load_model(args.model) if args.model else None
+
+    def process(run) -> dict:
+        progress = Progress('processing', max(run.n_samples, 1), enabled=not quiet)
+        summary = process_log(run, out, chosen or run.model or Model(), calibration=cal,
+                              with_covariance=args.covariance,
+                              csv=Path(args.csv) if args.csv else None, progress=progress)
+        progress.close()
+        return summary
+
+    try:
+        with open_run(args.log) as run:   # block by block, in bounded memory
+            summary = process(run)
+    except StampsNotIncreasing:
+        summary = process(read_run(args.log))   # the whole log, in memory
+    model = chosen or run.model or Model()
+    if summary.get('log_problem'):
+        print(f'warning: {summary["log_problem"]}', file=sys.stderr)
     elapsed = time.perf_counter() - started
     summary.update(output=str(out), csv=args.csv, seconds=elapsed,
                    samples_per_s=summary['samples'] / elapsed if elapsed > 0 else None,

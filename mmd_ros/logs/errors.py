@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from mmd_ros.core.errors import MmdError
 
-__all__ = ['LogError', 'LogFormatError']
+__all__ = ['LogError', 'LogFormatError', 'StampsNotIncreasing']
 
 
 class LogError(MmdError):
@@ -13,3 +13,7 @@ class LogError(MmdError):
 
 class LogFormatError(LogError):
     """A log holds something our layout does not allow (a wrong type on a topic, for example)."""
+
+
+class StampsNotIncreasing(LogFormatError):
+    """The samples' stamps go backwards or repeat (a log reading block by block cannot sort)."""

@@ -21,7 +21,8 @@ from mmd_ros.core.calibration import Calibration
 from mmd_ros.core.device import DeviceDescription, parse_device
 from mmd_ros.core.model import Model
 from mmd_ros.core.yamlio import parse_yaml
-from mmd_ros.logs.errors import LogFormatError
+from mmd_ros.logs.errors import LogFormatError, StampsNotIncreasing
+from mmd_ros.logs.chunked import ChunkedReader
 from mmd_ros.logs.reader import JointStates, LogReader
 from mmd_ros.logs.writer import LogWriter
 
@@ -30,7 +31,7 @@ __all__ = [
     'TOPIC_BAR_LENGTHS',
     'TOPIC_CALIBRATION', 'TOPIC_DEVICE', 'TOPIC_DIAGNOSTICS', 'TOPIC_FK_STATUS', 'TOPIC_MODEL',
     'TOPIC_POSE', 'TOPIC_POSE_COV', 'TOPIC_RAW', 'TOPIC_REF_LENGTHS', 'TOPIC_REF_POSE',
-    'TOPIC_THERMAL', 'read_run', 'write_run',
+    'TOPIC_THERMAL', 'RunStream', 'open_run', 'read_run', 'write_run',
 ]
 
 TOPIC_DEVICE = '/mmd/device_description'
@@ -146,19 +147,7 @@ def read_run(path: str | os.PathLike[str]) -> RunLog:
     :attr:`RunLog.problem` says so."""
     reader = LogReader(path)
     source = str(path)
-    text = reader.latest_string(TOPIC_DEVICE)
-    if text is None:
-        raise LogFormatError(f'{source} has no {TOPIC_DEVICE}: it is not an MMD log, or the '
-                             'recording lost its start')
-    where = f'{source}:{TOPIC_DEVICE}'
-    device = parse_device(parse_yaml(text, where), where)
-    cal_text = reader.latest_string(TOPIC_CALIBRATION)
-    calibration = (Calibration.from_yaml(cal_text, f'{source}:{TOPIC_CALIBRATION}')
-                   if cal_text is not None else None)
-    model_text = reader.latest_string(TOPIC_MODEL)
-    model = Model.from_yaml(model_text, f'{source}:{TOPIC_MODEL}') if model_text else None
-    if not reader.has_topic(TOPIC_RAW):
-        raise LogFormatError(f'{source} has no {TOPIC_RAW}: nothing to process')
+    device, calibration, model = _run_header(reader, source)
     raw = reader.joint_states(TOPIC_RAW)
     if raw.names and raw.names != device.channel_names:
         raise LogFormatError(f'{source}: {TOPIC_RAW} names {raw.names} do not match the device '
@@ -173,6 +162,140 @@ def read_run(path: str | os.PathLike[str]) -> RunLog:
     meta = reader.metadata.get(RUN_METADATA, {})
     run.metadata = {k: json.loads(v) for k, v in meta.items()}
     return run
+
+
+class RunStream:
+    """A run log read block by block in bounded memory (:func:`open_run`): what
+    :class:`RunLog` has, except the samples, which come from :meth:`blocks`.
+
+    n_samples : the raw samples the log's message indexes count (0 when they are missing)
+    problem : what was wrong with the file (known once :meth:`blocks` has run), or None
+    """
+
+    #: Raw samples held back at most while the reference catches up: this many blocks, and at
+    #: least HOLD_SAMPLES (a recorder writes each topic as it comes, some transfers apart).
+    HOLD_BLOCKS = 4
+    HOLD_SAMPLES = 1 << 16
+
+    def __init__(self, path: str | os.PathLike[str]) -> None:
+        self.path = Path(path)
+        source = str(path)
+        self._reader = ChunkedReader(path, {TOPIC_DEVICE, TOPIC_CALIBRATION, TOPIC_MODEL},
+                                     {TOPIC_RAW, TOPIC_REF_POSE, TOPIC_REF_LENGTHS})
+        try:
+            self.device, self.calibration, self.model = _run_header(self._reader, source)
+            meta = self._reader.metadata.get(RUN_METADATA, {})
+            self.metadata = {k: json.loads(v) for k, v in meta.items()}
+            self.n_samples = self._reader.message_count(TOPIC_RAW) or 0
+            self.channel_names = self.device.channel_names
+        except BaseException:
+            self._reader.close()
+            raise
+
+    @property
+    def problem(self) -> str | None:
+        return self._reader.problem
+
+    def close(self) -> None:
+        self._reader.close()
+
+    def __enter__(self) -> RunStream:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def blocks(self, size: int) -> Iterator[RunBlock]:
+        """The run in blocks of ``size`` samples (the last may be shorter), in time order, with
+        the reference aligned by stamp as :func:`read_run` aligns it. A raw sample is handed on
+        once the reference has reached its stamp (or is too far behind: ``HOLD_*``).
+        Raises :class:`LogFormatError` when the stamps do not increase."""
+        source = str(self.path)
+        raw: list[JointStates] = []
+        refs: dict[str, list[JointStates]] = {TOPIC_REF_POSE: [], TOPIC_REF_LENGTHS: []}
+        has_ref = {t for t in refs if self._reader.has_topic(t)}
+        last_ref: dict[str, int] = {}
+        last_raw: int | None = None
+        pending = 0
+
+        def take(n: int) -> RunBlock:
+            nonlocal raw, pending
+            stamps = np.concatenate([r.stamps_ns for r in raw])
+            values = np.concatenate([r.values for r in raw])
+            out_s, out_v = stamps[:n], values[:n]
+            raw = [JointStates(stamps[n:], raw[0].names, values[n:])] if n < stamps.size else []
+            pending -= n
+            aligned = {}
+            for topic, names in ((TOPIC_REF_POSE, REFERENCE_POSE_NAMES), (TOPIC_REF_LENGTHS, BAR_NAMES)):
+                if topic not in has_ref:
+                    continue
+                parts = refs[topic]
+                ref = JointStates(np.concatenate([p.stamps_ns for p in parts]) if parts else np.zeros(0, np.int64),
+                                  parts[0].names if parts else names,
+                                  np.concatenate([p.values for p in parts]) if parts else np.zeros((0, len(names))))
+                aligned[topic] = _aligned(ref, JointStates(out_s, [], out_v), names, source)
+                later = ref.stamps_ns > out_s[-1]
+                refs[topic] = [JointStates(ref.stamps_ns[later], ref.names, ref.values[later])]
+            return RunBlock(out_s, out_v, aligned.get(TOPIC_REF_POSE), aligned.get(TOPIC_REF_LENGTHS))
+
+        for chunk in self._reader.chunks():
+            for topic in has_ref & chunk.keys():
+                refs[topic].append(chunk[topic])
+                if chunk[topic].stamps_ns.size:
+                    last_ref[topic] = int(chunk[topic].stamps_ns[-1])
+            got = chunk.get(TOPIC_RAW)
+            if got is None or got.stamps_ns.size == 0:
+                continue
+            if got.names != self.device.channel_names:
+                raise LogFormatError(f'{source}: {TOPIC_RAW} names {got.names} do not match the '
+                                     f'device channels {self.device.channel_names}')
+            if not _increasing(got.stamps_ns, last_raw):
+                raise StampsNotIncreasing(f'{source}: the {TOPIC_RAW} stamps do not increase')
+            last_raw = int(got.stamps_ns[-1])
+            raw.append(got)
+            pending += got.stamps_ns.size
+            while pending >= size:
+                stamps = raw[0].stamps_ns if len(raw) == 1 else np.concatenate([r.stamps_ns for r in raw])
+                reach = min((last_ref.get(t, -1) for t in has_ref), default=None)
+                hold = max(self.HOLD_BLOCKS * size, self.HOLD_SAMPLES)
+                if reach is not None and stamps[size - 1] > reach and pending < hold:
+                    break   # the reference has not reached these stamps yet
+                yield take(size)
+        while pending > 0:
+            yield take(min(size, pending))
+
+
+def open_run(path: str | os.PathLike[str]) -> RunStream:
+    """A run log to read block by block (:class:`RunStream`); close it when done."""
+    return RunStream(path)
+
+
+def _increasing(stamps: NDArray[np.int64], last: int | None) -> bool:
+    """Whether ``stamps`` increase strictly, and after ``last``."""
+    if stamps.size == 0:
+        return True
+    if last is not None and stamps[0] <= last:
+        return False
+    return bool(np.all(np.diff(stamps) > 0))
+
+
+def _run_header(reader: LogReader, source: str) -> tuple[DeviceDescription, Calibration | None, Model | None]:
+    """The device description, the calibration (the last in the log) and the model of a run
+    log; raises when it has no device description or no raw counts."""
+    text = reader.latest_string(TOPIC_DEVICE)
+    if text is None:
+        raise LogFormatError(f'{source} has no {TOPIC_DEVICE}: it is not an MMD log, or the '
+                             'recording lost its start')
+    where = f'{source}:{TOPIC_DEVICE}'
+    device = parse_device(parse_yaml(text, where), where)
+    cal_text = reader.latest_string(TOPIC_CALIBRATION)
+    calibration = (Calibration.from_yaml(cal_text, f'{source}:{TOPIC_CALIBRATION}')
+                   if cal_text is not None else None)
+    model_text = reader.latest_string(TOPIC_MODEL)
+    model = Model.from_yaml(model_text, f'{source}:{TOPIC_MODEL}') if model_text else None
+    if not reader.has_topic(TOPIC_RAW):
+        raise LogFormatError(f'{source} has no {TOPIC_RAW}: nothing to process')
+    return device, calibration, model
 
 
 def _aligned(ref: JointStates, raw: JointStates, names: list[str], source: str) -> NDArray[np.float64]:

@@ -271,7 +271,8 @@ def process_log(source: RunSource, out: Path, model: Model, *,
                 compiled: bool | None = None, block: int = BLOCK) -> dict[str, Any]:
     """``mmd process``: every sample of ``source`` through the pipeline into the processed log
     ``out`` (and ``csv``), block by block in bounded memory; returns the summary
-    (:class:`RunSummary`). Reading, computing and writing overlap (module docstring)."""
+    (:class:`RunSummary`). Reading, computing and writing overlap (module docstring). The log
+    is written as ``out.partial`` and renamed when complete: a failure leaves no output."""
     if Path(out).resolve() == Path(source.path).resolve():
         raise LogError(f'{out}: the output would overwrite the log being processed; choose '
                        'another --out')
@@ -280,6 +281,9 @@ def process_log(source: RunSource, out: Path, model: Model, *,
     writer: ProcessedLogWriter | None = None
     handle: IO[str] | None = None
     pending: Future[None] | None = None
+    out = Path(out)
+    partial = out.with_name(out.name + '.partial')   # renamed to ``out`` once complete
+    done = False
 
     def write(part: RunBlock, result: ProcessedRun) -> None:
         writer.write(result)  # type: ignore[union-attr]
@@ -295,7 +299,7 @@ def process_log(source: RunSource, out: Path, model: Model, *,
                                                with_covariance=with_covariance, compiled=compiled,
                                                block=block):
                 if writer is None:
-                    writer = ProcessedLogWriter(out, source.device, model, cal.to_yaml(),
+                    writer = ProcessedLogWriter(partial, source.device, model, cal.to_yaml(),
                                                 int(part.stamps_ns[0]))
                     if csv is not None:
                         handle = open(csv, 'w', encoding='utf-8')  # noqa: SIM115
@@ -305,9 +309,14 @@ def process_log(source: RunSource, out: Path, model: Model, *,
                 pending = pool.submit(write, part, result)
             if pending is not None:
                 pending.result()
+        done = True
     finally:
         if writer is not None:
             writer.close()
+            if done:
+                partial.replace(out)
+            else:
+                partial.unlink(missing_ok=True)
         if handle is not None:
             handle.close()
     if summary.samples == 0:
