@@ -1,59 +1,121 @@
 """``mmd process`` end to end on a 10-minute 1 kHz log: MCAP read, CDF, thermal, FK, MCAP write.
 
-Prints samples/s (median of repeats) and a final JSON line. Target (issue 2): >= 100,000
-samples/s on this 2-core machine. ``--quick`` uses a 1-minute log. Never fails on timing.
+Runs the real command (``mmd process LOG --json``) in child processes: the compiled path
+(``--repeats`` times) and the numpy reference (``MMD_PURE_PYTHON=1``, once), in the same run, and
+prints samples/s (the command's own timing, after its imports), the ratio of the two, user CPU
+and peak RSS. Then the stages alone in this process (CPU time per sample: read block by block,
+compute, write), which overlap in the command. ``--long LOG`` adds a long log (for example a
+2-hour one made with ``mmd simulate``; keep such files out of the repository) for peak RSS.
+
+Target (issue 12): >= 500,000 samples/s. The machine is shared: compare the ratios and CPU
+times more than the rates. ``--quick`` uses a 1-minute log. Never fails on timing.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
 
-from mmd_ros.logs.processing import process_run, write_processed
-from mmd_ros.twin.recording import SimulationSpec, simulate_to_log
 from mmd_ros.core.model import Model
-from mmd_ros.logs.layout import read_run
+from mmd_ros.logs.layout import open_run, read_run
+from mmd_ros.logs.processing import ProcessedLogWriter, process_run
+from mmd_ros.twin.recording import SimulationSpec, simulate_to_log
+
+
+def command(log: Path, out: Path, pure: bool = False) -> dict:
+    """``mmd process`` in a child: its JSON summary, wall time, user CPU and peak RSS."""
+    env = dict(os.environ)
+    if pure:
+        env['MMD_PURE_PYTHON'] = '1'
+    t0 = time.perf_counter()
+    proc = subprocess.Popen([sys.executable, '-m', 'mmd_ros.cli.main', 'process', str(log),
+                             '--out', str(out), '--json', '--quiet'],
+                            stdout=subprocess.PIPE, env=env)
+    text = proc.stdout.read()
+    _, status, usage = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - t0
+    if status != 0:
+        raise SystemExit(f'mmd process failed on {log}')
+    summary = json.loads(text)
+    return {'samples': summary['samples'], 'seconds': summary['seconds'],
+            'samples_per_s': summary['samples'] / summary['seconds'], 'wall_s': wall,
+            'user_cpu_s': usage.ru_utime, 'peak_rss_mb': usage.ru_maxrss / 1024}
+
+
+def stages(log: Path, out: Path) -> dict:
+    """CPU time per sample of reading, computing and writing, each alone [us]."""
+    c0 = time.process_time()
+    with open_run(log) as run:
+        n = sum(len(b.stamps_ns) for b in run.blocks(65536))
+    c1 = time.process_time()
+    whole = read_run(log)
+    model = Model()
+    c2 = time.process_time()
+    result = process_run(whole, model)
+    c3 = time.process_time()
+    with ProcessedLogWriter(out, whole.device, model, whole.calibration.to_yaml(),
+                            int(whole.stamps_ns[0])) as writer:
+        writer.write(result)
+    c4 = time.process_time()
+    return {'read': 1e6 * (c1 - c0) / n, 'compute': 1e6 * (c3 - c2) / n,
+            'write': 1e6 * (c4 - c3) / n}
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument('--quick', action='store_true', help='a 1-minute log instead of 10 minutes')
     parser.add_argument('--repeats', type=int, default=3)
+    parser.add_argument('--long', type=Path, action='append', default=[],
+                        help='another log to process once, for peak RSS (not created here)')
     args = parser.parse_args()
     # The x-axis ISO run with 4.6 s dwells lasts 596 s; the quick one uses one cycle.
     params = ('dwell_s=4.6',) if not args.quick else ('n_cycles=1', 'dwell_s=1.4')
     with tempfile.TemporaryDirectory() as tmp:
         log = Path(tmp) / 'run.mcap'
+        out = Path(tmp) / 'out.mcap'
         spec = SimulationSpec(scenario_params=params, reference='pose6')
-        _, _, info = simulate_to_log(spec, log, progress=False)
-        n = info['samples']
-        stages: dict[str, list[float]] = {'read': [], 'compute': [], 'write': [], 'total': []}
-        for _ in range(args.repeats):
-            t0 = time.perf_counter()
-            run = read_run(log)
-            t1 = time.perf_counter()
-            model = Model()
-            result = process_run(run, model)
-            t2 = time.perf_counter()
-            write_processed(Path(tmp) / 'out.mcap', run, model, result, run.calibration.to_yaml())
-            t3 = time.perf_counter()
-            for key, value in zip(stages, (t1 - t0, t2 - t1, t3 - t2, t3 - t0)):
-                stages[key].append(value)
+        simulate_to_log(spec, log, progress=False)
         size_mb = log.stat().st_size / 1e6
-    med = {k: statistics.median(v) for k, v in stages.items()}
+        runs = [command(log, out) for _ in range(args.repeats)]
+        pure = command(log, out, pure=True)
+        stage = stages(log, out)
+        longs = {str(p): command(p, Path(tmp) / 'long.mcap') for p in args.long}
+    n = runs[0]['samples']
+    rate = statistics.median(r['samples_per_s'] for r in runs)
     result = {
         'benchmark': 'process', 'samples': n, 'log_mb': size_mb, 'repeats': args.repeats,
-        'samples_per_s_median': n / med['total'],
-        'samples_per_s_runs': [n / t for t in stages['total']],
-        'stage_us_per_sample': {k: 1e6 * v / n for k, v in med.items()},
+        'load_average': list(os.getloadavg()),
+        'samples_per_s_median': rate, 'samples_per_s_runs': [r['samples_per_s'] for r in runs],
+        'numpy_path_samples_per_s': pure['samples_per_s'],
+        'ratio_to_numpy': rate / pure['samples_per_s'],
+        'user_cpu_us_per_sample_median': 1e6 * statistics.median(r['user_cpu_s'] for r in runs) / n,
+        'numpy_path_user_cpu_us_per_sample': 1e6 * pure['user_cpu_s'] / n,
+        'peak_rss_mb': max(r['peak_rss_mb'] for r in runs),
+        'numpy_path_peak_rss_mb': pure['peak_rss_mb'],
+        'stage_cpu_us_per_sample': stage,
+        'long_logs': longs,
     }
     print(f'mmd process on a {n / 1000:.0f} s log ({n} samples, {size_mb:.1f} MB): median '
-          f'{result["samples_per_s_median"]:,.0f} samples/s over {args.repeats} runs   [target >= 100,000]')
-    print('  per sample: ' + ', '.join(f'{k} {v:.2f} us' for k, v in result['stage_us_per_sample'].items()))
+          f'{rate:,.0f} samples/s over {args.repeats} runs '
+          f'({", ".join(f"{r:,.0f}" for r in result["samples_per_s_runs"])})   [target >= 500,000]')
+    print(f'  numpy path (MMD_PURE_PYTHON=1), same run: {pure["samples_per_s"]:,.0f} samples/s; '
+          f'ratio {result["ratio_to_numpy"]:.1f}')
+    print(f'  user CPU {result["user_cpu_us_per_sample_median"]:.2f} us per sample '
+          f'(numpy path {result["numpy_path_user_cpu_us_per_sample"]:.2f}); peak RSS '
+          f'{result["peak_rss_mb"]:.0f} MB (numpy path {pure["peak_rss_mb"]:.0f} MB)')
+    print('  stages alone, CPU per sample: ' + ', '.join(f'{k} {v:.2f} us' for k, v in stage.items())
+          + ' (overlapped in the command)')
+    for path, r in longs.items():
+        print(f'  {path}: {r["samples"]:,} samples, {r["samples_per_s"]:,.0f} samples/s, '
+              f'peak RSS {r["peak_rss_mb"]:.0f} MB')
+    print(f'  load average {result["load_average"][0]:.2f} (a shared machine: compare the ratios)')
     print(json.dumps(result))
 
 

@@ -78,11 +78,10 @@ class McapWriter:
         self._pos += len(data)
 
     def _new_chunk(self) -> None:
-        self._parts: list[bytes] = []
+        self._parts: list[bytes | NDArray[np.uint8]] = []
         self._size = 0
-        self._index_channels: list[NDArray[np.int64]] = []
-        self._index_times: list[NDArray[np.int64]] = []
-        self._index_offsets: list[NDArray[np.int64]] = []
+        # per channel, in time order: log times and offsets in the chunk of its messages
+        self._index: dict[int, tuple[list[NDArray[np.int64]], list[NDArray[np.int64]]]] = {}
 
     # -- registration ----------------------------------------------------------------------------
     def register_schema(self, name: str, encoding: str, data: bytes) -> int:
@@ -116,7 +115,7 @@ class McapWriter:
         """One message record."""
         rec = struct.pack('<BQHIQQ', OP['message'], 22 + len(data), channel_id, 0, log_time,
                           publish_time) + data
-        self._append(rec, np.array([channel_id]), np.array([log_time]), np.array([0]))
+        self._append(rec, [(channel_id, np.array([log_time]), np.array([0]))])
 
     def add_records(self, block: NDArray[np.uint8], channel_ids: NDArray[np.int64],
                     log_times: NDArray[np.int64], offsets: NDArray[np.int64]) -> None:
@@ -132,20 +131,21 @@ class McapWriter:
         for start in range(0, n, per_chunk):
             part = block[start:start + per_chunk]
             k = part.shape[0]
-            times = np.repeat(np.asarray(log_times[start:start + k], dtype=np.int64), len(offsets))
-            offs = (np.arange(k, dtype=np.int64)[:, None] * width + offsets[None, :]).ravel()
-            chans = np.tile(np.asarray(channel_ids, dtype=np.int64), k)
-            self._append(np.ascontiguousarray(part).reshape(-1), chans, times, offs)
+            times = np.asarray(log_times[start:start + k], dtype=np.int64)
+            rows = np.arange(k, dtype=np.int64) * width
+            self._append(np.ascontiguousarray(part).reshape(-1),
+                         [(int(cid), times, rows + int(off)) for cid, off in zip(channel_ids, offsets)])
             if self._size + width > self.chunk_size:   # no room for another sample
                 self.flush_chunk()
 
-    def _append(self, data: bytes | NDArray[np.uint8], channels: NDArray[np.int64],
-                times: NDArray[np.int64], offsets: NDArray[np.int64]) -> None:
+    def _append(self, data: bytes | NDArray[np.uint8],
+                entries: list[tuple[int, NDArray[np.int64], NDArray[np.int64]]]) -> None:
         """Records (bytes, or a contiguous uint8 array kept as it is until the chunk is
-        written) with their channels, log times and offsets in ``data``."""
-        self._index_channels.append(channels)
-        self._index_times.append(times)
-        self._index_offsets.append(offsets + self._size)
+        written) and, per channel, the log times and offsets in ``data`` of its messages."""
+        for cid, times, offsets in entries:
+            lists = self._index.setdefault(cid, ([], []))
+            lists[0].append(times)
+            lists[1].append(offsets + self._size)
         self._parts.append(data)
         self._size += len(data)
         if self._size >= self.chunk_size:
@@ -157,11 +157,10 @@ class McapWriter:
             return
         # one block of records (the usual case) is compressed where it lies, without a copy
         records = self._parts[0] if len(self._parts) == 1 else b''.join(self._parts)
-        chans = np.concatenate(self._index_channels)
-        times = np.concatenate(self._index_times)
-        offsets = np.concatenate(self._index_offsets)
+        index = {cid: (np.concatenate(t), np.concatenate(o)) for cid, (t, o) in self._index.items()}
         self._new_chunk()
-        start, end = int(times.min()), int(times.max())
+        start = min(int(t.min()) for t, _ in index.values())
+        end = max(int(t.max()) for t, _ in index.values())
         self._start_time = start if self._start_time is None else min(self._start_time, start)
         self._end_time = max(self._end_time, end)
         compressed = self._compress(records)
@@ -172,18 +171,15 @@ class McapWriter:
         self._write(chunk)
         index_start = self._pos
         index_offsets = {}
-        order = np.argsort(chans, kind='stable')
-        chans, times, offsets = chans[order], times[order], offsets[order]
-        bounds = np.flatnonzero(np.diff(chans)) + 1
-        for lo, hi in zip(np.r_[0, bounds], np.r_[bounds, chans.size]):
-            cid = int(chans[lo])
-            entries = np.empty((hi - lo, 2), dtype='<u8')
-            entries[:, 0] = times[lo:hi]
-            entries[:, 1] = offsets[lo:hi]
+        for cid in sorted(index):
+            times, offsets = index[cid]
+            entries = np.empty((times.size, 2), dtype='<u8')
+            entries[:, 0] = times
+            entries[:, 1] = offsets
             index_offsets[cid] = self._pos
             self._write(_record('message_index', struct.pack('<HI', cid, entries.nbytes)
                                 + entries.tobytes()))
-            self._counts[cid] = self._counts.get(cid, 0) + (hi - lo)
+            self._counts[cid] = self._counts.get(cid, 0) + times.size
         offsets_map = b''.join(struct.pack('<HQ', c, o) for c, o in index_offsets.items())
         self._chunk_indexes.append(_record(
             'chunk_index', struct.pack('<QQQQ', start, end, chunk_start, len(chunk))

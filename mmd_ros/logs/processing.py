@@ -44,6 +44,9 @@ __all__ = [
 
 #: Samples per block: bounds memory, keeps the working arrays small, paces the progress.
 BLOCK = 65536
+#: Chunk size of processed logs [bytes]: fewer per-chunk costs than the 1 MiB of a live
+#: recording, which keeps chunks small so that a crash loses little.
+PROCESSED_CHUNK_BYTES = 4 << 20
 CSV_HEADER = ('stamp_ns,x_m,y_m,z_m,roll_rad,pitch_rad,yaw_rad,valid,converged,iterations,'
               'residual_m,' + ','.join(f'bar{i}_m' for i in range(1, 7)) + ',temp_change_c')
 
@@ -211,7 +214,7 @@ class ProcessedLogWriter:
     def __init__(self, path: Path, device: DeviceDescription, model: Model,
                  calibration_text: str, stamp_ns: int) -> None:
         self.device = device
-        self._log = LogWriter(path, level=FAST_ZSTD_LEVEL)
+        self._log = LogWriter(path, level=FAST_ZSTD_LEVEL, chunk_size=PROCESSED_CHUNK_BYTES)
         try:
             self._log.write_string(TOPIC_DEVICE, stamp_ns, device.to_yaml())
             self._log.write_string(TOPIC_CALIBRATION, stamp_ns, calibration_text)
