@@ -3,8 +3,7 @@
  * checks the two against each other:
  *
  *   solve_stream        ForwardKinematics.solve, sample after sample (core/kinematics.py)
- *   solve_batch         ForwardKinematics._solve_chunk, every sample on its own (kinematics.py)
- *   solve_series        ForwardKinematics.solve_series: seeds, interpolated guesses, batch
+ *   solve_batch         ForwardKinematics._solve_chunk and solve_series, samples on their own
  *   pose_covariance     propagate_covariance, J^-1 S J^-T per sample (kinematics.py)
  *   cdf_eval            CdfBank.__call__, the piecewise-linear CDFs of Eq. (10) (calibration.py)
  *   play_directions     HysteresisTerm.directions, the play operator (model.py)
@@ -572,85 +571,31 @@ done:
 }
 
 PyDoc_STRVAR(solve_batch_doc,
-"solve_batch(problem, lengths, guess, poses, status, converged, iterations, residual,\n"
-"            condition, jacobian_inverse) -> None\n\n"
-"Forward kinematics of N independent samples, as ForwardKinematics._solve_chunk; releases\n"
-"the GIL. problem as for solve_stream; lengths (N, 6) [m]; guess (N, 6) float64 start poses,\n"
-"or None (the home seeds only). Outputs as for solve_stream; jacobian_inverse (N, 6, 6)\n"
-"float64 (dp/dd, NaN unless accepted) or None.");
+"solve_batch(problem, lengths, guess, stride, start, stop, poses, status, converged,\n"
+"            iterations, residual, condition, jacobian_inverse) -> None\n\n"
+"Samples start..stop of N independent samples, lengths (N, 6) [m], as the numpy path of\n"
+"ForwardKinematics solves them; releases the GIL. stride 0: solve_batch, from guess (N, 6)\n"
+"float64 start poses (a row with a non-finite value: none) or None (the home seeds only);\n"
+"stride > 0 (guess None): solve_series, every stride-th sample solved from the home seeds and\n"
+"the others from the poses interpolated between those (_series_guess). Outputs for the\n"
+"stop - start samples, as for solve_stream; jacobian_inverse (M, 6, 6) float64 (dp/dd, NaN\n"
+"unless accepted) or None.");
 
 static PyObject *solve_batch(PyObject *self, PyObject *args)
 {
     (void)self;
-    PyObject *o[10];
-    if (!PyArg_ParseTuple(args, "OOOOOOOOOO", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6],
-                          &o[7], &o[8], &o[9]))
-        return NULL;
-    const Py_ssize_t n = rows_of(o[1], "lengths");
-    if (n < 0)
-        return NULL;
-    Spec spec[] = {
-        {o[0], 0, P_SIZE, 8, "d", "problem", 0},
-        {o[1], 0, 6 * n, 8, "d", "lengths", 0},
-        {o[2], 0, 6 * n, 8, "d", "guess", 1},
-        {o[3], 1, 6 * n, 8, "d", "poses", 0},
-        {o[4], 1, n, 1, "b", "status", 0},
-        {o[5], 1, n, 1, "?", "converged", 0},
-        {o[6], 1, n, 8, "q", "iterations", 0},
-        {o[7], 1, n, 8, "d", "residual", 0},
-        {o[8], 1, n, 8, "d", "condition", 0},
-        {o[9], 1, 36 * n, 8, "d", "jacobian_inverse", 1},
-    };
-    Buffers bufs = {.got = 0};
-    void *ptr[10];
-    Problem pb;
-    PyObject *result = NULL;
-    if (acquire(&bufs, spec, 10, ptr) < 0 || problem_from((const double *)ptr[0], &pb) < 0)
-        goto done;
-    {
-        const double *lengths = ptr[1], *guess = ptr[2];
-        double *poses = ptr[3], *resid = ptr[7], *cond = ptr[8], *jinv = ptr[9];
-        signed char *status = ptr[4];
-        unsigned char *conv = ptr[5];
-        long long *iters = ptr[6];
-        Py_BEGIN_ALLOW_THREADS
-        Result r;
-        for (Py_ssize_t i = 0; i < n; i++) {
-            const double *g = guess && all_finite(guess + 6 * i, 6) ? guess + 6 * i : NULL;
-            solve_seeds(&pb, lengths + 6 * i, g, NULL, 0.0, &r);
-            store(&r, i, poses, status, conv, iters, resid, cond, jinv);
-        }
-        Py_END_ALLOW_THREADS
-    }
-    Py_INCREF(Py_None);
-    result = Py_None;
-done:
-    release(&bufs);
-    return result;
-}
-
-PyDoc_STRVAR(solve_series_doc,
-"solve_series(problem, lengths, stride, start, stop, poses, status, converged, iterations,\n"
-"             residual, condition, jacobian_inverse) -> None\n\n"
-"Samples start..stop of ForwardKinematics.solve_series on the numpy path: every stride-th\n"
-"sample of lengths (N, 6) solved from the home seeds, the others from the poses interpolated\n"
-"between those (_series_guess), as solve_batch; releases the GIL. Outputs as for solve_batch,\n"
-"for the stop - start samples.");
-
-static PyObject *solve_series(PyObject *self, PyObject *args)
-{
-    (void)self;
-    PyObject *o[10];
+    PyObject *o[11];
     Py_ssize_t stride, start, stop;
-    if (!PyArg_ParseTuple(args, "OOnnnOOOOOOO", &o[0], &o[1], &stride, &start, &stop, &o[2],
-                          &o[3], &o[4], &o[5], &o[6], &o[7], &o[8]))
+    if (!PyArg_ParseTuple(args, "OOOnnnOOOOOOO", &o[0], &o[1], &o[10], &stride, &start, &stop,
+                          &o[2], &o[3], &o[4], &o[5], &o[6], &o[7], &o[8]))
         return NULL;
     const Py_ssize_t n = rows_of(o[1], "lengths");
     if (n < 0)
         return NULL;
     const Py_ssize_t m = stop - start;
-    if (stride < 1 || start < 0 || stop > n || m < 0) {
-        PyErr_SetString(PyExc_ValueError, "need stride >= 1 and 0 <= start <= stop <= N");
+    if (stride < 0 || start < 0 || stop > n || m < 0 || (stride > 0 && o[10] != Py_None)) {
+        PyErr_SetString(PyExc_ValueError, "need stride >= 0 (no guess with a stride) and "
+                        "0 <= start <= stop <= N");
         return NULL;
     }
     Spec spec[] = {
@@ -663,48 +608,56 @@ static PyObject *solve_series(PyObject *self, PyObject *args)
         {o[6], 1, m, 8, "d", "residual", 0},
         {o[7], 1, m, 8, "d", "condition", 0},
         {o[8], 1, 36 * m, 8, "d", "jacobian_inverse", 1},
+        {o[10], 0, 6 * n, 8, "d", "guess", 1},
     };
     Buffers bufs = {.got = 0};
-    void *ptr[9];
+    void *ptr[10];
     Problem pb;
     PyObject *result = NULL;
     double *seeds = NULL;
-    if (acquire(&bufs, spec, 9, ptr) < 0 || problem_from((const double *)ptr[0], &pb) < 0)
+    if (acquire(&bufs, spec, 10, ptr) < 0 || problem_from((const double *)ptr[0], &pb) < 0)
         goto done;
-    const Py_ssize_t n_seeds = (n + stride - 1) / stride;
-    const Py_ssize_t s0 = m ? start / stride : 0;
-    Py_ssize_t s1 = m ? (stop - 1) / stride + 1 : 0;
+    const Py_ssize_t n_seeds = stride ? (n + stride - 1) / stride : 0;
+    const Py_ssize_t s0 = m && stride ? start / stride : 0;
+    Py_ssize_t s1 = m && stride ? (stop - 1) / stride + 1 : -1;
     if (s1 > n_seeds - 1)
         s1 = n_seeds - 1;
-    seeds = PyMem_RawMalloc((size_t)(s1 - s0 + 1) * 6 * sizeof(double));
+    seeds = PyMem_RawMalloc((size_t)(s1 - s0 + 2) * 6 * sizeof(double));
     if (!seeds) {
         PyErr_NoMemory();
         goto done;
     }
     {
-        const double *lengths = ptr[1];
+        const double *lengths = ptr[1], *guess = ptr[9];
         double *poses = ptr[2], *resid = ptr[6], *cond = ptr[7], *jinv = ptr[8];
         signed char *status = ptr[3];
         unsigned char *conv = ptr[4];
         long long *iters = ptr[5];
         Py_BEGIN_ALLOW_THREADS
         Result r;
-        for (Py_ssize_t s = s0; m && s <= s1; s++) {
+        for (Py_ssize_t s = s0; s <= s1; s++) {
             solve_seeds(&pb, lengths + 6 * s * stride, NULL, NULL, 0.0, &r);
             memcpy(seeds + 6 * (s - s0), r.pose, sizeof r.pose);   /* NaN unless accepted */
         }
         for (Py_ssize_t k = start; k < stop; k++) {
-            Py_ssize_t i = k / stride;
-            if (i > n_seeds - 1)
-                i = n_seeds - 1;
-            const Py_ssize_t j = i + 1 < n_seeds ? i + 1 : n_seeds - 1;
-            const Py_ssize_t span = (j - i) * stride > 1 ? (j - i) * stride : 1;
-            const double frac = (double)(k - i * stride) / (double)span;
-            const double *si = seeds + 6 * (i - s0), *sj = seeds + 6 * (j - s0);
             double g[6];
-            for (int c = 0; c < 6; c++)
-                g[c] = (1.0 - frac) * si[c] + frac * sj[c];
-            solve_seeds(&pb, lengths + 6 * k, all_finite(g, 6) ? g : NULL, NULL, 0.0, &r);
+            const double *first = NULL;
+            if (stride) {
+                Py_ssize_t i = k / stride;
+                if (i > n_seeds - 1)
+                    i = n_seeds - 1;
+                const Py_ssize_t j = i + 1 < n_seeds ? i + 1 : n_seeds - 1;
+                const Py_ssize_t span = (j - i) * stride > 1 ? (j - i) * stride : 1;
+                const double frac = (double)(k - i * stride) / (double)span;
+                const double *si = seeds + 6 * (i - s0), *sj = seeds + 6 * (j - s0);
+                for (int c = 0; c < 6; c++)
+                    g[c] = (1.0 - frac) * si[c] + frac * sj[c];
+                first = g;
+            } else if (guess) {
+                first = guess + 6 * k;
+            }
+            solve_seeds(&pb, lengths + 6 * k, first && all_finite(first, 6) ? first : NULL,
+                        NULL, 0.0, &r);
             store(&r, k - start, poses, status, conv, iters, resid, cond, jinv);
         }
         Py_END_ALLOW_THREADS
@@ -1153,7 +1106,6 @@ done:
 static PyMethodDef methods[] = {
     {"solve_stream", solve_stream, METH_VARARGS, solve_stream_doc},
     {"solve_batch", solve_batch, METH_VARARGS, solve_batch_doc},
-    {"solve_series", solve_series, METH_VARARGS, solve_series_doc},
     {"pose_covariance", pose_covariance, METH_VARARGS, pose_covariance_doc},
     {"cdf_eval", cdf_eval, METH_VARARGS, cdf_eval_doc},
     {"play_directions", play_directions, METH_VARARGS, play_directions_doc},

@@ -13,7 +13,7 @@ import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from enum import IntEnum
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -693,26 +693,19 @@ class ForwardKinematics:
         out = BatchSolution(np.empty((n, 6)), np.empty(n, dtype=bool), np.empty(n, dtype=np.int8),
                             np.empty(n, dtype=np.int64), np.empty(n), np.empty(n),
                             np.empty((n, 6, 6)) if with_inverse else None)
-        solve = self._chunk_compiled if use_compiled(compiled) else self._solve_chunk
-
-        def run(start: int) -> None:
-            part = slice(start, start + CHUNK)
-            solve(d[part], None if g is None else g[part], out, part)
-
-        starts = range(0, n, CHUNK)
-        workers = workers or min(os.cpu_count() or 1, 4)
-        if workers > 1 and len(starts) > 1:
-            list(_pool(workers).map(run, starts))
+        if use_compiled(compiled):
+            _in_parts(lambda part: self._compiled(d, g, 0, out, part), n, CHUNK, workers)
         else:
-            for start in starts:
-                run(start)
+            _in_parts(lambda part: self._solve_chunk(d[part], None if g is None else g[part], out,
+                                                     part), n, CHUNK, workers)
         return out
 
-    def _chunk_compiled(self, d: FloatArray, guess: FloatArray | None, out: BatchSolution,
-                        part: slice) -> None:
-        fast.solve_batch(self._packed, d, guess, out.poses[part], out.status[part],
-                         out.converged[part], out.iterations[part], out.residual_m[part],
-                         out.condition[part],
+    def _compiled(self, d: FloatArray, guess: FloatArray | None, stride: int,
+                  out: BatchSolution, part: slice) -> None:
+        """Samples ``part`` of ``d`` through the compiled batch solver (see ``_fast.c``)."""
+        fast.solve_batch(self._packed, d, guess, stride, part.start, part.stop, out.poses[part],
+                         out.status[part], out.converged[part], out.iterations[part],
+                         out.residual_m[part], out.condition[part],
                          None if out.jacobian_inverse is None else out.jacobian_inverse[part])
 
     def solve_series(self, lengths: ArrayLike, *, stride: int = 16, with_inverse: bool = False,
@@ -737,22 +730,8 @@ class ForwardKinematics:
         out = BatchSolution(np.empty((n, 6)), np.empty(n, dtype=bool), np.empty(n, dtype=np.int8),
                             np.empty(n, dtype=np.int64), np.empty(n), np.empty(n),
                             np.empty((n, 6, 6)) if with_inverse else None)
-        step = max(stride, CHUNK // stride * stride)
-
-        def run(start: int) -> None:
-            part = slice(start, min(start + step, n))
-            fast.solve_series(self._packed, d, stride, part.start, part.stop, out.poses[part],
-                              out.status[part], out.converged[part], out.iterations[part],
-                              out.residual_m[part], out.condition[part],
-                              None if out.jacobian_inverse is None else out.jacobian_inverse[part])
-
-        starts = range(0, n, step)
-        workers = min(os.cpu_count() or 1, 4)
-        if workers > 1 and len(starts) > 1:
-            list(_pool(workers).map(run, starts))
-        else:
-            for start in starts:
-                run(start)
+        _in_parts(lambda part: self._compiled(d, None, stride, out, part), n,
+                  max(stride, CHUNK // stride * stride))
         return out
 
     def _solve_chunk(self, d: FloatArray, guess: FloatArray | None, out: BatchSolution,
@@ -872,6 +851,20 @@ class ForwardKinematics:
 _POOLS: dict[int, ThreadPoolExecutor] = {}
 
 
+def _in_parts(run: Callable[[slice], object], n: int, step: int, workers: int | None = None) -> None:
+    """``run`` on the parts [k, k + step) of range(n), on a pool of ``workers`` threads (default:
+    the machine's cores, at most 4) when there is more than one part. The compiled helpers and
+    numpy's array operations release the GIL, so the parts run on every core."""
+    starts = range(0, n, step)
+    workers = workers or min(os.cpu_count() or 1, 4)
+    parts = [slice(k, min(k + step, n)) for k in starts]
+    if workers > 1 and len(parts) > 1:
+        list(_pool(workers).map(run, parts))
+    else:
+        for part in parts:
+            run(part)
+
+
 def _pool(workers: int) -> ThreadPoolExecutor:
     """A pool of ``workers`` threads kept for the process (created on first use)."""
     if workers not in _POOLS:
@@ -905,18 +898,9 @@ def propagate_covariance(jac_inverse: ArrayLike, length_covariance: ArrayLike,
         np.broadcast_to(np.asarray(plate_scale, dtype=np.float64), (n,)))
     if use_compiled(compiled):
         out = np.empty((n, 6, 6))
-
-        def run(start: int) -> None:
-            part = slice(start, start + CHUNK)
-            fast.pose_covariance(jinv[part], s_cov if s_cov.ndim == 2 else s_cov[part],
-                                 None if scale is None else scale[part], out[part])
-
-        starts = range(0, n, CHUNK)
-        if len(starts) > 1:
-            list(_pool(min(os.cpu_count() or 1, 4)).map(run, starts))
-        else:
-            for start in starts:
-                run(start)
+        _in_parts(lambda part: fast.pose_covariance(
+            jinv[part], s_cov if s_cov.ndim == 2 else s_cov[part],
+            None if scale is None else scale[part], out[part]), n, CHUNK)
         return out
     cov = jinv @ s_cov @ np.swapaxes(jinv, -1, -2)
     if scale is not None:
