@@ -30,7 +30,7 @@ import numpy as np
 from mmd_ros.core.compiled import AVAILABLE as COMPILED
 from mmd_ros.core.device import find_config, load_device
 from mmd_ros.core.kinematics import FkLimits, ForwardKinematics, inverse_kinematics
-from mmd_ros.twin.mechanism import bar_legs, rotation_matrices, within_workspace
+from mmd_ros.twin.mechanism import bar_legs, random_poses, rotation_matrices
 
 DEVICE = load_device(find_config('mmd_prototype.yaml'))
 
@@ -113,17 +113,7 @@ def batch(fk: ForwardKinematics, n: int, repeats: int) -> dict:
 
 def unrelated_poses(n: int, seed: int, inside: bool) -> tuple[np.ndarray, np.ndarray]:
     """Random poses around the workspace and their lengths, from the twin's own kinematics."""
-    rng = np.random.default_rng(seed)
-    m = min(40 * n, 400_000)
-    p = np.column_stack([rng.uniform(-0.16, 0.16, (m, 2)), rng.uniform(0.22, 0.38, m),
-                         rng.uniform(-0.3, 0.3, (m, 2)), rng.uniform(-0.8, 0.8, m)])
-    rot = rotation_matrices(p)
-    legs = bar_legs(DEVICE.geometry.upper, DEVICE.geometry.lower, p, rot)
-    d = np.linalg.norm(legs, axis=2)
-    lo, hi = DEVICE.bar_range_m
-    keep = within_workspace(DEVICE, legs, rot) if inside else np.all((d > lo) & (d < hi), axis=1)
-    assert keep.sum() >= n, 'too few poses drawn'
-    return p[keep][:n], d[keep][:n]
+    return random_poses(DEVICE, n, seed, inside=inside)
 
 
 def other_branch(poses: np.ndarray, truth: np.ndarray) -> np.ndarray:

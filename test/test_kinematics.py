@@ -17,7 +17,7 @@ from mmd_ros.core.kinematics import (
 from mmd_ros.core.rotation import (
     angles_to_quaternion, matrix_to_angles, quaternion_to_angles, rotation_matrix,
 )
-from mmd_ros.twin.mechanism import bar_legs, rotation_matrices, within_workspace
+from mmd_ros.twin.mechanism import bar_legs, random_poses, rotation_matrices, within_workspace
 
 DEVICE = load_device(find_config('mmd_prototype.yaml'))
 GEOMETRY = DEVICE.geometry
@@ -33,20 +33,9 @@ def assert_identical(a, b, fields=SOLUTION_FIELDS):
 
 
 def unrelated_poses(n: int, seed: int, *, inside: bool = True):
-    """n random poses across a box around the workspace, each unrelated to the one before,
-    and their centre distances, both from the twin's own kinematics (code independent of the
-    solver's). inside: only poses the device can reach (every bar in range and within the
-    joints' tilt limits); else every pose whose bars are in range (the issue's sampling)."""
-    rng = np.random.default_rng(seed)
-    m = 40 * n
-    p = np.column_stack([rng.uniform(-0.16, 0.16, (m, 2)), rng.uniform(0.22, 0.38, m),
-                         rng.uniform(-0.3, 0.3, (m, 2)), rng.uniform(-0.8, 0.8, m)])
-    rot = rotation_matrices(p)
-    legs = bar_legs(GEOMETRY.upper, GEOMETRY.lower, p, rot)
-    d = np.linalg.norm(legs, axis=2)
-    keep = within_workspace(DEVICE, legs, rot) if inside else np.all((d > LOW) & (d < HIGH), axis=1)
-    assert keep.sum() >= n
-    return p[keep][:n], d[keep][:n]
+    """Poses that jump between unrelated configurations and their lengths, from the twin's own
+    kinematics (code independent of the solver's)."""
+    return random_poses(DEVICE, n, seed, inside=inside)
 
 
 def wrong(poses, truth):

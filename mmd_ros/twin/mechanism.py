@@ -16,7 +16,7 @@ from scipy.spatial.transform import Rotation
 from mmd_ros.core.device import DeviceDescription
 from mmd_ros.twin.errors import WorkspaceError
 
-__all__ = ['bar_legs', 'check_workspace', 'rotation_matrices', 'within_workspace']
+__all__ = ['bar_legs', 'check_workspace', 'random_poses', 'rotation_matrices', 'within_workspace']
 
 FloatArray = NDArray[np.float64]
 
@@ -109,3 +109,26 @@ def check_workspace(device: DeviceDescription, times_s: ArrayLike, legs: FloatAr
         raise WorkspaceError(
             f'{what}: at t = {t[n]:.3f} s bar {i + 1} is {value:.3f} {unit}, {text}; '
             'move the scenario (start pose, travel or angles) back into the workspace')
+
+
+def random_poses(device: DeviceDescription, n: int, seed: int, *, inside: bool = True
+                 ) -> tuple[FloatArray, FloatArray]:
+    """n random poses across a box around the workspace, each unrelated to the one before
+    (forward-kinematics jumps), and their centre distances, from this module's kinematics.
+
+    inside : only poses the device can reach (every bar in range and within the joints' tilt
+        limits); else every pose whose bars are in range
+    returns : poses (n, 6) [m, rad], lengths (n, 6) [m]
+    """
+    rng = np.random.default_rng(seed)
+    m = min(40 * n, 400_000)
+    p = np.column_stack([rng.uniform(-0.16, 0.16, (m, 2)), rng.uniform(0.22, 0.38, m),
+                         rng.uniform(-0.3, 0.3, (m, 2)), rng.uniform(-0.8, 0.8, m)])
+    rot = rotation_matrices(p)
+    legs = bar_legs(device.geometry.upper, device.geometry.lower, p, rot)
+    d = np.linalg.norm(legs, axis=2)
+    lo, hi = device.bar_range_m
+    keep = within_workspace(device, legs, rot) if inside else np.all((d > lo) & (d < hi), axis=1)
+    if keep.sum() < n:
+        raise WorkspaceError(f'only {int(keep.sum())} of {m} random poses kept; ask for fewer')
+    return p[keep][:n], d[keep][:n]
