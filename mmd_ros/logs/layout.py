@@ -250,7 +250,7 @@ class RunStream:
                 raise LogFormatError(f'{source}: {TOPIC_RAW} names {got.names} do not match the '
                                      f'device channels {self.device.channel_names}')
             if not _increasing(got.stamps_ns, last_raw):
-                raise StampsNotIncreasing(f'{source}: the {TOPIC_RAW} stamps do not increase')
+                raise StampsNotIncreasing(f'{source}: the {TOPIC_RAW} stamps go backwards')
             last_raw = int(got.stamps_ns[-1])
             raw.append(got)
             pending += got.stamps_ns.size
@@ -271,12 +271,12 @@ def open_run(path: str | os.PathLike[str]) -> RunStream:
 
 
 def _increasing(stamps: NDArray[np.int64], last: int | None) -> bool:
-    """Whether ``stamps`` increase strictly, and after ``last``."""
+    """Whether ``stamps`` never go back, from ``last`` on."""
     if stamps.size == 0:
         return True
-    if last is not None and stamps[0] <= last:
+    if last is not None and stamps[0] < last:
         return False
-    return bool(np.all(np.diff(stamps) > 0))
+    return bool(np.all(np.diff(stamps) >= 0))
 
 
 def _run_header(reader: LogReader, source: str) -> tuple[DeviceDescription, Calibration | None, Model | None]:
