@@ -3,21 +3,30 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
 from mmd_ros.analysis.errors import AnalysisError
 from mmd_ros.analysis.iso230 import figure_table, target_table
 from mmd_ros.analysis.iso230_report import INSTRUMENTS, iso230_of_run, parse_targets
+from mmd_ros.cli.log_args import add_segment_argument
+from mmd_ros.core import jsonio, validate
 from mmd_ros.core.model import Model, load_model
 from mmd_ros.logs.layout import read_run
+from mmd_ros.logs.outputs import check_output_folder
 
 __all__ = ['register']
 
+#: What ``--out`` receives (checked against the inputs before anything is read).
+OUTPUT_FILES = ('iso230.md', 'iso230.json', 'iso230_*.png')
+#: Longest dwell asked for [s].
+MAX_DWELL_S = 3600.0
+
 
 def run_command(args: argparse.Namespace) -> int:
-    run = read_run(args.log)
+    check_output_folder('--out', args.out, [args.log, args.model, args.after, args.calibration],
+                        OUTPUT_FILES)
+    run = read_run(args.log, segment=args.segment)
     if run.problem:
         print(f'warning: {run.problem}', file=sys.stderr)
     models: dict[str, Model] = {}
@@ -41,10 +50,9 @@ def run_command(args: argparse.Namespace) -> int:
             iso230_figure(r, out / fname)
             figures[name] = fname
         (out / 'iso230.md').write_text(report.markdown(figures), encoding='utf-8')
-        (out / 'iso230.json').write_text(json.dumps(report.as_dict(), indent=2), encoding='utf-8')
+        (out / 'iso230.json').write_text(jsonio.dumps(report.as_dict()), encoding='utf-8')
     if args.json:
-        json.dump(report.as_dict(), sys.stdout, indent=2)
-        sys.stdout.write('\n')
+        jsonio.dump(report.as_dict(), sys.stdout)
         return 0
     print(f'ISO 230-2, axis {report.axis}, log {args.log}')
     for tag, text in report.models.items():
@@ -80,9 +88,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    'every sample); default all three')
     p.add_argument('--targets', help='target positions, comma separated, in mm or degrees; '
                    'default the log\'s, else clustered from the dwells')
-    p.add_argument('--min-dwell', type=float, default=0.15, dest='min_dwell',
+    p.add_argument('--min-dwell', type=validate.arg_number(low=0.0, low_open=True, high=MAX_DWELL_S),
+                   default=0.15, dest='min_dwell',
                    help='shortest stationary stretch taken as a dwell at a target [s] (default 0.15)')
     p.add_argument('--out', help='folder for iso230.md, iso230.json and the plots')
     p.add_argument('--json', action='store_true', help='print the numbers as JSON on stdout')
     p.add_argument('--verbose', action='store_true', help='also print the per-target table')
+    add_segment_argument(p)
     p.set_defaults(func=run_command)
