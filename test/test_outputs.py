@@ -119,3 +119,23 @@ def test_a_failed_simulation_leaves_nothing_and_keeps_the_old_file(folder, capsy
     refused(['simulate', '--scenario', 'random_motion', '--param', 'radius_m=5', '--out', str(old),
              '--quiet'], folder, capsys, 'no reachable waypoint')
     assert old.read_bytes() == b'an older output'
+
+
+def test_a_full_disk_ends_the_command_in_one_line_and_keeps_the_previous_output(folder, capsys, monkeypatch):
+    import errno
+
+    from mmd_ros.logs import mcap_records
+    old = folder / 'run.processed.mcap'
+    old.write_bytes(b'the previous output')
+    real = mcap_records.McapWriter.flush_chunk
+    calls = []
+
+    def full(self):
+        calls.append(1)
+        if len(calls) > 1:
+            raise OSError(errno.ENOSPC, 'No space left on device')
+        return real(self)
+
+    monkeypatch.setattr(mcap_records.McapWriter, 'flush_chunk', full)
+    err = refused(['process', str(folder / 'run.mcap'), '--quiet'], folder, capsys, 'No space left on device')
+    assert err.startswith('mmd process: error:') and old.read_bytes() == b'the previous output'

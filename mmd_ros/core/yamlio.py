@@ -101,8 +101,8 @@ def parse_yaml(text: str, source: str) -> Any:
             raise _TooLarge(f'expands to {nodes:.3g} nodes (aliases counted as copies); at most '
                             f'{MAX_YAML_NODES} are allowed')
         return loader.construct_document(node)
-    except yaml.YAMLError as exc:
-        raise ConfigError(source, '(file)', f'is not valid YAML: {exc}') from None
+    except yaml.YAMLError as exc:  # its text spans lines (with a caret under the column): one line here
+        raise ConfigError(source, '(file)', f'is not valid YAML: {" ".join(str(exc).split())}') from None
     except _TooLarge as exc:
         raise ConfigError(source, '(file)', f'is refused: its YAML {exc}') from None
     except RecursionError:
