@@ -259,6 +259,24 @@ def _map(buf: Any, off: int) -> tuple[dict[str, str], int]:
     return out, end
 
 
+def _schema_record(buf: Any, start: int) -> tuple[int, tuple[str, str, bytes]]:
+    """A schema record's id and (name, encoding, data)."""
+    (sid,) = struct.unpack_from('<H', buf, start)
+    name, off = _string(buf, start + 2)
+    encoding, off = _string(buf, off)
+    (n,) = struct.unpack_from('<I', buf, off)
+    return sid, (name, encoding, bytes(buf[off + 4:off + 4 + n]))
+
+
+def _channel_record(buf: Any, start: int) -> tuple[int, tuple[str, int, str, dict[str, str]]]:
+    """A channel record's id and (topic, schema id, message encoding, metadata)."""
+    cid, sid = struct.unpack_from('<HH', buf, start)
+    topic, off = _string(buf, start + 4)
+    encoding, off = _string(buf, off)
+    meta, _ = _map(buf, off)
+    return cid, (topic, sid, encoding, meta)
+
+
 def _index_times(buf: Any, start: int, end: int) -> tuple[int, NDArray[np.int64]]:
     """A message index record's channel and log times."""
     cid, n = struct.unpack_from('<HI', buf, start)
@@ -387,17 +405,11 @@ class LogReader:
                 if end > foot:
                     return True
                 if op == OP_SCHEMA:
-                    (sid,) = struct.unpack_from('<H', data, start)
-                    name, o = _string(data, start + 2)
-                    encoding, o = _string(data, o)
-                    (n,) = struct.unpack_from('<I', data, o)
-                    summary.schemas[sid] = (name, encoding, bytes(data[o + 4:o + 4 + n]))
+                    sid, schema = _schema_record(data, start)
+                    summary.schemas[sid] = schema
                 elif op == OP_CHANNEL:
-                    cid, sid = struct.unpack_from('<HH', data, start)
-                    topic, o = _string(data, start + 4)
-                    encoding, o = _string(data, o)
-                    meta, _ = _map(data, o)
-                    summary.channels[cid] = (topic, sid, encoding, meta)
+                    cid, channel = _channel_record(data, start)
+                    summary.channels[cid] = channel
                 elif op == OP_CHUNK_INDEX:
                     t0, t1, offset, clen = struct.unpack_from('<QQQQ', data, start)
                     (n,) = struct.unpack_from('<I', data, start + 32)
@@ -615,19 +627,11 @@ class LogReader:
 
     def _parse_record(self, op: int, buf: Any, start: int, end: int) -> None:
         if op == OP_SCHEMA:
-            (sid,) = struct.unpack_from('<H', buf, start)
-            name, off = _string(buf, start + 2)
-            encoding, off = _string(buf, off)
-            (n,) = struct.unpack_from('<I', buf, off)
-            self._schemas[sid] = (name, encoding, bytes(buf[off + 4:off + 4 + n]))
+            sid, schema = _schema_record(buf, start)
+            self._schemas[sid] = schema
         elif op == OP_CHANNEL:
-            cid, sid = struct.unpack_from('<HH', buf, start)
-            if cid in self._channels:
-                return
-            topic, off = _string(buf, start + 4)
-            encoding, off = _string(buf, off)
-            meta, _ = _map(buf, off)
-            self._channels[cid] = _Channel(topic, sid, encoding, meta)
+            cid, (topic, sid, encoding, meta) = _channel_record(buf, start)
+            self._channels.setdefault(cid, _Channel(topic, sid, encoding, meta))
         elif op == OP_MESSAGE:
             cid, _seq, log_time = struct.unpack_from('<HIQ', buf, start)
             ch = self._channels.get(cid)
