@@ -29,7 +29,6 @@ from mmd_ros.twin.recording import SimulationSpec, simulate_to_log
 BOMB = 'format_version: 1\na: &a ["x","x","x","x","x","x","x","x","x"]\n' + ''.join(
     f'{b}: &{b} [{", ".join([f"*{a}"] * 9)}]\n' for a, b in zip('abcdefgh', 'bcdefghi'))
 RECURSIVE = 'format_version: 1\nthermal: &t {mode: auto, loop: *t}\n'
-HYST = '{type: hysteresis, amplitude_um: 0.3, travel_um: 5.0}'
 
 
 def model(body: str) -> str:
@@ -45,6 +44,18 @@ def hysteresis(**params: str) -> str:
 def term(kind: str, **params: str) -> str:
     inner = ', '.join(f'{k}: {v}' for k, v in params.items())
     return model(f'terms: [{{type: {kind}, {inner}}}]')
+
+
+WITH_MODEL = 'process {log} --model m.yaml'
+WITH_CALIBRATION = 'process {log} --calibration c.yaml'
+
+
+def edited(kind: str, old: str, new: str):
+    """A file of ``kind`` ('device' or 'cal', valid text from the fixture) with one edit."""
+    def text(env):
+        assert old in env[kind]
+        return env[kind].replace(old, new, 1)
+    return text
 
 
 SIX3 = '[[1,2,3],[1,2,3],[1,2,3],[1,2,3],[1,2,3],[1,2,3]]'
@@ -108,80 +119,78 @@ def env(tmp_path_factory):
 # (id, files {name: text | bytes | callable(env)}, argv with {log} {out} {dir} placeholders, expected)
 CASES = [
     # -- model files: every field checked, unknown keys refused, sizes bounded --------------------
-    ('model sigma nan', {'m.yaml': model('length_sigma_um: .nan')}, 'process {log} --model m.yaml', 'length_sigma_um'),
-    ('model sigma inf', {'m.yaml': model('length_sigma_um: .inf')}, 'process {log} --model m.yaml', 'length_sigma_um'),
-    ('model sigma bool', {'m.yaml': model('length_sigma_um: true')}, 'process {log} --model m.yaml', 'length_sigma_um'),
-    ('model sigma negative', {'m.yaml': model('length_sigma_um: -1')}, 'process {log} --model m.yaml', 'length_sigma_um'),
-    ('model sigma text', {'m.yaml': model('length_sigma_um: abc')}, 'process {log} --model m.yaml', 'length_sigma_um'),
-    ('model travel nan', {'m.yaml': hysteresis(travel_um='.nan')}, 'process {log} --model m.yaml', 'travel_um'),
-    ('model travel zero', {'m.yaml': hysteresis(travel_um='0')}, 'process {log} --model m.yaml', 'travel_um'),
-    ('model amplitude text', {'m.yaml': hysteresis(amplitude_um='"abc"')}, 'process {log} --model m.yaml', 'amplitude_um'),
+    ('model sigma nan', {'m.yaml': model('length_sigma_um: .nan')}, WITH_MODEL, 'length_sigma_um'),
+    ('model sigma inf', {'m.yaml': model('length_sigma_um: .inf')}, WITH_MODEL, 'length_sigma_um'),
+    ('model sigma bool', {'m.yaml': model('length_sigma_um: true')}, WITH_MODEL, 'length_sigma_um'),
+    ('model sigma negative', {'m.yaml': model('length_sigma_um: -1')}, WITH_MODEL, 'length_sigma_um'),
+    ('model sigma text', {'m.yaml': model('length_sigma_um: abc')}, WITH_MODEL, 'length_sigma_um'),
+    ('model travel nan', {'m.yaml': hysteresis(travel_um='.nan')}, WITH_MODEL, 'travel_um'),
+    ('model travel zero', {'m.yaml': hysteresis(travel_um='0')}, WITH_MODEL, 'travel_um'),
+    ('model amplitude text', {'m.yaml': hysteresis(amplitude_um='"abc"')}, WITH_MODEL, 'amplitude_um'),
     ('model amplitude bools', {'m.yaml': hysteresis(amplitude_um='[true, true, true, true, true, true]')},
-     'process {log} --model m.yaml', 'amplitude_um'),
-    ('model amplitude length', {'m.yaml': hysteresis(amplitude_um='[1, 2]')}, 'process {log} --model m.yaml', 'amplitude_um'),
-    ('model amplitude inf', {'m.yaml': hysteresis(amplitude_um='.inf')}, 'process {log} --model m.yaml', 'amplitude_um'),
-    ('model unknown key', {'m.yaml': model('thermall: {mode: auto}')}, 'process {log} --model m.yaml', 'did you mean thermal'),
+     WITH_MODEL, 'amplitude_um'),
+    ('model amplitude length', {'m.yaml': hysteresis(amplitude_um='[1, 2]')}, WITH_MODEL, 'amplitude_um'),
+    ('model amplitude inf', {'m.yaml': hysteresis(amplitude_um='.inf')}, WITH_MODEL, 'amplitude_um'),
+    ('model unknown key', {'m.yaml': model('thermall: {mode: auto}')}, WITH_MODEL, 'did you mean thermal'),
     ('model unknown thermal key', {'m.yaml': model('thermal: {mode: auto, plate_expansio: true}')},
-     'process {log} --model m.yaml', 'thermal.plate_expansio'),
-    ('model unknown term key', {'m.yaml': hysteresis(travl_um='5')}, 'process {log} --model m.yaml', 'travl_um'),
-    ('model thermal mode', {'m.yaml': model('thermal: {mode: twice}')}, 'process {log} --model m.yaml', 'thermal.mode'),
-    ('model plate bool', {'m.yaml': model('thermal: {plate_expansion: 1}')}, 'process {log} --model m.yaml',
+     WITH_MODEL, 'thermal.plate_expansio'),
+    ('model unknown term key', {'m.yaml': hysteresis(travl_um='5')}, WITH_MODEL, 'travl_um'),
+    ('model thermal mode', {'m.yaml': model('thermal: {mode: twice}')}, WITH_MODEL, 'thermal.mode'),
+    ('model plate bool', {'m.yaml': model('thermal: {plate_expansion: 1}')}, WITH_MODEL,
      'plate_expansion'),
-    ('model terms not list', {'m.yaml': model('terms: {type: hysteresis}')}, 'process {log} --model m.yaml', 'terms'),
-    ('model term type', {'m.yaml': model('terms: [{type: magic}]')}, 'process {log} --model m.yaml', 'terms[0].type'),
-    ('model not a mapping', {'m.yaml': '[1, 2, 3]\n'}, 'process {log} --model m.yaml', 'format_version'),
-    ('model empty', {'m.yaml': ''}, 'process {log} --model m.yaml', 'format_version'),
-    ('model binary', {'m.yaml': b'\x89PNG\r\n\x1a\n\x00\x00\xff\xfe' * 10}, 'process {log} --model m.yaml',
+    ('model terms not list', {'m.yaml': model('terms: {type: hysteresis}')}, WITH_MODEL, 'terms'),
+    ('model term type', {'m.yaml': model('terms: [{type: magic}]')}, WITH_MODEL, 'terms[0].type'),
+    ('model not a mapping', {'m.yaml': '[1, 2, 3]\n'}, WITH_MODEL, 'format_version'),
+    ('model empty', {'m.yaml': ''}, WITH_MODEL, 'format_version'),
+    ('model binary', {'m.yaml': b'\x89PNG\r\n\x1a\n\x00\x00\xff\xfe' * 10}, WITH_MODEL,
      'not a text file'),
     ('model bomb', {'m.yaml': BOMB}, 'process {log} --json --model m.yaml', 'expands to'),
-    ('model recursive alias', {'m.yaml': RECURSIVE}, 'process {log} --model m.yaml', 'recursion'),
+    ('model recursive alias', {'m.yaml': RECURSIVE}, WITH_MODEL, 'recursion'),
     ('model deep nesting', {'m.yaml': 'format_version: 1\nx: ' + '[' * 5000 + ']' * 5000 + '\n'},
-     'process {log} --model m.yaml', 'm.yaml'),
+     WITH_MODEL, 'm.yaml'),
     ('model oversized', {'m.yaml': lambda env: 'format_version: 1\n#' + 'x' * (MAX_YAML_BYTES + 10)},
-     'process {log} --model m.yaml', 'larger than'),
-    ('model is a folder', {'m.yaml/keep': 'x'}, 'process {log} --model m.yaml', 'cannot be read'),
+     WITH_MODEL, 'larger than'),
+    ('model is a folder', {'m.yaml/keep': 'x'}, WITH_MODEL, 'cannot be read'),
     ('model missing', {}, 'process {log} --model nothing.yaml', 'nothing.yaml'),
-    ('model invalid yaml', {'m.yaml': 'format_version: 1\nthermal: [\n'}, 'process {log} --model m.yaml', 'not valid YAML'),
+    ('model invalid yaml', {'m.yaml': 'format_version: 1\nthermal: [\n'}, WITH_MODEL, 'not valid YAML'),
     ('cyclic channels bools', {'m.yaml': term('cyclic_error', period_um='20', resolution_nm='50',
                                               channels='[true, 1, 2, 3, 4, 5]', count_origin='0',
-                                              sin_nm='0', cos_nm='0')}, 'process {log} --model m.yaml', 'channels'),
-    ('thermal gain inf', {'m.yaml': term('thermal_gain', gain='.inf')}, 'process {log} --model m.yaml', 'gain'),
+                                              sin_nm='0', cos_nm='0')}, WITH_MODEL, 'channels'),
+    ('thermal gain inf', {'m.yaml': term('thermal_gain', gain='.inf')}, WITH_MODEL, 'gain'),
     ('knots text', {'m.yaml': term('cdf_offsets', knots_mm='[["a", "b"]]', offsets_um='[[0, 0]]')},
-     'process {log} --model m.yaml', 'knots_mm'),
-    ('drift rate text', {'m.yaml': term('drift', rate_um_per_h='"fast"')}, 'process {log} --model m.yaml', 'rate_um_per_h'),
+     WITH_MODEL, 'knots_mm'),
+    ('drift rate text', {'m.yaml': term('drift', rate_um_per_h='"fast"')}, WITH_MODEL, 'rate_um_per_h'),
     ('joint offsets shape', {'m.yaml': term('joint_offsets', upper_mm='[[1, 2]]', lower_mm=SIX3)},
-     'process {log} --model m.yaml', 'upper_mm'),
+     WITH_MODEL, 'upper_mm'),
     ('sag vertical bools', {'m.yaml': term('gravity_sag', upper_mm=SIX3, lower_mm=SIX3, sag_um='0',
-                                           vertical='[true, false, true]')}, 'process {log} --model m.yaml', 'vertical'),
+                                           vertical='[true, false, true]')}, WITH_MODEL, 'vertical'),
     # -- calibration files ------------------------------------------------------------------------
-    ('calibration binary', {'c.yaml': b'\x00\xff' * 64}, 'process {log} --calibration c.yaml', 'not a text file'),
-    ('calibration valid text', {'c.yaml': lambda env: env['cal'].replace('valid: true', 'valid: "no"')},
-     'process {log} --calibration c.yaml', 'valid'),
+    ('calibration binary', {'c.yaml': b'\x00\xff' * 64}, WITH_CALIBRATION, 'not a text file'),
+    ('calibration valid text', {'c.yaml': edited('cal', 'valid: true', 'valid: "no"')}, WITH_CALIBRATION, 'valid'),
     ('calibration ambient nan', {'c.yaml': lambda env: env['cal'] + 'ambient_c: .nan\n'},
-     'process {log} --calibration c.yaml', 'ambient_c'),
-    ('calibration counts text', {'c.yaml': lambda env: env['cal'].replace('counts:\n', 'counts:\n    - abc\n', 1)},
-     'process {log} --calibration c.yaml', 'counts'),
-    ('calibration no bars', {'c.yaml': 'format_version: 1\ndevice: x\n'}, 'process {log} --calibration c.yaml', 'bars'),
+     WITH_CALIBRATION, 'ambient_c'),
+    ('calibration counts text', {'c.yaml': edited('cal', 'counts:\n', 'counts:\n    - abc\n')}, WITH_CALIBRATION,
+     'counts'),
+    ('calibration no bars', {'c.yaml': 'format_version: 1\ndevice: x\n'}, WITH_CALIBRATION, 'bars'),
     ('calibration thermal zero text', {'c.yaml': lambda env: env['cal'] + 'thermal_zero_um: {ref1: abc}\n'},
-     'process {log} --calibration c.yaml', 'thermal_zero_um.ref1'),
-    ('calibration bomb', {'c.yaml': BOMB}, 'process {log} --calibration c.yaml', 'expands to'),
+     WITH_CALIBRATION, 'thermal_zero_um.ref1'),
+    ('calibration bomb', {'c.yaml': BOMB}, WITH_CALIBRATION, 'expands to'),
     # -- device files -----------------------------------------------------------------------------
     ('device bomb', {'d.yaml': BOMB}, 'simulate --device d.yaml', 'expands to'),
-    ('device range bools', {'d.yaml': lambda env: env['device'].replace('range_mm: [250.0, 376.0]', 'range_mm: [true, 376.0]')},
+    ('device range bools', {'d.yaml': edited('device', 'range_mm: [250.0,', 'range_mm: [true,')},
      'simulate --device d.yaml', 'bars.range_mm'),
-    ('device rate nan', {'d.yaml': lambda env: env['device'].replace('sample_rate_hz: 1000.0', 'sample_rate_hz: .nan')},
+    ('device rate nan', {'d.yaml': edited('device', 'sample_rate_hz: 1000.0', 'sample_rate_hz: .nan')},
      'simulate --device d.yaml', 'terminal.sample_rate_hz'),
-    ('device rate too high', {'d.yaml': lambda env: env['device'].replace('sample_rate_hz: 1000.0', 'sample_rate_hz: 1.0e+6')},
+    ('device rate too high', {'d.yaml': edited('device', 'sample_rate_hz: 1000.0', 'sample_rate_hz: 1.0e+6')},
      'simulate --device d.yaml', '10000'),
-    ('device bar bool', {'d.yaml': lambda env: env['device'].replace('bar: 1}', 'bar: true}')},
-     'simulate --device d.yaml', 'bar'),
+    ('device bar bool', {'d.yaml': edited('device', 'bar: 1}', 'bar: true}')}, 'simulate --device d.yaml', 'bar'),
     ('device binary', {'d.yaml': b'\xfe\xff\x00' * 30}, 'workspace --device d.yaml', 'not a text file'),
-    ('device joints text', {'d.yaml': lambda env: env['device'].replace('[98.4808, -17.3648, 0.0]', '[a, b, c]')},
+    ('device joints text', {'d.yaml': edited('device', '[98.4808, -17.3648, 0.0]', '[a, b, c]')},
      'error-budget --device d.yaml', 'joints.upper_design_mm'),
     # -- ambient profiles -------------------------------------------------------------------------
     ('ambient bomb', {'a.yaml': BOMB}, 'simulate --ambient a.yaml', 'expands to'),
     ('ambient initial nan', {'a.yaml': 'initial_c: .nan\n'}, 'simulate --ambient a.yaml', 'initial_c'),
-    ('ambient ramp inf', {'a.yaml': 'initial_c: 20\nramps: [{duration_s: .inf, end_c: 21, time_constant_s: 60}]\n'},
+    ('ambient ramp inf', {'a.yaml': 'initial_c: 20\nramps: [{duration_s: .inf, end_c: 21, time_constant_s: 9}]\n'},
      'simulate --ambient a.yaml', 'duration_s'),
     ('ambient binary', {'a.yaml': b'\x00\x01\xff' * 20}, 'simulate --ambient a.yaml', 'not a text file'),
     # -- logs and what they carry -----------------------------------------------------------------

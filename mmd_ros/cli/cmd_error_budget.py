@@ -60,11 +60,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                        f'{k}: {v}' for k, v in READINGS.items()))
     p.add_argument('--method', choices=METHODS, default='newton',
                    help='newton: full forward kinematics per sample; linear: first-order model')
-    p.add_argument('--eps-max-um', type=validate.arg_number(low=0.0, low_open=True, high=MAX_EPS_UM), default=1.0,
+    p.add_argument('--eps-max-um', type=validate.arg_number(low=0.0, low_open=True, high=MAX_EPS_UM),
+                   default=1.0,
                    help='largest bound of Fig. 2 and of the Fig. 3 grid [µm]')
     p.add_argument('--eps-step-um', type=validate.arg_number(low=0.0, low_open=True, high=MAX_EPS_UM),
                    default=0.1, help='grid step of the bounds [µm]')
-    p.add_argument('--design-point', nargs=2, type=validate.arg_number(low=0.0, high=MAX_EPS_UM), default=(0.4, 0.8),
+    p.add_argument('--design-point', nargs=2, type=validate.arg_number(low=0.0, high=MAX_EPS_UM),
+                   default=(0.4, 0.8),
                    metavar=('EPS_J', 'EPS_D'), help='bounds of Fig. 4 and the design ratio [µm]')
     p.add_argument('--cylinder', nargs=3, type=FINITE, default=(100.0, 248.0, 323.0),
                    metavar=('RADIUS', 'Z_LOW', 'Z_HIGH'),

@@ -31,8 +31,8 @@ from numpy.typing import NDArray
 from mmd_ros.core.errors import ConfigError
 
 __all__ = [
-    'Fields', 'arg_number', 'arg_numbers', 'boolean', 'choice', 'describe', 'floats', 'integer', 'known_keys',
-    'mapping', 'number', 'number_problem', 'text',
+    'Fields', 'arg_number', 'arg_numbers', 'boolean', 'choice', 'describe', 'floats', 'integer',
+    'known_keys', 'mapping', 'number', 'number_problem',
 ]
 
 _MISSING = object()
@@ -121,13 +121,6 @@ def mapping(value: Any, source: str, key: str) -> dict[str, Any]:
     return value
 
 
-def text(value: Any, source: str, key: str, *, empty: bool = True) -> str:
-    """A string (a number or a list is refused)."""
-    if not isinstance(value, str) or (not empty and not value):
-        raise ConfigError(source, key, f'must be a{" non-empty" if not empty else ""} string, got {value!r}')
-    return value
-
-
 def _all_numbers(value: Any, depth: int = 0) -> bool:
     if isinstance(value, (list, tuple)):
         return depth < 8 and all(_all_numbers(v, depth + 1) for v in value)
@@ -198,8 +191,8 @@ class Fields:
     def number(self, data: Any, key: str, path: str = '', *, default: Any = _MISSING,
                low: float | None = None, high: float | None = None, low_open: bool = False,
                high_open: bool = False, positive: bool = False) -> float:
-        if positive:
-            low, low_open = 0.0 if low is None else low, True if low is None else low_open
+        if positive:  # > 0
+            low, low_open = 0.0, True
         return number(self.get(data, key, path, default), self.source, self.full(path, key),
                       low=low, high=high, low_open=low_open, high_open=high_open)
 

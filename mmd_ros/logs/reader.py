@@ -438,7 +438,8 @@ class LogReader:
             later = [o for o in self._summary.chunks if o > after]
             if later:
                 return min(later)
-            return self._summary.data_end if self._summary.data_end and self._summary.data_end > after else None
+            end = self._summary.data_end
+            return end if end is not None and end > after else None
         pos = after + 1
         while True:
             chunk = data.find(b'\x06', pos)
@@ -707,8 +708,8 @@ class LogReader:
         payloads: list[bytes] | NDArray[np.uint8]
         if len(widths) == 1 and stamps.size:
             width = widths.pop()
-            parts = [p if isinstance(p, np.ndarray) else np.frombuffer(b''.join(p), np.uint8).reshape(-1, width)
-                     for _, p in pieces]
+            parts = [p if isinstance(p, np.ndarray)
+                     else np.frombuffer(b''.join(p), np.uint8).reshape(-1, width) for _, p in pieces]
             payloads = np.concatenate(parts) if len(parts) > 1 else parts[0]
         else:
             payloads = [r.tobytes() if isinstance(p, np.ndarray) else r for _, p in pieces for r in p]

@@ -96,7 +96,9 @@ def check(param: Param, value: Any) -> str | None:
         value = float(value)
     if want in (int, float):
         if want is float and isinstance(value, float) and math.isnan(value):
-            return None if math.isnan(param.default) else f'parameter {param.name}: must be {param.allowed()}, got NaN'
+            if math.isnan(param.default):
+                return None
+            return f'parameter {param.name}: must be {param.allowed()}, got NaN'
         if param.allow_zero and value == 0 and not isinstance(value, bool):
             return None
         if validate.number_problem(value, low=param.low, high=param.high, integer=want is int):

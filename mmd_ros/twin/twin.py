@@ -170,8 +170,8 @@ class TwinDevice:
         if not (isinstance(seed, (int, np.integer)) and seed >= 0):
             raise TwinError(f'seed must be a non-negative integer, got {seed!r}')
         if not 0 < device.sample_rate_hz <= MAX_SAMPLE_RATE_HZ:
-            raise TwinError(f'{device.source}: terminal.sample_rate_hz must be in (0, '
-                            f'{MAX_SAMPLE_RATE_HZ}] Hz (the terminal\'s maximum), got {device.sample_rate_hz:g}')
+            raise TwinError(f'{device.source}: terminal.sample_rate_hz must be in (0, {MAX_SAMPLE_RATE_HZ}] '
+                            f'Hz (the terminal\'s maximum), got {device.sample_rate_hz:g}')
         self.device = device
         self.effects = Effects.ideal() if effects is None else effects
         self.seed = int(seed)
