@@ -11,6 +11,7 @@ from mmd_ros.core import jsonio, validate
 from mmd_ros.hardware.protocol import MAX_SAMPLE_RATE_HZ
 from mmd_ros.logs.outputs import check_outputs
 from mmd_ros.twin import SCENARIOS
+from mmd_ros.twin.effects import PRESETS
 from mmd_ros.twin.recording import SimulationSpec, simulate_to_log, spec_inputs
 from mmd_ros.twin.twin import MAX_CLOCK_S
 
@@ -50,16 +51,19 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help='what the machine does (default: iso_linear, an ISO 230-2 x-axis run)')
     p.add_argument('--param', action='append', default=[], metavar='NAME=VALUE',
                    help='scenario parameter, e.g. axis=y, n_cycles=5, dwell_s=1.0 (repeatable)')
-    p.add_argument('--effects', default='realistic', choices=['ideal', 'realistic'],
-                   help='physical effects preset (default: realistic)')
+    p.add_argument('--effects', default='realistic', choices=PRESETS,
+                   help='physical effects preset (default: realistic): none (no error source '
+                   'at all, room held at 20 °C), ideal (only what the default model '
+                   'compensates), realistic (everything on)')
     p.add_argument('--effect', action='append', default=[], metavar='NAME=VALUE',
                    help='change one effect parameter, e.g. hysteresis_m=0.5e-6 (repeatable)')
     p.add_argument('--seed', type=validate.arg_number(low=0, integer=True), default=1,
                    help='random seed, an integer >= 0 (default: 1)')
     p.add_argument('--device', default='mmd_prototype.yaml', help='device description file')
-    p.add_argument('--ambient', default='section_4_1',
+    p.add_argument('--ambient', default=None,
                    help='room temperature: section_4_1 (the 20 h test), constant:T in °C, or a '
-                   'profile .yaml (see msg_docs/simulation.md)')
+                   'profile .yaml (see msg_docs/simulation.md); default constant:20 with '
+                   '--effects none, else section_4_1')
     clock = validate.arg_number(low=-MAX_CLOCK_S, high=MAX_CLOCK_S)
     p.add_argument('--calibrate-at', type=clock, default=0.0, dest='calibrate_at',
                    help='time of the calibration on the twin\'s clock [s], within a year of its '
