@@ -36,6 +36,7 @@ from mmd_ros.nodes.convert import DIAGNOSTIC_ARRAY, STRING, RawBatch, from_time,
 from mmd_ros.nodes.diagnostics import Diagnostics
 from mmd_ros.nodes.outlets import Outlet
 from mmd_ros.nodes.params import declare
+from mmd_ros.nodes.progress import CountedInputs, ProgressPublisher
 from mmd_ros.nodes.qos import DIAGNOSTICS, LATCHED, data_qos
 
 __all__ = ['CalibrationNode', 'main']
@@ -60,8 +61,10 @@ class CalibrationNode(CalibrationService, Node):
                                       logger=self.get_logger())
         qos = data_qos(v['qos'], v['qos_depth'])
         self.pending = RawBatch(self.names)
-        self.create_subscription(JointState, 'raw_counts', self._on_raw, qos, raw=True)
+        self.inputs = CountedInputs(self)
+        self.inputs.subscribe(JointState, 'raw_counts', self._on_raw, qos)
         self.create_timer(0.02, self._flush)
+        self.progress = ProgressPublisher(self, self.inputs, [], v['qos_depth'])
         self.create_subscription(Header, 'terminal/counter_reset', self._on_reset, LATCHED)
         self._create_calibration_service()
         self.add_on_set_parameters_callback(self._on_set)
@@ -102,7 +105,9 @@ class CalibrationNode(CalibrationService, Node):
         return SetParametersResult(successful=True)
 
     def _report(self) -> list:
-        return [self.calibration.report(*self._selection())]
+        r = self.calibration.report(*self._selection())
+        self.inputs.report(r)
+        return [r]
 
 
 def main(args: list[str] | None = None) -> int:

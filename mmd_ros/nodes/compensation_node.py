@@ -30,6 +30,7 @@ from mmd_ros.nodes.convert import DIAGNOSTIC_ARRAY, JS, STRING, RawBatch, Rows, 
 from mmd_ros.nodes.diagnostics import ERROR, Diagnostics, Events
 from mmd_ros.nodes.outlets import Outlet
 from mmd_ros.nodes.params import Param, declare
+from mmd_ros.nodes.progress import CountedInputs, ProgressPublisher
 from mmd_ros.nodes.qos import DIAGNOSTICS, LATCHED, data_qos
 from mmd_ros.nodes.reports import compensation_report
 
@@ -72,8 +73,11 @@ class CompensationNode(Node):
             self._poll_file()
             self.create_timer(1.0, self._poll_file)
         self.pending = RawBatch(self.names)
-        self.create_subscription(JointState, 'raw_counts', self._on_raw, qos, raw=True)
+        self.inputs = CountedInputs(self)
+        self.inputs.subscribe(JointState, 'raw_counts', self._on_raw, qos)
         self.create_timer(FLUSH_PERIOD_S, self._flush)
+        self.progress = ProgressPublisher(self, self.inputs, [self.out_lengths, self.out_thermal],
+                                          v['qos_depth'])
         self.create_subscription(String, 'calibration', self._on_calibration, LATCHED)
         self.create_subscription(Header, 'terminal/counter_reset', self._on_reset, LATCHED)
         self.diagnostics = Diagnostics(self, self.out_diag, [self._report], v['diagnostics_period_s'])
@@ -141,6 +145,7 @@ class CompensationNode(Node):
     def _report(self) -> list:
         r = compensation_report(self.compensator, self.thermal_warn_c, self.model.source)
         self.events.apply(r)
+        self.inputs.report(r)
         return [r]
 
 

@@ -30,6 +30,7 @@ from mmd_ros.nodes.convert import DIAGNOSTIC_ARRAY, JS, POSE, POSE_COV, RawBatch
 from mmd_ros.nodes.diagnostics import Diagnostics
 from mmd_ros.nodes.outlets import Outlet
 from mmd_ros.nodes.params import Param, declare
+from mmd_ros.nodes.progress import CountedInputs, ProgressPublisher
 from mmd_ros.nodes.qos import DIAGNOSTICS, LATCHED, data_qos
 from mmd_ros.nodes.reports import kinematics_report
 
@@ -73,11 +74,14 @@ class FkNode(Node):
         self._lengths: OrderedDict[int, np.ndarray] = OrderedDict()
         self._scales: OrderedDict[int, float] = OrderedDict()
         self.unpaired = 0
-        self.create_subscription(JointState, 'bar_lengths', self._on_lengths, qos, raw=True)
-        self.create_subscription(JointState, 'thermal', self._on_thermal, qos, raw=True)
+        self.inputs = CountedInputs(self)
+        self.inputs.subscribe(JointState, 'bar_lengths', self._on_lengths, qos)
+        self.inputs.subscribe(JointState, 'thermal', self._on_thermal, qos)
         self.create_subscription(String, 'model', self._on_model, LATCHED)
         self.create_timer(FLUSH_PERIOD_S, self._flush)
         self.diagnostics = Diagnostics(self, self.out_diag, [self._report], v['diagnostics_period_s'])
+        self.progress = ProgressPublisher(self, self.inputs, [self.out_pose, self.out_pose_cov,
+                                                              self.out_status], v['qos_depth'])
 
     def _on_model(self, msg: String) -> None:
         if self.fixed_sigma:
@@ -136,6 +140,7 @@ class FkNode(Node):
         r = kinematics_report(self.kinematics)
         r.values['unpaired_samples'] = self.unpaired
         r.values['foreign_messages'] = self.in_lengths.foreign + self.in_thermal.foreign
+        self.inputs.report(r)
         return [r]
 
 
