@@ -19,6 +19,7 @@ import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import Path
 from rcl_interfaces.msg import Parameter as ParameterMsg
 from rcl_interfaces.srv import SetParameters
 from rclpy.context import Context
@@ -47,7 +48,9 @@ class MmdClient:
 
     topics : which per-sample topics to collect: 'pose', 'reference', 'raw' (stamps only),
         'pose_stamps' (the poses' stamps and arrival times only, read from the serialised
-        message without building message objects: what a lean consumer costs)
+        message without building message objects: what a lean consumer costs), 'pose_batch'
+        (the poses of ``pose_batch``, one ``nav_msgs/Path`` per transfer, collected as 'pose'
+        collects those of ``pose``)
     """
 
     def __init__(self, namespace: str = '/mmd', *, topics: tuple[str, ...] = ('pose', 'reference'),
@@ -69,6 +72,9 @@ class MmdClient:
         n = self.node
         if 'pose' in topics:
             n.create_subscription(PoseStamped, f'{self.ns}/pose', self._on_pose, qos)
+        self.batches = 0
+        if 'pose_batch' in topics:
+            n.create_subscription(Path, f'{self.ns}/pose_batch', self._on_pose_batch, qos)
         if 'pose_stamps' in topics:
             n.create_subscription(PoseStamped, f'{self.ns}/pose', self._on_pose_bytes, qos, raw=True)
         if 'reference' in topics:
@@ -100,6 +106,19 @@ class MmdClient:
             self.poses.append(row)
             self.pose_stamps.append(row[0])
             self.pose_arrivals.append(arrival)
+
+    def _on_pose_batch(self, msg: Path) -> None:
+        arrival = time.time_ns()
+        rows = []
+        for ps in msg.poses:
+            p = ps.pose
+            rows.append((from_time(ps.header.stamp), p.position.x, p.position.y, p.position.z,
+                         p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w))
+        with self._lock:
+            self.batches += 1
+            self.poses.extend(rows)
+            self.pose_stamps.extend(r[0] for r in rows)
+            self.pose_arrivals.extend([arrival] * len(rows))
 
     def _on_pose_bytes(self, data: bytes) -> None:
         arrival = time.time_ns()

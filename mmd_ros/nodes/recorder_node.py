@@ -37,6 +37,7 @@ TOPICS: dict[str, tuple[type, str, str]] = {
     'calibration': (String, STRING, 'latched'),
     'model': (String, STRING, 'latched'),
     'terminal/counter_reset': (Header, HEADER, 'latched'),
+    'terminal/info': (String, STRING, 'latched'),
     'raw_counts': (JointState, JS, 'data'),
     'reference/pose': (JointState, JS, 'data'),
     'reference/bar_lengths': (JointState, JS, 'data'),
