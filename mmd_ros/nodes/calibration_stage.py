@@ -62,6 +62,13 @@ def default_calibration_file(device_name: str = 'mmd_prototype', terminal: str =
     return str(ros_home() / 'mmd' / f'{name}_calibration.yaml')
 
 
+def why_not(exc: OSError) -> str:
+    """What an OSError of a write means, in words (a path under a file says "File exists")."""
+    if isinstance(exc, (FileExistsError, NotADirectoryError)):
+        return f'{exc.filename or "a part of the path"} is a file, not a folder'
+    return exc.strerror or str(exc)
+
+
 def now_iso() -> str:
     return datetime.now(timezone.utc).isoformat(timespec='milliseconds')
 
@@ -230,8 +237,10 @@ class CalibrationStage:
         t = self.terminal
         if t is None:
             return cal
-        if cal.terminal is not None and cal.terminal != t and self.binding_note:
-            return cal  # a foreign calibration used by override keeps saying where it is from
+        if cal.terminal is not None and (not t.serial or self.binding_note):
+            # the terminal's serial is not known yet (the calibration's is), or a foreign
+            # calibration is used by override: it keeps saying where it is from
+            return cal
         return replace(cal, terminal=t)
 
     def publish(self, cal: Calibration) -> None:
@@ -291,9 +300,9 @@ class CalibrationStage:
             self._cannot_save(exc)
 
     def _cannot_save(self, exc: OSError) -> None:
-        self.save_problem = (f'calibrations cannot be saved to {self.path}: '
-                             f'{exc.strerror or exc}; the calibration in use is not on disk '
-                             '(fix the folder or set calibration_file)')
+        self.save_problem = (f'calibrations cannot be saved to {self.path}: {why_not(exc)}; the '
+                             'calibration in use is not on disk (fix the folder or set '
+                             'calibration_file)')
         self.log.error(self.save_problem)
 
     # -- the file ------------------------------------------------------------------------------
@@ -384,8 +393,8 @@ class CalibrationStage:
             return self._persist(cal)
         except OSError as exc:
             self._cannot_save(exc)
-            return (f' COULD NOT SAVE to {self.path}: {exc.strerror or exc}; the calibration is '
-                    'in use but not on disk: fix the folder and capture again.')
+            return (f' COULD NOT SAVE to {self.path}: {why_not(exc)}; the calibration is in use '
+                    'but not on disk: fix the folder and capture again.')
 
     # -- samples and events --------------------------------------------------------------------
     def feed(self, stamps: NDArray[np.int64], counts: NDArray[np.float64]) -> None:
