@@ -70,17 +70,19 @@ class MmdClient:
         self.diagnostic_history: list[tuple[float, dict[str, Any]]] = []
         qos = data_qos('reliable', depth)
         n = self.node
-        if 'pose' in topics:
-            n.create_subscription(PoseStamped, f'{self.ns}/pose', self._on_pose, qos)
         self.batches = 0
-        if 'pose_batch' in topics:
-            n.create_subscription(Path, f'{self.ns}/pose_batch', self._on_pose_batch, qos)
-        if 'pose_stamps' in topics:
-            n.create_subscription(PoseStamped, f'{self.ns}/pose', self._on_pose_bytes, qos, raw=True)
-        if 'reference' in topics:
-            n.create_subscription(JointState, f'{self.ns}/reference/pose', self._on_reference, qos)
-        if 'raw' in topics:
-            n.create_subscription(JointState, f'{self.ns}/raw_counts', self._on_raw, qos)
+        self._subscriptions: dict[str, Any] = {}
+        wanted = {
+            'pose': (PoseStamped, 'pose', self._on_pose, False),
+            'pose_batch': (Path, 'pose_batch', self._on_pose_batch, False),
+            'pose_stamps': (PoseStamped, 'pose', self._on_pose_bytes, True),
+            'reference': (JointState, 'reference/pose', self._on_reference, False),
+            'raw': (JointState, 'raw_counts', self._on_raw, False),
+        }
+        for key, (cls, topic, callback, raw) in wanted.items():
+            if key in topics:
+                self._subscriptions[key] = n.create_subscription(cls, f'{self.ns}/{topic}', callback,
+                                                                 qos, raw=raw)
         n.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, DIAGNOSTICS)
         self.executor = EventsExecutor(context=self.context)
         self.executor.add_node(n)
@@ -95,6 +97,15 @@ class MmdClient:
             except Exception:  # noqa: BLE001 - shutting down
                 if not self._running:
                     return
+
+    def drop(self, *topics: str) -> None:
+        """Stop collecting ``topics`` (keys as in the constructor): a per-sample subscription
+        this process no longer needs only makes it fall behind on everything else, service
+        answers included."""
+        for key in topics:
+            sub = self._subscriptions.pop(key, None)
+            if sub is not None:
+                self.node.destroy_subscription(sub)
 
     # -- collected data ------------------------------------------------------------------------
     def _on_pose(self, msg: PoseStamped) -> None:
