@@ -18,9 +18,10 @@ def test_sequence_counter_counts_every_jump_and_starts_over_with_a_new_publisher
     lost = [c.note(int(s)) for s in kept]
     assert c.received == kept.size and c.received + c.lost == 5000
     assert sum(lost) == c.lost and c.gaps == int(np.count_nonzero(np.diff(kept) > 1))
-    # the publisher restarts: numbers from 1 again, nothing counted lost across it
-    assert c.note(1) == 0 and c.sessions == 2 and (c.first, c.last) == (1, 1)
-    assert c.note(3) == 1 and c.session_received == 2 and c.session_lost == 1
+    # a run begins; the publisher restarts: numbers from 1 again, nothing lost across it
+    c.mark()
+    assert c.note(1) == 0 and c.sessions == 2 and c.last == 1
+    assert c.note(3) == 1 and (c.run_received, c.run_lost) == (2, 1)
     assert c.lost == 5000 - kept.size + 1
     # several publishers interleave: jumps no longer count
     c.ambiguous = True
@@ -32,8 +33,8 @@ def test_sequence_counter_counts_every_jump_and_starts_over_with_a_new_publisher
 
 
 def test_stage_progress_round_trips_through_key_values():
-    p = StageProgress('/mmd/fk_node', {LEN: InputProgress(2, 1, 900, 880, 20)},
-                      {'/mmd/pose': 870}, depth=1000)
+    p = StageProgress('/mmd/fk_node', {LEN: InputProgress(900, 880, 20)}, {'/mmd/pose': 870},
+                      depth=1000, run='/mmd/replay_node 17', published_run={'/mmd/pose': 400})
     pairs = p.to_pairs() + [('noise', 'x'), ('/mmd/pose what', '1')]
     assert StageProgress.from_pairs('/mmd/fk_node', pairs) == p
 
@@ -46,33 +47,42 @@ class Clock:
         return self.t
 
 
-def progress(stage, inputs, published=None, depth=0):
-    return StageProgress(stage, inputs, published or {}, depth)
+RUN = '/mmd/replay_node 1'
 
 
-def test_flow_control_paces_by_the_slowest_stage_of_this_run_and_accounts_for_every_message():
+def progress(stage, inputs, published=None, depth=0, run=RUN, published_run=None):
+    return StageProgress(stage, inputs, published or {}, depth, run, published_run or {})
+
+
+def test_flow_control_paces_by_the_slowest_stage_and_accounts_for_every_message_of_the_run():
     clock = Clock()
-    flow = FlowControl(window=100, timeout_s=5.0, clock=clock)
+    flow = FlowControl(RUN, window=100, timeout_s=5.0, clock=clock)
     comp, fk, rec = '/mmd/compensation_node', '/mmd/fk_node', '/mmd/recorder_node'
-    # before the replay: the stages heard an earlier publisher (session 1) and fk is mid-session
-    flow.note_progress(progress(comp, {RAW: InputProgress(1, 1, 7000, 6990, 10)}, {LEN: 6990}, 1000))
-    flow.note_progress(progress(fk, {LEN: InputProgress(1, 1, 6990, 6990, 0)}, depth=60))
+    # before the replay: the stages heard an earlier publisher and have not marked this run yet
+    flow.note_progress(progress(comp, {RAW: InputProgress(7000, 6990, 10)}, {LEN: 6990}, 1000, run=''))
+    flow.note_progress(progress(fk, {LEN: InputProgress(6990, 6990, 0)}, depth=60, run=''))
+    assert not flow.ready()
+    flow.note_progress(progress(comp, {RAW: InputProgress(7000, 0, 0)}, {LEN: 6990}, 1000, published_run={LEN: 0}))
+    flow.note_progress(progress(fk, {LEN: InputProgress(6990, 0, 0)}, depth=60))
+    assert flow.ready()
     flow.begin([RAW])
     assert flow.batch(64) == 15  # half of fk's window (half its depth of 60)
-    # nothing of ours taken yet: the old session's 7000 do not count as progress
+    # nothing of ours taken yet: the earlier publisher's 7000 are no progress
     flow.note_sent(RAW, 40)
     assert flow.waiting_for(0) == [] and flow.waiting_for(70) == [comp]
     flow.note_sent(RAW, 150)
     assert comp in flow.waiting_for()
     # compensation takes 140 of ours, 5 lost; it published 135 lengths, fk took 100
-    flow.note_progress(progress(comp, {RAW: InputProgress(2, 1, 145, 140, 5)}, {LEN: 6990 + 135}, 1000))
-    flow.note_progress(progress(fk, {LEN: InputProgress(1, 1, 6990 + 100, 7090, 0)}, depth=60))
+    flow.note_progress(progress(comp, {RAW: InputProgress(145, 140, 5)}, {LEN: 6990 + 135}, 1000,
+                                published_run={LEN: 135}))
+    flow.note_progress(progress(fk, {LEN: InputProgress(6990 + 100, 100, 0)}, depth=60))
     assert flow.waiting_for() == [fk]  # 35 behind, window 30
-    # a recorder heard first now: its session on raw counts is ours (numbers within what we sent)
-    flow.note_progress(progress(rec, {RAW: InputProgress(3, 1, 150, 150, 0)}))
-    flow.note_progress(progress(fk, {LEN: InputProgress(1, 1, 6990 + 135, 7123, 2)}, depth=60))
+    # a recorder heard only now: it counts for the run
+    flow.note_progress(progress(rec, {RAW: InputProgress(150, 150, 0)}))
+    flow.note_progress(progress(fk, {LEN: InputProgress(6990 + 135, 133, 2)}, depth=60))
     assert flow.waiting_for() == [] and not flow.drained()  # comp still has 5 to take
-    flow.note_progress(progress(comp, {RAW: InputProgress(2, 1, 150, 145, 5)}, {LEN: 6990 + 140}, 1000))
+    flow.note_progress(progress(comp, {RAW: InputProgress(150, 145, 5)}, {LEN: 6990 + 140}, 1000,
+                                published_run={LEN: 140}))
     assert not flow.drained()  # fk: 5 more lengths
     # fk takes nothing more: after quiet_s the rest counts as lost at the end of the stream
     clock.t = 1.0
@@ -94,7 +104,7 @@ def test_flow_control_paces_by_the_slowest_stage_of_this_run_and_accounts_for_ev
 
 def test_a_stage_that_stops_taking_while_behind_is_given_up():
     clock = Clock()
-    flow = FlowControl(window=10, timeout_s=1.0, clock=clock)
+    flow = FlowControl(RUN, window=10, timeout_s=1.0, clock=clock)
     flow.note_progress(progress('/a', {RAW: InputProgress()}))
     flow.begin([RAW])
     flow.note_sent(RAW, 50)

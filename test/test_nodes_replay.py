@@ -36,7 +36,7 @@ def counted(client, suffix: str, key: str) -> tuple[int, int]:
 def test_replay_at_rate_0_delivers_every_sample_or_counts_every_loss(tmp_path):
     from mmd_ros.nodes.client import MmdClient
     log = tmp_path / 'run.mcap'
-    spec = SimulationSpec(scenario='random_motion', scenario_params=('duration_s=3',),
+    spec = SimulationSpec(scenario='random_motion', scenario_params=('duration_s=2',),
                           ambient='constant:20', seed=5)
     n = simulate_to_log(spec, log, progress=False)[2]['samples']
     nodes = Nodes(tmp_path)

@@ -7,16 +7,19 @@ middleware numbers every message a publisher writes 1, 2, 3... and hands the num
 subscriber with the message (``publication_sequence_number`` of rclpy's message info).
 
 - :class:`SequenceCounter`: one subscription's received messages and the messages lost before
-  them (the jumps of the sequence number), per publisher session.
-- :class:`StageProgress`: what a stage reports about its per-sample topics (messages taken and
-  lost per input topic, published per output topic); it travels on ``pipeline/progress``.
+  them (the jumps of the sequence number), in all and since a mark.
+- :class:`StageProgress`: what a stage reports about its per-sample topics: per input topic
+  the last sequence number it took and what it received and lost since the current run began,
+  per output topic what it published (in all and in the run); it travels on
+  ``pipeline/progress``.
 - :class:`FlowControl`: a replay's view of the stages downstream: how many messages each one
-  still has to take (published upstream minus taken and lost), whether to wait before sending
-  more, and the summary of what arrived where.
+  still has to take (published upstream minus taken), whether to wait before sending more, and
+  the summary of what arrived where.
 
+A run is named by the replay (``pipeline/run``); each stage marks its counters when it hears
+the name, before the first sample of the run is sent, so the summary is about that run only.
 A sample can still be lost after the last message a subscriber received (nothing follows to
-show the gap): :class:`FlowControl` counts those too, as published upstream minus taken by the
-stage, once the stream has ended.
+show the gap): the summary counts those as published minus received and lost.
 """
 
 from __future__ import annotations
@@ -34,10 +37,9 @@ class SequenceCounter:
     ``note(seq)`` for every message in arrival order, ``seq`` the publisher's sequence number
     (1, 2, 3... per publisher; None when the middleware does not provide it). A jump of k + 1
     counts k lost messages. A number that does not increase starts a new publisher session
-    (the publisher restarted): nothing is counted lost across it, and the session's figures
-    start again (``first``, ``last``, ``session_received``, ``session_lost``). With more than
-    one publisher on the topic their numbers interleave; the caller then sets ``ambiguous`` and
-    jumps are no longer counted.
+    (the publisher restarted): nothing is counted lost across it. With more than one publisher
+    on the topic their numbers interleave; the caller then sets ``ambiguous`` and jumps are no
+    longer counted. :meth:`mark` starts the counts ``run_received`` and ``run_lost``.
     """
 
     def __init__(self) -> None:
@@ -47,71 +49,75 @@ class SequenceCounter:
         self.sessions = 0
         self.supported = True
         self.ambiguous = False
-        self.first = 0
         self.last = 0
-        self.session_received = 0
-        self.session_lost = 0
+        self._mark = (0, 0)
 
     def note(self, seq: int | None) -> int:
         """Count one message; returns how many were lost just before it."""
         self.received += 1
-        self.session_received += 1
         if seq is None or seq <= 0:
             self.supported = False
             return 0
         last, self.last = self.last, seq
         if self.sessions == 0 or seq <= last:
             self.sessions += 1
-            self.first = seq
-            self.session_received = 1
-            self.session_lost = 0
             return 0
         missing = seq - last - 1
         if missing and not self.ambiguous:
             self.lost += missing
-            self.session_lost += missing
             self.gaps += 1
             return missing
         return 0
 
+    def mark(self) -> None:
+        self._mark = (self.received, self.lost)
+
+    @property
+    def run_received(self) -> int:
+        return self.received - self._mark[0]
+
+    @property
+    def run_lost(self) -> int:
+        return self.lost - self._mark[1]
+
 
 @dataclass(frozen=True)
 class InputProgress:
-    """One input topic of a stage, in the current publisher session (``sessions`` counts them):
-    the first and last sequence numbers taken, the messages received and those seen lost
-    (jumps) between them."""
+    """One input topic of a stage: ``last`` the publisher's sequence number of the last message
+    taken, ``received`` and ``lost`` since the run began."""
 
-    sessions: int = 0
-    first: int = 0
     last: int = 0
     received: int = 0
     lost: int = 0
 
     @classmethod
     def of(cls, counter: SequenceCounter) -> InputProgress:
-        return cls(counter.sessions, counter.first, counter.last, counter.session_received,
-                   counter.session_lost)
+        return cls(counter.last, counter.run_received, counter.run_lost)
 
 
 @dataclass(frozen=True)
 class StageProgress:
-    """One report of a stage: its name, the queue depth of its inputs (0 unknown), per input
-    topic (fully qualified) an :class:`InputProgress`, per output topic the messages it
-    published in all (which is its publisher's last sequence number)."""
+    """One report of a stage: its name, the run it counts for ('' none yet), the queue depth of
+    its inputs (0 unknown), an :class:`InputProgress` per input topic (fully qualified), and per
+    output topic the messages it published in all (its publisher's last sequence number) and
+    since the run began (``published_run``)."""
 
     stage: str
     inputs: dict[str, InputProgress] = field(default_factory=dict)
     published: dict[str, int] = field(default_factory=dict)
     depth: int = 0
+    run: str = ''
+    published_run: dict[str, int] = field(default_factory=dict)
 
-    _FIELDS = ('sessions', 'first', 'last', 'received', 'lost')
+    _FIELDS = ('last', 'received', 'lost')
 
     def to_pairs(self) -> list[tuple[str, str]]:
-        """Key/value pairs: ``depth``, ``<topic> sessions|first|last|received|lost`` per
-        input and ``<topic> published`` per output."""
-        out = [('depth', str(self.depth))]
+        """Key/value pairs: ``run``, ``depth``, ``<topic> last|received|lost`` per input and
+        ``<topic> published|published_run`` per output."""
+        out = [('run', self.run), ('depth', str(self.depth))]
         out += [(f'{t} {k}', str(getattr(p, k))) for t, p in self.inputs.items() for k in self._FIELDS]
         out += [(f'{t} published', str(n)) for t, n in self.published.items()]
+        out += [(f'{t} published_run', str(n)) for t, n in self.published_run.items()]
         return out
 
     @classmethod
@@ -119,8 +125,12 @@ class StageProgress:
         """The inverse of :meth:`to_pairs`; keys it does not know are ignored."""
         inputs: dict[str, dict[str, int]] = {}
         published: dict[str, int] = {}
-        depth = 0
+        published_run: dict[str, int] = {}
+        depth, run = 0, ''
         for key, value in pairs:
+            if key == 'run':
+                run = value
+                continue
             try:
                 n = int(value)
             except ValueError:
@@ -130,54 +140,56 @@ class StageProgress:
                 depth = n
             elif topic and what == 'published':
                 published[topic] = n
+            elif topic and what == 'published_run':
+                published_run[topic] = n
             elif topic and what in cls._FIELDS:
                 inputs.setdefault(topic, {})[what] = n
-        return cls(stage, {t: InputProgress(**v) for t, v in inputs.items()}, published, depth)
+        return cls(stage, {t: InputProgress(**v) for t, v in inputs.items()}, published, depth, run,
+                   published_run)
 
 
 @dataclass
 class StageState:
-    """The last report of one stage, when it last changed (``progressed_at``), and what it had
-    counted before this publisher began (``before``: the summary is about this run only).
+    """The last report of one stage and when it last changed (``progressed_at``).
     ``stalled``: it stopped taking messages while behind and is no longer waited for."""
 
     progress: StageProgress
     progressed_at: float
-    before: StageProgress
     stalled: bool = False
 
 
 class FlowControl:
     """A publisher's view of the stages downstream (see the module docstring).
 
+    run : the name of this run (the stages count from the moment they hear it)
     window : most messages a stage may still have to take before the publisher waits (at most
         half the stage's own queue depth, when it reports one)
     timeout_s : a stage that takes nothing for this long while it is behind is given up (no
         longer waited for; the summary says so)
     clock : monotonic time [s]
 
-    Use: :meth:`note_progress` for every report, :meth:`begin` just before the first message,
-    :meth:`note_sent` as messages go out, :meth:`waiting_for` before each batch,
-    :meth:`drained` at the end, then :meth:`summary`.
+    Use: :meth:`note_progress` for every report; :meth:`ready` until every stage counts for
+    this run; :meth:`begin` just before the first message; :meth:`note_sent` as messages go
+    out; :meth:`waiting_for` before each batch; :meth:`drained` at the end; :meth:`summary`.
     """
 
-    def __init__(self, window: int, timeout_s: float = 10.0,
+    def __init__(self, run: str, window: int, timeout_s: float = 10.0,
                  clock: Callable[[], float] = time.monotonic) -> None:
+        self.run = run
         self.window = int(window)
         self.timeout_s = float(timeout_s)
         self.clock = clock
         self.sent: dict[str, int] = {}
         self.stages: dict[str, StageState] = {}
-        self.begun = False
+
+    def ready(self) -> bool:
+        """Every stage heard from counts for this run."""
+        return all(st.progress.run == self.run for st in self.stages.values())
 
     def begin(self, topics: Iterable[str]) -> None:
-        """This publisher is about to send its first message on ``topics`` (zero sent so far):
-        what the stages counted until now came from earlier publishers."""
+        """This publisher is about to send its first message on ``topics``."""
         for topic in topics:
             self.sent[topic] = 0
-        for st in self.stages.values():
-            st.before = st.progress
-        self.begun = True
 
     def note_sent(self, topic: str, n: int) -> None:
         """This publisher has sent ``n`` messages on ``topic`` in all."""
@@ -186,57 +198,35 @@ class FlowControl:
     def note_progress(self, progress: StageProgress) -> None:
         old = self.stages.get(progress.stage)
         if old is None:
-            # first heard after we began: its sessions on our topics are ours, unless their
-            # numbers run past what we sent (an earlier publisher's)
-            before = StageProgress(progress.stage) if not self.begun else StageProgress(
-                progress.stage, {t: InputProgress(sessions=p.sessions - 1)
-                                 if p.last <= self.sent.get(t, -1) else p
-                                 for t, p in progress.inputs.items()})
-            self.stages[progress.stage] = StageState(progress, self.clock(), before)
+            self.stages[progress.stage] = StageState(progress, self.clock())
         elif old.progress != progress:  # a heartbeat without news is no progress
             old.progress, old.progressed_at = progress, self.clock()
 
-    def _input(self, st: StageState, topic: str) -> tuple[InputProgress, int | None]:
-        """The stage's progress on ``topic`` in this run and the messages published to it in
-        this run (None when no one we know of publishes it)."""
-        p = st.progress.inputs[topic]
-        old = st.before.inputs.get(topic, InputProgress())
-        if topic in self.sent:  # ours: a new session at the stage, numbered from 1
-            if p.sessions <= old.sessions:
-                p = InputProgress()
-            return p, self.sent[topic]
-        publishers = [s for s in self.stages.values() if topic in s.progress.published]
-        if not publishers:
-            return p, None
-        upstream = sum(s.progress.published[topic] - s.before.published.get(topic, 0)
-                       for s in publishers)
-        if p.sessions == old.sessions:  # numbered since before this run: count from there
-            base = sum(s.before.published.get(topic, 0) for s in publishers)
-            p = InputProgress(p.sessions, max(1, p.first - base), p.last - base,
-                              p.received - old.received, p.lost - old.lost)
-        return p, upstream
+    def _counting(self) -> list[StageState]:
+        return [st for st in self.stages.values() if st.progress.run == self.run]
+
+    def _upstream(self, topic: str, run: bool) -> int | None:
+        """Messages published on ``topic`` by this publisher and the stages (in all, or in
+        this run), or None when no one we know of publishes it."""
+        counts = [self.sent[topic]] if topic in self.sent else []
+        for st in self._counting():
+            table = st.progress.published_run if run else st.progress.published
+            if topic in table:
+                counts.append(table[topic])
+        return sum(counts) if counts else None
 
     def backlog(self, st: StageState) -> int:
-        """Messages published to the stage in this run that it has not taken yet, largest over
-        its inputs."""
+        """Messages published to the stage that it has not taken yet, largest over its inputs
+        (by sequence numbers: a stage that took none of this publisher's yet is behind by all
+        it sent)."""
         worst = 0
-        for topic in st.progress.inputs:
-            p, upstream = self._input(st, topic)
-            if upstream is not None:
-                worst = max(worst, upstream - p.last)
+        for topic, p in st.progress.inputs.items():
+            upstream = self._upstream(topic, run=False)
+            if upstream is None:
+                continue
+            last = p.last if topic not in self.sent or p.received or p.lost else 0
+            worst = max(worst, upstream - last)
         return worst
-
-    def _behind(self, batch: int) -> list[str]:
-        now = self.clock()
-        behind = []
-        for name, st in self.stages.items():
-            if st.stalled or self.backlog(st) <= max(0, self.window_for(st) - batch):
-                continue
-            if now - st.progressed_at > self.timeout_s:
-                st.stalled = True
-                continue
-            behind.append(name)
-        return behind
 
     def window_for(self, st: StageState) -> int:
         """Messages the stage may have to take: ``window``, at most half its queue depth."""
@@ -244,13 +234,22 @@ class FlowControl:
 
     def batch(self, largest: int = 64) -> int:
         """Messages to send at a time: at most half the smallest window."""
-        windows = [self.window_for(st) for st in self.stages.values()] or [self.window]
+        windows = [self.window_for(st) for st in self._counting()] or [self.window]
         return max(1, min(largest, min(windows) // 2))
 
     def waiting_for(self, batch: int = 0) -> list[str]:
         """Stages that would be more than their window behind after ``batch`` more messages
-        (those silent for ``timeout_s`` are given up)."""
-        return self._behind(batch)
+        (those that took nothing for ``timeout_s`` are given up)."""
+        now = self.clock()
+        behind = []
+        for st in self._counting():
+            if st.stalled or self.backlog(st) <= max(0, self.window_for(st) - batch):
+                continue
+            if now - st.progressed_at > self.timeout_s:
+                st.stalled = True
+                continue
+            behind.append(st.progress.stage)
+        return behind
 
     def drained(self, quiet_s: float = 2.0) -> bool:
         """Every stage has taken everything published to it, or has taken nothing for
@@ -258,23 +257,21 @@ class FlowControl:
         it as missing)."""
         now = self.clock()
         return all(st.stalled or self.backlog(st) <= 0 or now - st.progressed_at > quiet_s
-                   for st in self.stages.values())
+                   for st in self._counting())
 
     def summary(self) -> list[dict[str, object]]:
         """Per stage and input topic, in this run: published upstream, received, lost
-        (sequence jumps), and missing (published but neither received nor seen lost: before
-        the stage's first message, after its last, or still on the way when it stopped
-        answering). received + lost + missing = published."""
+        (sequence jumps), and missing (published but neither received nor seen lost: after the
+        stage's last message, or still on the way when it stopped taking them). received +
+        lost + missing = published."""
         out: list[dict[str, object]] = []
-        for name, st in sorted(self.stages.items()):
-            for topic in sorted(st.progress.inputs):
-                p, upstream = self._input(st, topic)
+        for st in sorted(self._counting(), key=lambda s: s.progress.stage):
+            for topic, p in sorted(st.progress.inputs.items()):
+                upstream = self._upstream(topic, run=True)
                 if upstream is None and not p.received:
                     continue  # no one publishes it
-                missing = 0
-                if upstream is not None:
-                    missing = max(0, upstream - p.received - p.lost)
-                out.append({'stage': name, 'topic': topic, 'published': upstream,
+                missing = max(0, upstream - p.received - p.lost) if upstream is not None else 0
+                out.append({'stage': st.progress.stage, 'topic': topic, 'published': upstream,
                             'received': p.received, 'lost': p.lost, 'missing': missing,
                             'stalled': st.stalled})
         return out

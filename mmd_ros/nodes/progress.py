@@ -10,6 +10,8 @@ node's ``/diagnostics`` (WARN) and never goes unnoticed.
 ``pipeline/progress`` (``diagnostic_msgs/DiagnosticStatus``: ``name`` the node, key/values of
 :class:`~mmd_ros.core.flow.StageProgress`) about 20 times a second while samples flow, and
 every 0.5 s otherwise; ``replay_node`` paces itself by it (:class:`~mmd_ros.core.flow.FlowControl`).
+A replay names its run on the latched ``pipeline/run`` (``std_msgs/String``); the stage then
+counts its inputs and outputs from zero for that run and says so in its reports.
 """
 
 from __future__ import annotations
@@ -21,15 +23,19 @@ from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 from rclpy.node import Node
+from std_msgs.msg import String
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from mmd_ros.core.flow import InputProgress, SequenceCounter, StageProgress
 from mmd_ros.nodes.diagnostics import WARN, Events, Report
 from mmd_ros.nodes.outlets import Outlet
+from mmd_ros.nodes.qos import LATCHED
 
-__all__ = ['PROGRESS_QOS', 'PROGRESS_TOPIC', 'CountedInputs', 'ProgressPublisher', 'with_message_info']
+__all__ = ['PROGRESS_QOS', 'PROGRESS_TOPIC', 'RUN_TOPIC', 'CountedInputs', 'ProgressPublisher',
+           'with_message_info']
 
 PROGRESS_TOPIC = 'pipeline/progress'
+RUN_TOPIC = 'pipeline/run'
 PROGRESS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50,
                           reliability=ReliabilityPolicy.RELIABLE,
                           durability=DurabilityPolicy.VOLATILE)
@@ -138,6 +144,9 @@ class ProgressPublisher:
         self.publisher = node.create_publisher(DiagnosticStatus, PROGRESS_TOPIC, PROGRESS_QOS)
         self._last: StageProgress | None = None
         self._last_t = 0.0
+        self.run = ''
+        self._published_mark: dict[str, int] = {}
+        node.create_subscription(String, RUN_TOPIC, self._on_run, LATCHED)
         self._taken_reported = 0
         self._prompt_every = max(8, self.depth // 4)
         inputs.on_taken = self._prompt
@@ -149,9 +158,20 @@ class ProgressPublisher:
         if self.inputs.taken - self._taken_reported >= self._prompt_every:
             self.publish()
 
+    def _on_run(self, msg: String) -> None:
+        """A replay begins a run: count from here."""
+        if msg.data == self.run:
+            return
+        for counter in self.inputs.counters.values():
+            counter.mark()
+        self._published_mark = {o.topic: o.published for o in self.outputs}
+        self.run = msg.data
+        self.publish()
+
     def current(self) -> StageProgress:
-        return StageProgress(self.name, self.inputs.progress(),
-                             {o.topic: o.published for o in self.outputs}, self.depth)
+        published = {o.topic: o.published for o in self.outputs}
+        return StageProgress(self.name, self.inputs.progress(), published, self.depth, self.run,
+                             {t: n - self._published_mark.get(t, 0) for t, n in published.items()})
 
     def publish(self) -> None:
         now = time.monotonic()

@@ -36,7 +36,7 @@ from mmd_ros.nodes.convert import DIAGNOSTIC_ARRAY, JS, STRING, Rows, string_byt
 from mmd_ros.nodes.diagnostics import ERROR, OK, WARN, Diagnostics, Report
 from mmd_ros.nodes.outlets import Outlet
 from mmd_ros.nodes.params import Param, ParameterError, declare
-from mmd_ros.nodes.progress import PROGRESS_QOS, PROGRESS_TOPIC
+from mmd_ros.nodes.progress import PROGRESS_QOS, PROGRESS_TOPIC, RUN_TOPIC
 from mmd_ros.nodes.qos import DIAGNOSTICS, LATCHED, data_qos
 
 __all__ = ['ReplayNode', 'main']
@@ -90,7 +90,9 @@ class ReplayNode(Node):
         self.held_s = 0.0
         self.summary: list[dict[str, object]] = []
         self._lock = threading.Lock()
-        self.flow = FlowControl(max(1, v['qos_depth'] // 2), v['flow_timeout_s'])
+        self.run_name = f'{self.get_fully_qualified_name()} {time.time_ns()}'
+        self.out_run = Outlet(self, RUN_TOPIC, String, STRING, LATCHED, 'latched')
+        self.flow = FlowControl(self.run_name, max(1, v['qos_depth'] // 2), v['flow_timeout_s'])
         self.create_subscription(DiagnosticStatus, PROGRESS_TOPIC, self._on_progress, PROGRESS_QOS)
         self._stop = threading.Event()
         self.diagnostics = Diagnostics(self, self.out_diag, [self._report], v['diagnostics_period_s'])
@@ -124,16 +126,17 @@ class ReplayNode(Node):
             return not self.flow.drained()
 
     def _wait_for_stages(self, deadline: float, settle_s: float = 1.0) -> None:
-        """Until every stage publishing progress has been heard from and no new one appeared
-        for ``settle_s`` (discovery of the other processes takes a few seconds)."""
+        """Until every stage publishing progress has been heard from, counts for this run (it
+        heard ``pipeline/run``), and no new one appeared for ``settle_s`` (discovery of the
+        other processes takes a few seconds)."""
         known, since = -1, time.monotonic()
         while time.monotonic() < deadline:
             with self._lock:
-                heard = len(self.flow.stages)
+                heard, ready = len(self.flow.stages), self.flow.ready()
             count = max(heard, self.count_publishers(PROGRESS_TOPIC))
             if count != known:
                 known, since = count, time.monotonic()
-            elif heard >= count and time.monotonic() - since >= settle_s:
+            elif heard >= count and ready and time.monotonic() - since >= settle_s:
                 return
             if self._stop.wait(0.05):
                 return
@@ -146,6 +149,7 @@ class ReplayNode(Node):
             self.out_calibration.payload(string_bytes(log.calibration.to_yaml()), t0)
         if log.model is not None:
             self.out_model.payload(string_bytes(log.model.to_yaml()), t0)
+        self.out_run.payload(string_bytes(self.run_name), t0)
         deadline = time.monotonic() + cfg['wait_timeout_s']
         while self.out_raw.subscribers < cfg['wait_for_subscribers'] and time.monotonic() < deadline:
             if self._stop.wait(0.05):
@@ -200,10 +204,11 @@ class ReplayNode(Node):
             r.worse(WARN, f'{lost} sample(s) did not reach a stage: ' + FlowControl.describe(rows))
         elif rows:
             r.message = f'{self.state}: every stage received every sample ({FlowControl.describe(rows)})'
-        r.values.update({'state': self.state, 'log': str(self.run_log.path), 'samples': self.schedule.n,
+        r.values.update({'state': self.state, 'run': self.run_name, 'log': str(self.run_log.path),
+                         'samples': self.schedule.n,
                          'sent': self.sent, 'rate': self.cfg['rate'],
                          'seconds': round(self.seconds, 3), 'held_s': round(self.held_s, 3),
-                         'stages': len(self.flow.stages), 'lost': lost})
+                         'stages': len({row['stage'] for row in rows}), 'lost': lost})
         for row in rows:
             key = f'{row["stage"]} {row["topic"]}'
             r.values[f'{key} published'] = row['published'] if row['published'] is not None else -1
