@@ -122,10 +122,10 @@ def start_source(source: str, work: Path, env: dict) -> dict[str, subprocess.Pop
             'fk_node': launch('fk_node')}
 
 
-def stop(procs) -> None:
+def stop(procs, sig: int = signal.SIGINT) -> None:
     for p in procs:
         if p.poll() is None:
-            os.killpg(p.pid, signal.SIGINT)
+            os.killpg(p.pid, sig)
     for p in procs:
         try:
             p.wait(30)
@@ -174,7 +174,7 @@ def main() -> None:
                       f'({r["messages"]} messages)')
     finally:
         stop(list(procs.values()))
-        stop(load)
+        stop(load, signal.SIGKILL)
         shutil.rmtree(work, ignore_errors=True)
     try:
         loadavg = os.getloadavg()

@@ -2,7 +2,10 @@
 
 Terminal → compensation → forward kinematics, with the calibration service and the recorder,
 passing each transfer's samples between the stages by direct calls (no serialisation between
-them) and still publishing every topic of the separate nodes. Defaults: the simulated terminal
+them) and still publishing every topic of the separate nodes, plus ``pose_batch`` (a transfer's
+poses in one ``nav_msgs/Path``, for subscribers that cannot take 1 kHz). Samples the terminal
+flagged (encoder signal lost) are no measurements: no length, no pose. The calibration is bound
+to the terminal it was made with (``calibration_stage``). Defaults: the simulated terminal
 streaming the digital twin in a demonstration scenario (random 6-DOF motion), a factory
 calibration of the twin when there is no calibration file yet, and recording on, so that
 ``ros2 run mmd_ros pose_node`` works on a machine without hardware.
