@@ -15,7 +15,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from test_nodes_support import needs_ros
+from test_nodes_support import needs_ros, seen
 
 from mmd_ros.core.calibration import (
     Calibration, TerminalBinding, binding_problem, channel_roles, load_calibration,
@@ -240,13 +240,6 @@ def test_flagged_samples_cross_processes_in_raw_counts_and_batches_are_the_poses
             np.testing.assert_allclose(pose_from_msg(p.pose), pose_from_msg(q.pose), atol=0)
         assert all(math.isfinite(p.pose.orientation.w) for p in path.poses)
 
-
-def seen(client, since: float, suffix: str, text: str, level: int | None = None) -> bool:
-    """A diagnostics status ending in ``suffix`` said ``text`` after ``since`` (monotonic)."""
-    with client._lock:
-        history = list(client.diagnostic_history)
-    return any(t >= since and e['name'].endswith(suffix) and text in e['message']
-               and (level is None or e['level'] == level) for t, e in history)
 
 
 @needs_ros
