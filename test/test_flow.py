@@ -33,7 +33,7 @@ def test_sequence_counter_counts_every_jump_and_starts_over_with_a_new_publisher
 
 
 def test_stage_progress_round_trips_through_key_values():
-    p = StageProgress('/mmd/fk_node', {LEN: InputProgress(900, 880, 20)}, {'/mmd/pose': 870},
+    p = StageProgress('/mmd/fk_node', {LEN: InputProgress(900, 880, 20, 1)}, {'/mmd/pose': 870},
                       depth=1000, run='/mmd/replay_node 17', published_run={'/mmd/pose': 400})
     pairs = p.to_pairs() + [('noise', 'x'), ('/mmd/pose what', '1')]
     assert StageProgress.from_pairs('/mmd/fk_node', pairs) == p
@@ -62,9 +62,14 @@ def test_flow_control_paces_by_the_slowest_stage_and_accounts_for_every_message_
     flow.note_progress(progress(comp, {RAW: InputProgress(7000, 6990, 10)}, {LEN: 6990}, 1000, run=''))
     flow.note_progress(progress(fk, {LEN: InputProgress(6990, 6990, 0)}, depth=60, run=''))
     assert not flow.ready()
-    flow.note_progress(progress(comp, {RAW: InputProgress(7000, 0, 0)}, {LEN: 6990}, 1000, published_run={LEN: 0}))
+    # compensation has marked the run but its subscription has not matched our publisher yet
+    flow.note_progress(progress(comp, {RAW: InputProgress(7000, 0, 0, 0)}, {LEN: 6990}, 1000,
+                                published_run={LEN: 0}))
     flow.note_progress(progress(fk, {LEN: InputProgress(6990, 0, 0)}, depth=60))
-    assert flow.ready()
+    assert flow.ready() and not flow.ready([RAW]) and flow.readers(RAW) == 0
+    flow.note_progress(progress(comp, {RAW: InputProgress(7000, 0, 0, 1)}, {LEN: 6990}, 1000,
+                                published_run={LEN: 0}))
+    assert flow.ready([RAW]) and flow.readers(RAW) == 1
     flow.begin([RAW])
     assert flow.batch(64) == 15  # half of fk's window (half its depth of 60)
     # nothing of ours taken yet: the earlier publisher's 7000 are no progress
@@ -84,10 +89,12 @@ def test_flow_control_paces_by_the_slowest_stage_and_accounts_for_every_message_
     flow.note_progress(progress(comp, {RAW: InputProgress(150, 145, 5)}, {LEN: 6990 + 140}, 1000,
                                 published_run={LEN: 140}))
     assert not flow.drained()  # fk: 5 more lengths
-    # fk takes nothing more: after quiet_s the rest counts as lost at the end of the stream
-    clock.t = 1.0
+    # fk takes nothing more: silent (busy) it is waited for; repeating the same report (idle)
+    # quiet_s after its last progress, the rest counts as lost at the end of the stream
+    fk_now = progress(fk, {LEN: InputProgress(6990 + 135, 133, 2)}, depth=60)
+    clock.t = 4.0  # nothing heard from fk since t = 0: busy, waited for (up to timeout_s)
     assert not flow.drained(quiet_s=2.0)
-    clock.t = 2.5
+    flow.note_progress(fk_now)  # idle and no further: the rest is lost
     assert flow.drained(quiet_s=2.0)
     rows = {(r['stage'], r['topic']): r for r in flow.summary()}
     c, f, r = rows[(comp, RAW)], rows[(fk, LEN)], rows[(rec, RAW)]

@@ -84,15 +84,17 @@ class SequenceCounter:
 @dataclass(frozen=True)
 class InputProgress:
     """One input topic of a stage: ``last`` the publisher's sequence number of the last message
-    taken, ``received`` and ``lost`` since the run began."""
+    taken, ``received`` and ``lost`` since the run began, ``publishers`` the publishers the
+    stage's subscription is matched with (-1 unknown)."""
 
     last: int = 0
     received: int = 0
     lost: int = 0
+    publishers: int = -1
 
     @classmethod
-    def of(cls, counter: SequenceCounter) -> InputProgress:
-        return cls(counter.last, counter.run_received, counter.run_lost)
+    def of(cls, counter: SequenceCounter, publishers: int = -1) -> InputProgress:
+        return cls(counter.last, counter.run_received, counter.run_lost, publishers)
 
 
 @dataclass(frozen=True)
@@ -109,10 +111,10 @@ class StageProgress:
     run: str = ''
     published_run: dict[str, int] = field(default_factory=dict)
 
-    _FIELDS = ('last', 'received', 'lost')
+    _FIELDS = ('last', 'received', 'lost', 'publishers')
 
     def to_pairs(self) -> list[tuple[str, str]]:
-        """Key/value pairs: ``run``, ``depth``, ``<topic> last|received|lost`` per input and
+        """Key/value pairs: ``run``, ``depth``, ``<topic> last|received|lost|publishers`` per input and
         ``<topic> published|published_run`` per output."""
         out = [('run', self.run), ('depth', str(self.depth))]
         out += [(f'{t} {k}', str(getattr(p, k))) for t, p in self.inputs.items() for k in self._FIELDS]
@@ -150,12 +152,16 @@ class StageProgress:
 
 @dataclass
 class StageState:
-    """The last report of one stage and when it last changed (``progressed_at``).
-    ``stalled``: it stopped taking messages while behind and is no longer waited for."""
+    """The last report of one stage, when it last changed (``progressed_at``) and when the
+    last report came (``heard_at``: a stage repeats an unchanged report while it is idle).
+    ``stalled``: it stopped taking messages while behind and is no longer waited for; ``late``:
+    first heard after the publisher began (its counts may miss the start of the run)."""
 
     progress: StageProgress
     progressed_at: float
     stalled: bool = False
+    late: bool = False
+    heard_at: float = 0.0
 
 
 class FlowControl:
@@ -181,26 +187,40 @@ class FlowControl:
         self.clock = clock
         self.sent: dict[str, int] = {}
         self.stages: dict[str, StageState] = {}
+        self.begun = False
 
-    def ready(self) -> bool:
-        """Every stage heard from counts for this run."""
-        return all(st.progress.run == self.run for st in self.stages.values())
+    def ready(self, topics: Iterable[str] = ()) -> bool:
+        """Every stage heard from counts for this run, and each one that takes one of
+        ``topics`` (this publisher's) is matched with a publisher of it."""
+        topics = set(topics)
+        return all(st.progress.run == self.run and all(
+            p.publishers != 0 for t, p in st.progress.inputs.items() if t in topics)
+            for st in self.stages.values())
+
+    def readers(self, topic: str) -> int:
+        """Stages counting for this run that take ``topic`` and are matched with a publisher."""
+        return sum(1 for st in self._counting()
+                   if st.progress.inputs.get(topic, InputProgress(publishers=0)).publishers != 0)
 
     def begin(self, topics: Iterable[str]) -> None:
         """This publisher is about to send its first message on ``topics``."""
         for topic in topics:
             self.sent[topic] = 0
+        self.begun = True
 
     def note_sent(self, topic: str, n: int) -> None:
         """This publisher has sent ``n`` messages on ``topic`` in all."""
         self.sent[topic] = int(n)
 
     def note_progress(self, progress: StageProgress) -> None:
+        now = self.clock()
         old = self.stages.get(progress.stage)
         if old is None:
-            self.stages[progress.stage] = StageState(progress, self.clock())
-        elif old.progress != progress:  # a heartbeat without news is no progress
-            old.progress, old.progressed_at = progress, self.clock()
+            self.stages[progress.stage] = StageState(progress, now, late=self.begun, heard_at=now)
+            return
+        old.heard_at = now
+        if old.progress != progress:  # a heartbeat without news is no progress
+            old.progress, old.progressed_at = progress, now
 
     def _counting(self) -> list[StageState]:
         return [st for st in self.stages.values() if st.progress.run == self.run]
@@ -252,12 +272,13 @@ class FlowControl:
         return behind
 
     def drained(self, quiet_s: float = 2.0) -> bool:
-        """Every stage has taken everything published to it, or has taken nothing for
-        ``quiet_s`` (what it still lacks was lost after its last message: the summary counts
-        it as missing)."""
+        """Every stage has taken everything published to it; or it lacks some but, idle, kept
+        reporting no progress for ``quiet_s`` (they were lost after its last message: the
+        summary counts them as missing); or it has said nothing for ``timeout_s`` (a busy
+        stage may not report for a while: it is waited for)."""
         now = self.clock()
-        return all(st.stalled or self.backlog(st) <= 0 or now - st.progressed_at > quiet_s
-                   for st in self._counting())
+        return all(st.stalled or self.backlog(st) <= 0 or st.heard_at - st.progressed_at > quiet_s
+                   or now - st.heard_at > self.timeout_s for st in self._counting())
 
     def summary(self) -> list[dict[str, object]]:
         """Per stage and input topic, in this run: published upstream, received, lost
@@ -273,7 +294,7 @@ class FlowControl:
                 missing = max(0, upstream - p.received - p.lost) if upstream is not None else 0
                 out.append({'stage': st.progress.stage, 'topic': topic, 'published': upstream,
                             'received': p.received, 'lost': p.lost, 'missing': missing,
-                            'stalled': st.stalled})
+                            'stalled': st.stalled, 'late': st.late})
         return out
 
     @staticmethod
@@ -287,5 +308,7 @@ class FlowControl:
             text += f', {lost} lost' if lost else ', none lost'
             if r['stalled']:
                 text += ' (it stopped taking messages)'
+            if r.get('late'):
+                text += ' (heard from only after the replay began: counted from then)'
             parts.append(text)
         return '; '.join(parts)

@@ -108,7 +108,8 @@ class CountedInputs:
             counter.ambiguous = True
 
     def progress(self) -> dict[str, InputProgress]:
-        return {name: InputProgress.of(c) for name, c in self.counters.items()}
+        return {name: InputProgress.of(c, self._subscriptions[name].get_publisher_count())
+                for name, c in self.counters.items()}
 
     def report(self, r: Report) -> None:
         """Add ``<topic>_received`` / ``_lost`` to a report; WARN (for 5 s) after new losses."""
@@ -148,7 +149,8 @@ class ProgressPublisher:
         self._published_mark: dict[str, int] = {}
         node.create_subscription(String, RUN_TOPIC, self._on_run, LATCHED)
         self._taken_reported = 0
-        self._prompt_every = max(8, self.depth // 4)
+        # a busy stage may not get to its timer for a while: report from the input callbacks too
+        self._prompt_every = max(8, min(256, self.depth // 4))
         inputs.on_taken = self._prompt
         self.timer = node.create_timer(period_s, self.publish)
 
@@ -174,6 +176,9 @@ class ProgressPublisher:
                              {t: n - self._published_mark.get(t, 0) for t, n in published.items()})
 
     def publish(self) -> None:
+        if not self.publisher.get_subscription_count():
+            self._last = None  # no replay listens: nothing to say (and to spend on it)
+            return
         now = time.monotonic()
         p = self.current()
         if p == self._last and now - self._last_t < self.heartbeat_s:

@@ -125,19 +125,26 @@ class ReplayNode(Node):
                 return bool(self.flow.waiting_for(batch))
             return not self.flow.drained()
 
-    def _wait_for_stages(self, deadline: float, settle_s: float = 1.0) -> None:
+    def _wait_for_stages(self, deadline: float, settle_s: float = 2.0, others_s: float = 5.0) -> None:
         """Until every stage publishing progress has been heard from, counts for this run (it
-        heard ``pipeline/run``), and no new one appeared for ``settle_s`` (discovery of the
-        other processes takes a few seconds)."""
-        known, since = -1, time.monotonic()
+        heard ``pipeline/run``) and, if it takes raw_counts or reference/pose, is matched with
+        this node's publisher; and no new stage appeared for ``settle_s`` (discovery of the
+        other processes takes 2–3 s, more on a loaded machine). A subscriber of raw_counts that
+        is no stage (one that never reports) is waited for ``others_s`` at most."""
+        own = [self.out_raw.topic, self.out_reference.topic]
+        known, since, settled_at = -1, time.monotonic(), None
         while time.monotonic() < deadline:
             with self._lock:
-                heard, ready = len(self.flow.stages), self.flow.ready()
+                heard, ready = len(self.flow.stages), self.flow.ready(own)
+                readers = self.flow.readers(self.out_raw.topic)
             count = max(heard, self.count_publishers(PROGRESS_TOPIC))
+            now = time.monotonic()
             if count != known:
-                known, since = count, time.monotonic()
-            elif heard >= count and ready and time.monotonic() - since >= settle_s:
-                return
+                known, since, settled_at = count, now, None
+            elif heard >= count and ready and now - since >= settle_s:
+                settled_at = settled_at or now
+                if readers >= self.out_raw.subscribers or now - settled_at >= others_s:
+                    return
             if self._stop.wait(0.05):
                 return
 
