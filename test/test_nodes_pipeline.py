@@ -126,9 +126,9 @@ def test_calibrate_measure_record_and_replay(tmp_path):
         counted = lambda: int(comp()['samples_without_signal']) + int(comp()['raw_counts_lost'])  # noqa: E731
         before_flagged, before_counted = flagged(), counted()
         t_lost = time.monotonic()
-        assert client.set_param('encoder_node', 'sim_command', 'signal_lost bar3')[0]
+        assert client.set_param('encoder_node', 'sim_command', 'signal_lost bar3', timeout=90)[0]
         time.sleep(0.5)
-        assert client.set_param('encoder_node', 'sim_command', 'signal_ok bar3')[0]
+        assert client.set_param('encoder_node', 'sim_command', 'signal_ok bar3', timeout=90)[0]
         t_ok = time.time_ns()
         # every flagged sample reached compensation_node and got no length, or was lost on the
         # way and counted as lost there (a loaded machine)

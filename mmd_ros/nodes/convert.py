@@ -152,6 +152,39 @@ class PathLayout:
         return data.tobytes()
 
 
+class _StatusLayout:
+    """A ``sensor_msgs/JointState`` with fixed names, ``position`` and ``effort`` of that length
+    and an empty ``velocity``, as CDR rows: rclpy serialises a template once, the offsets of
+    the stamp and of both blocks are found in it, and N messages are filled in with numpy."""
+
+    def __init__(self, names: list[str]) -> None:
+        from rclpy.serialization import serialize_message
+        from sensor_msgs.msg import JointState
+        k = len(names)
+        marks = [float(1000 + i) for i in range(k)], [float(2000 + i) for i in range(k)]
+        data = serialize_message(JointState(header=header(0), name=list(names), position=marks[0],
+                                            effort=marks[1]))
+        self.template = np.frombuffer(data, np.uint8).copy()
+        self.k = k
+        self.position_at = data.index(struct.pack('<d', marks[0][0]))
+        self.effort_at = data.index(struct.pack('<d', marks[1][0]))
+        self.template[self.position_at:self.position_at + 8 * k] = 0
+        self.template[self.effort_at:self.effort_at + 8 * k] = 0
+
+    def encode(self, stamps_ns: NDArray[np.int64], position: NDArray[np.float64],
+               effort: NDArray[np.uint8]) -> NDArray[np.uint8]:
+        n = len(stamps_ns)
+        rows = np.empty((n, self.template.size), np.uint8)
+        rows[:] = self.template
+        sec, nsec = split_stamps(np.asarray(stamps_ns, dtype=np.int64))
+        rows[:, 4:8] = sec.astype('<i4').view(np.uint8).reshape(n, 4)
+        rows[:, 8:12] = nsec.astype('<u4').view(np.uint8).reshape(n, 4)
+        for at, values in ((self.position_at, position), (self.effort_at, effort)):
+            block = np.ascontiguousarray(values, dtype='<f8').reshape(n, self.k)
+            rows[:, at:at + 8 * self.k] = block.view(np.uint8)
+        return rows
+
+
 class Rows:
     """CDR bytes of N samples of each per-sample topic (fixed layouts, built once).
 
@@ -169,21 +202,19 @@ class Rows:
         self.pose = PoseLayout(FRAME_LOWER)
         self.pose_cov = PoseLayout(FRAME_LOWER, covariance=True)
         self.path = PathLayout(FRAME_LOWER)
+        self._status_layout: _StatusLayout | None = None
 
     def pose_batch(self, stamps_ns: NDArray[np.int64], poses: NDArray[np.float64]) -> bytes:
         """A Path of poses (n, 6) [m, rad] stamped ``stamps_ns``, frame mmd_lower."""
         return self.path.encode(stamps_ns, PoseLayout.values_from_poses(poses))
 
-    def raw_with_status(self, stamp_ns: int, counts: NDArray[np.float64],
-                        status: NDArray[np.uint8]) -> bytes:
-        """A ``raw_counts`` message whose ``effort`` holds the channel status codes (1 signal
-        lost, 2 quadrature error, 3 both; 0 good) of a sample the terminal flagged."""
-        from rclpy.serialization import serialize_message
-        from sensor_msgs.msg import JointState
-        msg = JointState(header=header(stamp_ns), name=self.raw.names,
-                         position=[float(c) for c in counts],
-                         effort=[float(v) for v in status])
-        return serialize_message(msg)
+    def raw_with_status(self, stamps_ns: NDArray[np.int64], counts: NDArray[np.float64],
+                        status: NDArray[np.uint8]) -> NDArray[np.uint8]:
+        """``raw_counts`` rows (N, size) whose ``effort`` holds the channel status codes (1
+        signal lost, 2 quadrature error, 3 both; 0 good) of samples the terminal flagged."""
+        if self._status_layout is None:
+            self._status_layout = _StatusLayout(self.raw.names)
+        return self._status_layout.encode(stamps_ns, counts, status)
 
     def poses(self, stamps_ns: NDArray[np.int64], poses: NDArray[np.float64],
               covariance: NDArray[np.float64] | None = None) -> NDArray[np.uint8]:

@@ -319,12 +319,9 @@ class TerminalStage:
             # a sample whose channel status is not good carries it in ``effort``
             flagged = status.any(axis=1)
             for a, b in runs(flagged):
-                if flagged[a]:
-                    for i in range(a, b):
-                        self.raw.payload(self.rows.raw_with_status(int(stamps[i]), counts[i], status[i]),
-                                         int(stamps[i]))
-                else:
-                    self.raw.rows(self.rows.raw.encode(stamps[a:b], counts[a:b]), stamps[a:b])
+                encode = self.rows.raw_with_status if flagged[a] else self.rows.raw.encode
+                args = (stamps[a:b], counts[a:b]) + ((status[a:b],) if flagged[a] else ())
+                self.raw.rows(encode(*args), stamps[a:b])
         if self.source is not None and self.reference is not None and self.cfg.publish_reference:
             ref = self.source.reference_at(dev_t)
             known = np.isfinite(ref).any(axis=1)
