@@ -73,15 +73,16 @@ def test_flow_control_paces_by_the_slowest_stage_and_accounts_for_every_message_
     flow.begin([RAW])
     assert flow.batch(64) == 15  # half of fk's window (half its depth of 60)
     # nothing of ours taken yet: the earlier publisher's 7000 are no progress
-    flow.note_sent(RAW, 40)
-    assert flow.waiting_for(0) == [] and flow.waiting_for(70) == [comp]
+    flow.note_sent(RAW, 20)
+    assert flow.waiting_for(0) == []
+    assert flow.waiting_for(15) == [fk]  # what compensation has yet to take will reach fk too
     flow.note_sent(RAW, 150)
-    assert comp in flow.waiting_for()
+    assert set(flow.waiting_for()) == {comp, fk}
     # compensation takes 140 of ours, 5 lost; it published 135 lengths, fk took 100
     flow.note_progress(progress(comp, {RAW: InputProgress(145, 140, 5)}, {LEN: 6990 + 135}, 1000,
                                 published_run={LEN: 135}))
     flow.note_progress(progress(fk, {LEN: InputProgress(6990 + 100, 100, 0)}, depth=60))
-    assert flow.waiting_for() == [fk]  # 35 behind, window 30
+    assert flow.waiting_for() == [fk]  # 35 behind, 5 more to come through compensation; window 30
     # a recorder heard only now: it counts for the run
     flow.note_progress(progress(rec, {RAW: InputProgress(150, 150, 0)}))
     flow.note_progress(progress(fk, {LEN: InputProgress(6990 + 135, 133, 2)}, depth=60))

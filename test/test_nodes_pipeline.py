@@ -85,7 +85,7 @@ def test_calibrate_measure_record_and_replay(tmp_path):
         assert client.set_param('encoder_node', 'sim_command', 'mount')[0]
         nodes.start('recorder_node', *params(output=str(log_file), flush_period_s=0.5, qos_depth=DEPTH))
         assert client.wait_for(lambda: (client.status(': recorder') or {}).get('values', {})
-                               .get('state') == 'recording', 30), nodes.dump()
+                               .get('state') == 'recording', 90), nodes.dump()
         since = time.time_ns() + int((TRANSITION + 1.0) * 1e9)
         assert client.wait_for(lambda: np.count_nonzero(client.pose_array()[0] > since) >= 3000, 180), \
             nodes.dump()

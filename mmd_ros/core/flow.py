@@ -199,7 +199,7 @@ class FlowControl:
 
     def readers(self, topic: str) -> int:
         """Stages counting for this run that take ``topic`` and are matched with a publisher."""
-        return sum(1 for st in self._counting()
+        return sum(1 for st in self.counting()
                    if st.progress.inputs.get(topic, InputProgress(publishers=0)).publishers != 0)
 
     def begin(self, topics: Iterable[str]) -> None:
@@ -222,30 +222,36 @@ class FlowControl:
         if old.progress != progress:  # a heartbeat without news is no progress
             old.progress, old.progressed_at = progress, now
 
-    def _counting(self) -> list[StageState]:
+    def counting(self) -> list[StageState]:
+        """The stages that count for this run."""
         return [st for st in self.stages.values() if st.progress.run == self.run]
 
     def _upstream(self, topic: str, run: bool) -> int | None:
         """Messages published on ``topic`` by this publisher and the stages (in all, or in
         this run), or None when no one we know of publishes it."""
         counts = [self.sent[topic]] if topic in self.sent else []
-        for st in self._counting():
+        for st in self.counting():
             table = st.progress.published_run if run else st.progress.published
             if topic in table:
                 counts.append(table[topic])
         return sum(counts) if counts else None
 
-    def backlog(self, st: StageState) -> int:
-        """Messages published to the stage that it has not taken yet, largest over its inputs
-        (by sequence numbers: a stage that took none of this publisher's yet is behind by all
-        it sent)."""
+    def backlog(self, st: StageState, _hops: int = 0) -> int:
+        """Messages still to reach the stage, largest over its inputs: those published to it
+        that it has not taken yet (by sequence numbers: a stage that took none of this
+        publisher's yet is behind by all it sent), plus, for an input another stage publishes,
+        that stage's own backlog (they will come too)."""
         worst = 0
         for topic, p in st.progress.inputs.items():
             upstream = self._upstream(topic, run=False)
             if upstream is None:
                 continue
             last = p.last if topic not in self.sent or p.received or p.lost else 0
-            worst = max(worst, upstream - last)
+            behind = upstream - last
+            if topic not in self.sent and _hops < 8:
+                behind += max((self.backlog(q, _hops + 1) for q in self.counting()
+                               if topic in q.progress.published), default=0)
+            worst = max(worst, behind)
         return worst
 
     def window_for(self, st: StageState) -> int:
@@ -254,7 +260,7 @@ class FlowControl:
 
     def batch(self, largest: int = 64) -> int:
         """Messages to send at a time: at most half the smallest window."""
-        windows = [self.window_for(st) for st in self._counting()] or [self.window]
+        windows = [self.window_for(st) for st in self.counting()] or [self.window]
         return max(1, min(largest, min(windows) // 2))
 
     def waiting_for(self, batch: int = 0) -> list[str]:
@@ -262,7 +268,7 @@ class FlowControl:
         (those that took nothing for ``timeout_s`` are given up)."""
         now = self.clock()
         behind = []
-        for st in self._counting():
+        for st in self.counting():
             if st.stalled or self.backlog(st) <= max(0, self.window_for(st) - batch):
                 continue
             if now - st.progressed_at > self.timeout_s:
@@ -278,7 +284,7 @@ class FlowControl:
         stage may not report for a while: it is waited for)."""
         now = self.clock()
         return all(st.stalled or self.backlog(st) <= 0 or st.heard_at - st.progressed_at > quiet_s
-                   or now - st.heard_at > self.timeout_s for st in self._counting())
+                   or now - st.heard_at > self.timeout_s for st in self.counting())
 
     def summary(self) -> list[dict[str, object]]:
         """Per stage and input topic, in this run: published upstream, received, lost
@@ -286,7 +292,7 @@ class FlowControl:
         stage's last message, or still on the way when it stopped taking them). received +
         lost + missing = published."""
         out: list[dict[str, object]] = []
-        for st in sorted(self._counting(), key=lambda s: s.progress.stage):
+        for st in sorted(self.counting(), key=lambda s: s.progress.stage):
             for topic, p in sorted(st.progress.inputs.items()):
                 upstream = self._upstream(topic, run=True)
                 if upstream is None and not p.received:

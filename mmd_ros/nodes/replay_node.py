@@ -169,10 +169,12 @@ class ReplayNode(Node):
         self.state = 'replaying'
         self.get_logger().info(f'replaying {log.path}: {self.schedule.n} samples at rate '
                                f'{cfg["rate"]:g}' + (' (as fast as possible)' if self.schedule.fast else '')
-                               + (f', paced by {len(self.flow.stages)} stage(s)' if flow else ''))
+                               + (f', paced by {len(self.flow.counting())} stage(s)' if flow else ''))
         ref = log.reference_pose if cfg['publish_reference'] else None
         started = time.monotonic()
         batch = self.flow.batch(64) if flow else 64
+        with self._lock:
+            paced = bool(self.flow.counting())
         for a, b in paced_batches(self.schedule, max_batch=batch, stop=self._stop):
             if flow and self._flow(b - a):
                 held = time.monotonic()
@@ -187,7 +189,8 @@ class ReplayNode(Node):
                     self.out_reference.rows(self.rows.reference.encode(stamps[known], ref[a:b][known]),
                                             stamps[known])
             self.sent = b
-            if not flow and self.schedule.fast and b % 1024 < 64:
+            if (not flow or not paced) and self.schedule.fast and b % 1024 < 64:
+                # no stage to pace by: at least let every subscriber acknowledge
                 self.out_raw.publisher.wait_for_all_acked(Duration(seconds=5))
         self.seconds = time.monotonic() - started
         self.out_raw.publisher.wait_for_all_acked(Duration(seconds=10))
