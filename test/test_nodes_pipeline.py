@@ -35,6 +35,13 @@ TRANSITION = 0.2
 DEPTH = 20000
 
 
+def settled(client, suffix: str, key: str, reports: int = 3) -> bool:
+    """The last ``reports`` diagnostics of the status ending in ``suffix`` had one ``key``."""
+    with client._lock:
+        values = [e['values'].get(key) for _, e in client.diagnostic_history if e['name'].endswith(suffix)]
+    return len(values) >= reports and len(set(values[-reports:])) == 1
+
+
 @needs_ros
 def test_calibrate_measure_record_and_replay(tmp_path):
     from mmd_ros.nodes.client import MmdClient, guided_calibration
@@ -150,6 +157,8 @@ def test_calibrate_measure_record_and_replay(tmp_path):
         with client._lock:
             client.poses.clear()
         processed = process_run(run, Model())
+        # fk_node has finished what the live stream left it: its count stands still
+        assert client.wait_for(lambda: settled(client, 'fk_node: kinematics', 'poses_published'), 120)
         published_before = int(kin()['poses_published'])
         nodes.start('replay_node', *params(log=str(log_file), rate=0.0, wait_for_subscribers=1,
                                             qos_depth=DEPTH))
