@@ -3,17 +3,19 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
 
+from mmd_ros.cli.log_args import add_segment_argument
+from mmd_ros.core import jsonio
 from mmd_ros.core.accuracy import format_stats
 from mmd_ros.core.calibration import load_calibration
 from mmd_ros.core.model import Model, load_model
 from mmd_ros.core.progress import Progress
 from mmd_ros.logs.errors import StampsNotIncreasing
 from mmd_ros.logs.layout import open_run, read_run
+from mmd_ros.logs.outputs import check_outputs
 from mmd_ros.logs.processing import process_log
 
 __all__ = ['register']
@@ -22,9 +24,11 @@ __all__ = ['register']
 def run_command(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     quiet = args.json or args.quiet
+    out = Path(args.out) if args.out else Path(args.log).with_suffix('.processed.mcap')
+    check_outputs([('--out', out), ('--csv', args.csv)], [args.log, args.model, args.calibration],
+                  force=args.force)
     if not quiet:
         print(f'reading {args.log}', file=sys.stderr)
-    out = Path(args.out) if args.out else Path(args.log).with_suffix('.processed.mcap')
     cal = load_calibration(args.calibration) if args.calibration else None
     chosen = load_model(args.model) if args.model else None
 
@@ -36,21 +40,25 @@ def run_command(args: argparse.Namespace) -> int:
         progress.close()
         return summary
 
-    try:
-        with open_run(args.log) as run:   # block by block, in bounded memory
+    if args.segment is not None:
+        run = read_run(args.log, segment=args.segment)   # one segment of the log, in memory
+        summary = process(run)
+    else:
+        try:
+            with open_run(args.log) as run:   # block by block, in bounded memory
+                summary = process(run)
+        except StampsNotIncreasing:
+            run = read_run(args.log)   # refuses, naming the segments to read with --segment
             summary = process(run)
-    except StampsNotIncreasing:
-        summary = process(read_run(args.log))   # the whole log, in memory
     model = chosen or run.model or Model()
     if summary.get('log_problem'):
-        print(f'warning: {summary["log_problem"]}', file=sys.stderr)
+        print(f'warning: {summary["log_problem"]["message"]}', file=sys.stderr)
     elapsed = time.perf_counter() - started
     summary.update(output=str(out), csv=args.csv, seconds=elapsed,
                    samples_per_s=summary['samples'] / elapsed if elapsed > 0 else None,
                    model=model.to_dict())
     if args.json:
-        json.dump(summary, sys.stdout, indent=2)
-        sys.stdout.write('\n')
+        jsonio.dump(summary, sys.stdout)
         return 0
     print(f'{summary["samples"]} samples over {summary["duration_s"]:.1f} s: '
           f'{summary["valid"]} valid poses, {summary["not_converged"]} not converged, '
@@ -81,6 +89,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument('--csv', help='also write the poses and lengths as CSV to this file')
     p.add_argument('--covariance', action='store_true',
                    help='also write /mmd/pose_with_covariance (propagated uncertainty)')
+    add_segment_argument(p)
+    p.add_argument('--force', action='store_true',
+                   help='allow --out/--csv to replace an existing raw log (never the input)')
     p.add_argument('--json', action='store_true', help='print a machine-readable summary on stdout')
     p.add_argument('--quiet', action='store_true', help='no progress on stderr')
     p.set_defaults(func=run_command)

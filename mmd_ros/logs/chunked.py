@@ -2,35 +2,36 @@
 
 :class:`ChunkedReader` is a :class:`LogReader` that does not take the whole file in at once:
 
-1. a first pass walks the file's top-level records without decompressing anything: schemas,
-   channels, metadata, and after each chunk its message index records, which say which channels
-   the chunk holds and how many messages;
+1. a first pass walks the file's records as :class:`LogReader` does (summary, schemas,
+   channels, metadata, damage outside chunks), but only notes where each chunk lies;
 2. the chunks holding the small topics asked for (the device description, the calibration, the
    model) are read then, and only those topics are kept;
-3. :meth:`ChunkedReader.chunks` then reads the chunks in file order and yields, per chunk, the
+3. :meth:`ChunkedReader.chunks` reads the chunks in file order and yields, per chunk, the
    messages of the streamed topics (raw counts, reference), keeping nothing of a chunk once it
-   is handed on.
+   is handed on. A damaged chunk is skipped and reported exactly as :class:`LogReader` does
+   (:attr:`problem`, complete once :meth:`chunks` has run).
 
-A chunk with no message index (allowed by MCAP, not written by us or rosbag2) is read in both
-passes. Damage is handled as :class:`LogReader` handles it, chunk by chunk.
+Which channels a chunk holds comes from the summary's chunk index; a log without one (a
+recording cut short) has each chunk read in both passes. The file is mapped, and the pages of
+what has been read are given back (``madvise``): a mapped file's pages otherwise stay in the
+process's resident set, and a 2-hour log would add most of its size to it.
 """
 
 from __future__ import annotations
 
+import mmap
 import os
 import struct
 from pathlib import Path
-from typing import Iterator
+from typing import Any, Iterator
 
 from mmd_ros.logs.cdr import JointStateLayout
 from mmd_ros.logs.errors import LogError
 from mmd_ros.logs.reader import (
-    MAGIC, OP_CHUNK, OP_DATA_END, OP_FOOTER, OP_HEADER, JointStates, LogReader, _Channel, _string,
+    _DAMAGE, MAGIC, OP_MESSAGE_INDEX, JointStates, LogReader, _Channel, _index_times, _Span,
 )
 
 __all__ = ['ChunkedReader']
-
-OP_MESSAGE_INDEX = 0x07
 
 
 class ChunkedReader(LogReader):
@@ -43,41 +44,46 @@ class ChunkedReader(LogReader):
     """
 
     def __init__(self, path: str | os.PathLike[str], small: set[str], streamed: set[str]) -> None:
+        # the state LogReader.__init__ sets up, without reading the chunks
         self.path = Path(path)
-        self.truncated = False
-        self.problem: str | None = None
+        self.problem = None
         self.profile = ''
         self.metadata: dict[str, dict[str, str]] = {}
         self._schemas: dict[int, tuple[str, str, bytes]] = {}
         self._channels: dict[int, _Channel] = {}
+        self._spans: list[_Span] = []
+        self._read: list[tuple[int, int, int]] = []
+        self._summary = None
         self._small = set(small)
         self._streamed = set(streamed)
         self._layouts: dict[str, JointStateLayout] = {}
-        #: (offset, record start, record end, channel ids or None when no index follows)
-        self._chunk_list: list[tuple[int, int, int, set[int] | None]] = []
-        self._counts: dict[int, int] = {}
+        self._deferred: list[tuple[int, int, int]] = []   # (offset, content start, end)
+        self._walking = True
+        self._data: Any = None
         try:
             self._file = open(self.path, 'rb')  # noqa: SIM115 (closed in close())
         except OSError as exc:
             raise LogError(f'cannot read log {self.path}: {exc.strerror}') from None
         try:
-            size = os.fstat(self._file.fileno()).st_size
-            if size < len(MAGIC):
+            self._size = os.fstat(self._file.fileno()).st_size
+            if self._size < len(MAGIC):
                 raise LogError(f'{self.path} is empty or not an MCAP file')
-            self._size = size
-            self._contents()
+            self._data = mmap.mmap(self._file.fileno(), 0, access=mmap.ACCESS_READ)
+            self._clean = self._parse(self._data, self._size)
+            self._walking = False
             self._read_small()
+            self._give_back(0, self._size)
+        except OSError as exc:
+            self.close()
+            raise LogError(f'cannot read log {self.path}: {exc.strerror}') from None
         except BaseException:
             self.close()
             raise
 
-    def _pread(self, offset: int, size: int) -> bytes:
-        """Bytes of the file. Read with ``pread``, not through a map: pages of a mapped file
-        stay in the process's resident set once touched (and the kernel maps 64 KiB around
-        each), so a 2-hour log would add most of its size to it."""
-        return os.pread(self._file.fileno(), size, offset)
-
     def close(self) -> None:
+        if self._data is not None:
+            self._data.close()
+            self._data = None
         self._file.close()
 
     def __enter__(self) -> ChunkedReader:
@@ -86,93 +92,97 @@ class ChunkedReader(LogReader):
     def __exit__(self, *exc: object) -> None:
         self.close()
 
+    def _give_back(self, start: int, stop: int) -> None:
+        """Drop the mapped pages of bytes [start, stop) from the resident set (they stay in
+        the page cache)."""
+        first = start - start % mmap.PAGESIZE
+        if stop > first and hasattr(self._data, 'madvise'):
+            self._data.madvise(mmap.MADV_DONTNEED, first, stop - first)
+
     # -- the first pass ----------------------------------------------------------------------------
-    def _contents(self) -> None:
-        """Top-level records: schemas, channels, metadata, and which channels each chunk holds."""
-        size = self._size
-        if self._pread(0, 8) != MAGIC:
-            raise LogError(f'{self.path} is not an MCAP file (bad magic bytes)')
-        off = 8
-        while off < size:
-            if off + 9 > size:
-                self._damage(f'file ends inside a record header at byte {off}')
-                return
-            head = self._pread(off, 15)
-            op = head[0]
-            (length,) = struct.unpack_from('<Q', head, 1)
-            start, end = off + 9, off + 9 + length
-            if end > size:
-                self._damage(f'file ends inside a record (opcode {op}) at byte {off} of {size}')
-                return
-            if op in (OP_FOOTER, OP_DATA_END):
-                return
-            if op == OP_CHUNK:
-                self._chunk_list.append((off, start, end, None))
-            elif op == OP_MESSAGE_INDEX and self._chunk_list and length >= 6:
-                cid, n = struct.unpack_from('<HI', head, 9)
-                first, s, e, ids = self._chunk_list[-1]
-                self._chunk_list[-1] = (first, s, e, (ids or set()) | {cid})
-                self._counts[cid] = self._counts.get(cid, 0) + n // 16
-            elif op == OP_HEADER:
-                self.profile, _ = _string(self._pread(start, length), 0)
-            elif op != OP_MESSAGE_INDEX:
-                self._parse_record(op, self._pread(start, length), 0, length)
-            off = end
+    def _walk_chunk(self, data: Any, off: int, start: int, end: int, size: int
+                    ) -> tuple[int | None, _Span | None]:
+        """While walking: a chunk whose header holds is noted for later; one whose header is
+        damaged is skipped now, as LogReader skips it."""
+        if self._walking and self._chunk_header(data, off, end) is not None:
+            self._deferred.append((off, start, end))
+            return end, None
+        return super()._walk_chunk(data, off, start, end, size)
 
-    def _ids(self, topics: set[str]) -> set[int]:
-        return {cid for cid, ch in self._channels.items() if ch.topic in topics}
+    def _holds(self, off: int, topics: set[str]) -> bool:
+        """Whether the chunk at ``off`` may hold messages of ``topics`` (the summary's chunk
+        index says which channels it holds; without it, any chunk may)."""
+        index = self._summary.chunks.get(off) if self._summary is not None else None
+        if index is None:
+            return True
+        return any(cid not in self._channels or self._channels[cid].topic in topics
+                   for cid in index.message_index_offsets)
 
-    def _needs(self, ids: set[int] | None, topics: set[str]) -> bool:
-        """Whether a chunk holding channels ``ids`` may hold messages of ``topics``."""
-        return ids is None or bool(ids & self._ids(topics)) or any(c not in self._channels for c in ids)
-
-    def _read_chunk(self, start: int, end: int, keep: set[str]) -> bool:
-        """Parse one chunk, keeping the messages of ``keep`` only; False (and the reader's
-        problem set) when the chunk is damaged."""
-        try:
-            self._parse_chunk(self._pread(start, end - start), 0, end - start)
-        except LogError as exc:
-            self._damage(str(exc))
-            return False
-        finally:
-            for cid, ch in list(self._channels.items()):
-                if ch.topic not in keep:
-                    self._channels[cid] = _Channel(ch.topic, ch.schema_id, ch.encoding, ch.metadata)
-        return True
+    def _keep_only(self, topics: set[str]) -> None:
+        for cid, ch in list(self._channels.items()):
+            if ch.topic not in topics:
+                self._channels[cid] = _Channel(ch.topic, ch.schema_id, ch.encoding, ch.metadata)
 
     def _read_small(self) -> None:
-        for _, start, end, ids in self._chunk_list:
-            if self._needs(ids, self._small) and not self._read_chunk(start, end, self._small):
-                return
+        """The small topics, from the chunks that hold them (damage is reported by the second
+        pass, which reads those chunks again)."""
+        for off, start, end in self._deferred:
+            if self._holds(off, self._small):
+                try:
+                    self._parse_chunk(self._data, off, start, end)
+                except _DAMAGE:
+                    pass
+                self._keep_only(self._small)
+        for ch in self._channels.values():
+            ch.seal()
+
+    def message_count(self, topic: str) -> int | None:
+        """Messages of ``topic`` according to the summary's message indexes, or None."""
+        if self._summary is None or not self._summary.chunks:
+            return None
+        ids = {cid for cid, ch in self._channels.items() if ch.topic == topic}
+        total = 0
+        for index in self._summary.chunks.values():
+            for cid, moff in index.message_index_offsets.items():
+                if cid in ids and moff + 15 <= self._size:
+                    total += struct.unpack_from('<I', self._data, moff + 11)[0] // 16
+        self._give_back(0, self._size)
+        return total
 
     # -- the second pass ---------------------------------------------------------------------------
-    def message_count(self, topic: str) -> int | None:
-        """Messages of ``topic`` according to the message indexes (None if some are missing)."""
-        if any(ids is None for *_, ids in self._chunk_list):
-            return None
-        return sum(self._counts.get(cid, 0) for cid in self._ids({topic}))
-
     def chunks(self) -> Iterator[dict[str, JointStates]]:
         """Per chunk holding a streamed topic, in file order: its messages of each streamed
-        (JointState) topic. Stops at damage (:attr:`problem` says where)."""
-        if self.truncated and not self._chunk_list:
-            return
-        keep = self._small | self._streamed
-        for _, start, end, ids in self._chunk_list:
-            if not self._needs(ids, self._streamed):
+        (JointState) topic. A damaged chunk is skipped and reported in :attr:`problem`."""
+        needed = self._small | self._streamed
+        for off, start, end in self._deferred:
+            if not self._holds(off, needed):
                 continue
-            if not self._read_chunk(start, end, keep):
-                return
-            out = {}
-            for topic in self._streamed:
-                if self.has_topic(topic) and any(ch.count for ch in self._channels.values()
-                                                 if ch.topic == topic):
-                    out[topic] = self._take(topic)
+            _, span = super()._walk_chunk(self._data, off, start, end, self._size)
+            if span is not None and not span.from_summary:
+                self._index_after(end, span)
+            self._keep_only(self._streamed)
+            self._give_back(off, end)
+            out = {topic: self._take(topic) for topic in self._streamed
+                   if any(ch.count for ch in self._channels.values() if ch.topic == topic)}
             if out:
                 yield out
+        self._spans.sort(key=lambda span: span.offset)   # in file order, as both passes found them
+        self.problem = self._make_problem(self._clean)
+
+    def _index_after(self, off: int, span: _Span) -> None:
+        """The message index records that follow a skipped chunk: what it held."""
+        while off + 9 <= self._size and self._data[off] == OP_MESSAGE_INDEX:
+            (length,) = struct.unpack_from('<Q', self._data, off + 1)
+            try:
+                span.add_index(*_index_times(self._data, off + 9, off + 9 + length))
+            except _DAMAGE:
+                return
+            off += 9 + length
 
     def _take(self, topic: str) -> JointStates:
         """The messages of ``topic`` read so far, decoded; forgotten here."""
+        for ch in self._channels.values():
+            ch.seal()
         stamps, payloads, _, _ = self._collect(topic)
         layout = self._layouts.get(topic)
         rows = self._rows(payloads)
@@ -184,7 +194,5 @@ class ChunkedReader(LogReader):
                 self._layouts[topic] = JointStateLayout(states.names, first.header.frame_id)
         else:
             states = JointStates(decoded[0], layout.names, decoded[1])
-        for cid, ch in list(self._channels.items()):
-            if ch.topic == topic:
-                self._channels[cid] = _Channel(ch.topic, ch.schema_id, ch.encoding, ch.metadata)
+        self._keep_only(self._streamed - {topic})
         return states

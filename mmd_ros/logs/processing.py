@@ -12,6 +12,7 @@ whole run's arrays, for callers that want them in memory.
 
 from __future__ import annotations
 
+import contextlib
 import queue
 import threading
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -34,7 +35,7 @@ from mmd_ros.logs.layout import (
     BAR_NAMES, FK_STATUS_NAMES, FRAME_LOWER, TOPIC_BAR_LENGTHS, TOPIC_CALIBRATION, TOPIC_DEVICE,
     TOPIC_FK_STATUS, TOPIC_MODEL, TOPIC_POSE, TOPIC_POSE_COV, TOPIC_THERMAL, RunBlock, RunLog,
 )
-from mmd_ros.logs.errors import LogError
+from mmd_ros.logs.outputs import check_outputs, replacing
 from mmd_ros.logs.writer import FAST_ZSTD_LEVEL, LogWriter
 
 __all__ = [
@@ -190,7 +191,10 @@ class RunSummary:
             'max_fk_iterations': self.max_iterations,
         }
         if source.problem:
-            summary['log_problem'] = source.problem
+            summary['log_problem'] = source.problem.as_dict()
+        segment = getattr(source, 'segment', (1, 1))
+        if segment[1] > 1:
+            summary['segment'] = {'index': segment[0], 'of': segment[1]}
         if self.pose_error is not None:
             summary['pose_error'] = [s.as_dict() for s in self.pose_error.stats()]
         if self.length_error is not None:
@@ -259,9 +263,10 @@ class ProcessedLogWriter:
 
 def write_processed(path: Path, run: RunLog, model: Model, result: ProcessedRun,
                     calibration_text: str) -> None:
-    """Write a processed run held in memory (:class:`ProcessedLogWriter`)."""
-    with ProcessedLogWriter(path, run.device, model, calibration_text,
-                            int(result.stamps_ns[0])) as out:
+    """Write a processed run held in memory (:class:`ProcessedLogWriter`), under a temporary
+    name renamed to ``path`` once complete."""
+    with replacing(path) as tmp, ProcessedLogWriter(tmp, run.device, model, calibration_text,
+                                                    int(result.stamps_ns[0])) as out:
         for start in range(0, result.stamps_ns.size, BLOCK):
             part = slice(start, start + BLOCK)
             out.write(ProcessedRun(**{f.name: None if getattr(result, f.name) is None
@@ -274,19 +279,16 @@ def process_log(source: RunSource, out: Path, model: Model, *,
                 compiled: bool | None = None, block: int = BLOCK) -> dict[str, Any]:
     """``mmd process``: every sample of ``source`` through the pipeline into the processed log
     ``out`` (and ``csv``), block by block in bounded memory; returns the summary
-    (:class:`RunSummary`). Reading, computing and writing overlap (module docstring). The log
-    is written as ``out.partial`` and renamed when complete: a failure leaves no output."""
-    if Path(out).resolve() == Path(source.path).resolve():
-        raise LogError(f'{out}: the output would overwrite the log being processed; choose '
-                       'another --out')
+    (:class:`RunSummary`). Reading, computing and writing overlap (module docstring). The
+    outputs are written under temporary names and renamed when complete
+    (:func:`~mmd_ros.logs.outputs.replacing`): a failure leaves none. An output that is the
+    log being read is refused."""
+    check_outputs([('out', out), ('csv', csv)], [source.path], force=True)
     cal = _resolve_calibration(source, calibration)
     summary = RunSummary()
     writer: ProcessedLogWriter | None = None
     handle: IO[str] | None = None
     pending: Future[None] | None = None
-    out = Path(out)
-    partial = out.with_name(out.name + '.partial')   # renamed to ``out`` once complete
-    done = False
 
     def write(part: RunBlock, result: ProcessedRun) -> None:
         writer.write(result)  # type: ignore[union-attr]
@@ -296,32 +298,24 @@ def process_log(source: RunSource, out: Path, model: Model, *,
         if progress:
             progress.update(summary.samples)
 
-    try:
-        with ThreadPoolExecutor(1, thread_name_prefix='mmd-write') as pool:
-            for part, result in process_blocks(source, model, calibration=cal,
-                                               with_covariance=with_covariance, compiled=compiled,
-                                               block=block):
-                if writer is None:
-                    writer = ProcessedLogWriter(partial, source.device, model, cal.to_yaml(),
-                                                int(part.stamps_ns[0]))
-                    if csv is not None:
-                        handle = open(csv, 'w', encoding='utf-8')  # noqa: SIM115
-                        handle.write(CSV_HEADER + '\n')
-                if pending is not None:
-                    pending.result()      # at most one block waits to be written
-                pending = pool.submit(write, part, result)
+    # the pool exits first: a block being written is finished before the files are closed
+    with contextlib.ExitStack() as files, ThreadPoolExecutor(1, thread_name_prefix='mmd-write') as pool:
+        for part, result in process_blocks(source, model, calibration=cal,
+                                           with_covariance=with_covariance, compiled=compiled,
+                                           block=block):
+            if writer is None:
+                writer = files.enter_context(ProcessedLogWriter(
+                    files.enter_context(replacing(out)), source.device, model, cal.to_yaml(),
+                    int(part.stamps_ns[0])))
+                if csv is not None:
+                    handle = files.enter_context(open(files.enter_context(replacing(csv)), 'w',
+                                                      encoding='utf-8'))
+                    handle.write(CSV_HEADER + '\n')
             if pending is not None:
-                pending.result()
-        done = True
-    finally:
-        if writer is not None:
-            writer.close()
-            if done:
-                partial.replace(out)
-            else:
-                partial.unlink(missing_ok=True)
-        if handle is not None:
-            handle.close()
+                pending.result()      # at most one block waits to be written
+            pending = pool.submit(write, part, result)
+        if pending is not None:
+            pending.result()
     if summary.samples == 0:
         raise CalibrationError(f'{source.path} has no samples')
     return summary.as_dict(source)
@@ -342,7 +336,7 @@ def _write_csv_rows(handle: IO[str], result: ProcessedRun) -> None:
 
 
 def write_csv(path: Path, result: ProcessedRun) -> None:
-    with open(path, 'w', encoding='utf-8') as handle:
+    with replacing(path) as tmp, open(tmp, 'w', encoding='utf-8') as handle:
         handle.write(CSV_HEADER + '\n')
         _write_csv_rows(handle, result)
 
