@@ -33,6 +33,10 @@ from mmd_ros.logs.reader import (
 
 __all__ = ['ChunkedReader']
 
+#: Bytes the kernel may map around a page fault (``fault_around_bytes``, 64 KiB by default),
+#: kept mapped behind the reading position until passed.
+FAULT_AROUND = 1 << 16
+
 
 class ChunkedReader(LogReader):
     """A log read in two passes, its streamed topics a chunk at a time (module docstring).
@@ -59,6 +63,7 @@ class ChunkedReader(LogReader):
         self._layouts: dict[str, JointStateLayout] = {}
         self._deferred: list[tuple[int, int, int]] = []   # (offset, content start, end)
         self._walking = True
+        self._released = 0   # pages before this offset have been given back
         self._data: Any = None
         try:
             self._file = open(self.path, 'rb')  # noqa: SIM115 (closed in close())
@@ -92,6 +97,14 @@ class ChunkedReader(LogReader):
     def __exit__(self, *exc: object) -> None:
         self.close()
 
+    def _release_before(self, off: int) -> None:
+        """Give back what lies well before ``off`` (the kernel maps up to 64 KiB around each
+        page touched, on both sides), once: reading goes forward."""
+        stop = off - FAULT_AROUND
+        if stop > self._released:
+            self._give_back(self._released, stop)
+            self._released = stop
+
     def _give_back(self, start: int, stop: int) -> None:
         """Drop the mapped pages of bytes [start, stop) from the resident set (they stay in
         the page cache)."""
@@ -106,6 +119,7 @@ class ChunkedReader(LogReader):
         damaged is skipped now, as LogReader skips it."""
         if self._walking and self._chunk_header(data, off, end) is not None:
             self._deferred.append((off, start, end))
+            self._release_before(off)
             return end, None
         return super()._walk_chunk(data, off, start, end, size)
 
@@ -142,10 +156,12 @@ class ChunkedReader(LogReader):
             return None
         ids = {cid for cid, ch in self._channels.items() if ch.topic == topic}
         total = 0
-        for index in self._summary.chunks.values():
-            for cid, moff in index.message_index_offsets.items():
+        self._released = 0
+        for off in sorted(self._summary.chunks):
+            for cid, moff in self._summary.chunks[off].message_index_offsets.items():
                 if cid in ids and moff + 15 <= self._size:
                     total += struct.unpack_from('<I', self._data, moff + 11)[0] // 16
+            self._release_before(off)
         self._give_back(0, self._size)
         return total
 
@@ -154,14 +170,16 @@ class ChunkedReader(LogReader):
         """Per chunk holding a streamed topic, in file order: its messages of each streamed
         (JointState) topic. A damaged chunk is skipped and reported in :attr:`problem`."""
         needed = self._small | self._streamed
-        for off, start, end in self._deferred:
+        nexts = [off for off, _, _ in self._deferred[1:]] + [self._size + FAULT_AROUND]
+        self._released = 0
+        for (off, start, end), nxt in zip(self._deferred, nexts):
             if not self._holds(off, needed):
                 continue
             _, span = super()._walk_chunk(self._data, off, start, end, self._size)
             if span is not None and not span.from_summary:
                 self._index_after(end, span)
             self._keep_only(self._streamed)
-            self._give_back(off, end)
+            self._release_before(nxt)
             out = {topic: self._take(topic) for topic in self._streamed
                    if any(ch.count for ch in self._channels.values() if ch.topic == topic)}
             if out:
