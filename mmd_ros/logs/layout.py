@@ -198,13 +198,18 @@ def read_run(path: str | os.PathLike[str], *, segment: int | None = None) -> Run
         if reader.has_topic(topic):
             ref = _segment_of(reader.joint_states(topic), len(runs), segment or 1, topic, source)
             setattr(run, attr, _aligned(ref, sel, names, source))
+    run.metadata = _run_metadata(reader, source)
+    return run
+
+
+def _run_metadata(reader: LogReader, source: str) -> dict[str, Any]:
+    """The run description (MCAP metadata ``mmd_run``, JSON values), or {}."""
     meta = reader.metadata.get(RUN_METADATA, {})
     try:
-        run.metadata = {k: json.loads(v) for k, v in meta.items()}
+        return {k: json.loads(v) for k, v in meta.items()}
     except ValueError as exc:
         raise LogFormatError(f'{source}: the run description (MCAP metadata {RUN_METADATA}) is not '
                              f'valid JSON ({exc})') from None
-    return run
 
 
 class RunStream:
@@ -227,8 +232,7 @@ class RunStream:
                                      {TOPIC_RAW, TOPIC_REF_POSE, TOPIC_REF_LENGTHS})
         try:
             self.device, self.calibration, self.model = _run_header(self._reader, source)
-            meta = self._reader.metadata.get(RUN_METADATA, {})
-            self.metadata = {k: json.loads(v) for k, v in meta.items()}
+            self.metadata = _run_metadata(self._reader, source)
             self.n_samples = self._reader.message_count(TOPIC_RAW) or 0
             self.channel_names = self.device.channel_names
         except BaseException:

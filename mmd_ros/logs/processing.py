@@ -13,6 +13,7 @@ whole run's arrays, for callers that want them in memory.
 from __future__ import annotations
 
 import contextlib
+import itertools
 import queue
 import threading
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -111,11 +112,13 @@ def process_blocks(source: RunSource, model: Model, *, calibration: Calibration 
     calibration : a calibration or a calibration file to use instead of the log's
     compiled : the compiled helpers (default: when they are in use); False: the numpy path
     """
+    parts = _prefetched(source.blocks(block))
+    first = next(parts, None)   # what is wrong with the samples is said before the calibration
+    if first is None:
+        return
     pipeline = Pipeline(source.device, _resolve_calibration(source, calibration), model)
-    t0 = None
-    for part in _prefetched(source.blocks(block)):
-        if t0 is None:
-            t0 = int(part.stamps_ns[0])
+    t0 = int(first.stamps_ns[0])
+    for part in itertools.chain([first], parts):
         times = (part.stamps_ns - t0).astype(np.float64) * 1e-9
         res = pipeline.process(times, part.counts, with_covariance=with_covariance,
                                compiled=compiled)
@@ -284,7 +287,8 @@ def process_log(source: RunSource, out: Path, model: Model, *,
     (:func:`~mmd_ros.logs.outputs.replacing`): a failure leaves none. An output that is the
     log being read is refused."""
     check_outputs([('out', out), ('csv', csv)], [source.path], force=True)
-    cal = _resolve_calibration(source, calibration)
+    if isinstance(calibration, str):
+        calibration = load_calibration(calibration)
     summary = RunSummary()
     writer: ProcessedLogWriter | None = None
     handle: IO[str] | None = None
@@ -300,10 +304,11 @@ def process_log(source: RunSource, out: Path, model: Model, *,
 
     # the pool exits first: a block being written is finished before the files are closed
     with contextlib.ExitStack() as files, ThreadPoolExecutor(1, thread_name_prefix='mmd-write') as pool:
-        for part, result in process_blocks(source, model, calibration=cal,
+        for part, result in process_blocks(source, model, calibration=calibration,
                                            with_covariance=with_covariance, compiled=compiled,
                                            block=block):
             if writer is None:
+                cal = _resolve_calibration(source, calibration)
                 writer = files.enter_context(ProcessedLogWriter(
                     files.enter_context(replacing(out)), source.device, model, cal.to_yaml(),
                     int(part.stamps_ns[0])))
