@@ -20,6 +20,7 @@ import statistics
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -27,6 +28,19 @@ from mmd_ros.core.model import Model
 from mmd_ros.logs.layout import open_run, read_run
 from mmd_ros.logs.processing import ProcessedLogWriter, process_run
 from mmd_ros.twin.recording import SimulationSpec, simulate_to_log
+
+
+def peak_rss_mb(pid: int, stop: threading.Event, out: list[float]) -> None:
+    """The child's peak resident set (VmHWM of its own image, polled until it ends). Not the
+    rusage's ru_maxrss: that counts the parent's pages the child had between fork and exec."""
+    while not stop.is_set():
+        try:
+            for line in Path(f'/proc/{pid}/status').read_text().splitlines():
+                if line.startswith('VmHWM:'):
+                    out.append(int(line.split()[1]) / 1024)
+        except OSError:
+            return
+        stop.wait(0.05)
 
 
 def command(log: Path, out: Path, pure: bool = False) -> dict:
@@ -38,7 +52,12 @@ def command(log: Path, out: Path, pure: bool = False) -> dict:
     proc = subprocess.Popen([sys.executable, '-m', 'mmd_ros.cli.main', 'process', str(log),
                              '--out', str(out), '--json', '--quiet'],
                             stdout=subprocess.PIPE, env=env)
+    stop, rss = threading.Event(), [0.0]
+    watch = threading.Thread(target=peak_rss_mb, args=(proc.pid, stop, rss))
+    watch.start()
     text = proc.stdout.read()
+    stop.set()
+    watch.join()
     _, status, usage = os.wait4(proc.pid, 0)
     wall = time.perf_counter() - t0
     if status != 0:
@@ -46,7 +65,7 @@ def command(log: Path, out: Path, pure: bool = False) -> dict:
     summary = json.loads(text)
     return {'samples': summary['samples'], 'seconds': summary['seconds'],
             'samples_per_s': summary['samples'] / summary['seconds'], 'wall_s': wall,
-            'user_cpu_s': usage.ru_utime, 'peak_rss_mb': usage.ru_maxrss / 1024}
+            'user_cpu_s': usage.ru_utime, 'peak_rss_mb': max(rss)}
 
 
 def stages(log: Path, out: Path) -> dict:
