@@ -586,7 +586,7 @@ class ForwardKinematics:
 
     # -- streaming -----------------------------------------------------------------------------
     def solve(self, lengths: ArrayLike, guess: ArrayLike | None = None, *,
-              dt_s: float | None = None) -> Solution:
+              dt_s: float | None = None, compiled: bool | None = None) -> Solution:
         """Forward kinematics of one sample of a stream.
 
         lengths : array_like, shape (6,) — centre distances [m]; a non-finite one gives status
@@ -594,7 +594,20 @@ class ForwardKinematics:
         guess : array_like, shape (6,), optional — first start pose (no continuity test);
             default: extrapolated from the previous solutions, else the home seeds
         dt_s : time since the previous sample [s]; default ``limits.sample_period_s``
+        compiled : the compiled solver (default: when it is in use, and no ``guess``); False:
+            Python, the reference (the same result, bit for bit)
         """
+        if guess is None and use_compiled(compiled):
+            s = self.solve_stream(np.asarray(lengths, dtype=np.float64).reshape(1, -1),
+                                  dt_s=None if dt_s is None else [dt_s], compiled=True)
+            return Solution(s.poses[0], bool(s.converged[0]), FkStatus(int(s.status[0])),
+                            int(s.iterations[0]), float(s.residual_m[0]), float(s.condition[0]),
+                            s.jacobians[0])
+        return self._solve_python(lengths, guess, dt_s)
+
+    def _solve_python(self, lengths: ArrayLike, guess: ArrayLike | None,
+                      dt_s: float | None) -> Solution:
+        """:meth:`solve` in Python."""
         d = [float(v) for v in np.asarray(lengths, dtype=np.float64).ravel()]
         if len(d) != 6:
             raise KinematicsError(f'need six centre distances, got {lengths!r}')
@@ -651,7 +664,7 @@ class ForwardKinematics:
             self._history = state[:6 * kept].reshape(kept, 6).tolist()
             self._elapsed = float(state[13])
             return out
-        sols = [self.solve(d[i], dt_s=None if dt is None else dt[i]) for i in range(n)]
+        sols = [self._solve_python(d[i], None, None if dt is None else dt[i]) for i in range(n)]
         return StreamSolution(
             np.array([s.pose for s in sols]).reshape(n, 6),
             np.array([s.converged for s in sols], dtype=bool),
