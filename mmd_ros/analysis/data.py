@@ -88,8 +88,7 @@ def run_pipeline(device: DeviceDescription, calibration: Calibration, model: Mod
                  times_s: FloatArray, counts: FloatArray,
                  progress: Callable[[int], None] | None = None) -> Processed:
     """The live pipeline over a whole run, block by block in time order (as ``mmd process``)."""
-    model = Model.from_dict(model.to_dict(), model.source)  # fresh term states
-    pipeline = Pipeline(device, calibration, model)
+    pipeline = Pipeline(device, calibration, model)  # its own copy of the terms' state
     lo, hi = pipeline.cdfs.distances_m.min(axis=1), pipeline.cdfs.distances_m.max(axis=1)
     parts = []
     for start in range(0, times_s.size, BLOCK):

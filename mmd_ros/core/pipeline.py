@@ -8,6 +8,7 @@ the translation is multiplied by s.
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass
 
@@ -79,13 +80,20 @@ class SampleResult:
 
 
 class Pipeline:
-    """The compensation and kinematics of one calibrated device under one model."""
+    """The compensation and kinematics of one calibrated device under one model.
+
+    The pipeline owns a copy of the model: terms that carry state between calls (play
+    operators, filters, the previous sample) carry it for this pipeline's stream only, so two
+    pipelines built from one :class:`Model` (two runs, a calibration swapped live) never see
+    each other's state.
+    """
 
     def __init__(self, device: DeviceDescription, calibration: Calibration,
                  model: Model | None = None) -> None:
         self.device = device
         self.calibration = calibration
-        self.model = model or Model()
+        self.model = copy.deepcopy(model) if model is not None else Model()
+        self.model.reset()
         names = device.channel_names
         measuring = [names[k] for k in device.measuring_channels]
         self.cdfs = CdfBank(calibration.cdfs(measuring))
