@@ -76,7 +76,7 @@ CASES = {
     'thermal_gain': ('thermal_soak', SOAK, ('thermal_mismatch=0.2', 'rod_cte_per_c=3.5e-6'),
                      ('rod_cte_per_c=3.5e-6',), 'bar_lengths', {'rate': 0.2, 'ambient': 'section_4_1'}),
     'plate_expansion': ('random_motion', MOTION, ('plate_expansion=false',), (), 'pose6',
-                        {'ambient': 'constant:24'}),
+                        {'ambient': 'constant:32'}),
     'kinematic': ('random_motion', MOTION, (), (), 'pose6', {'device': 'design_joints'}),
     'scale_nonlinearity': ('random_motion', MOTION, ('scale_nonlinearity_m=2e-6',), (), 'pose6', {}),
     'calibration_points': ('random_motion', MOTION, ('placement_repeatability_m=0.3e-6',), (), 'pose6', {}),

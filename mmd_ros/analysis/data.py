@@ -27,13 +27,13 @@ from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.kinematics import jacobian
 from mmd_ros.core.model import HysteresisTerm, Model
 from mmd_ros.core.pipeline import Pipeline
-from mmd_ros.core.terms import SamplingSkewTerm
+from mmd_ros.core.terms import SamplingSkewTerm, friction_state
 from mmd_ros.core.units import ARCSEC_PER_RAD, M_PER_UM
 
 __all__ = [
-    'BLOCK', 'FitContext', 'MOVING_M', 'Observation', 'Processed', 'Split', 'binned_r2',
-    'effective_samples', 'make_observation', 'make_split', 'noise_floor', 'residual_features',
-    'run_pipeline',
+    'BLOCK', 'DIRECTION_TRAVEL_M', 'FitContext', 'MOVING_M', 'Observation', 'Processed', 'Split',
+    'binned_r2', 'effective_samples', 'make_observation', 'make_split', 'noise_floor',
+    'quantisation_floor', 'residual_features', 'run_pipeline',
 ]
 
 FloatArray = NDArray[np.float64]
@@ -252,27 +252,47 @@ def effective_samples(series: FloatArray) -> float:
     return max(total, 1.0)
 
 
+def quantisation_floor(device: DeviceDescription, poses: FloatArray, thermal_on: bool) -> FloatArray:
+    """Encoder quantisation propagated into the six pose components, (6,) [m, rad]: one count
+    (uniform: res / sqrt(12)) per bar, and the same again common to all bars for the reference
+    bar's rounding when thermal compensation is on; mean variance over (up to 500 of) ``poses``.
+    """
+    q = device.encoder_resolution_m ** 2 / 12.0
+    cov = np.eye(6) * q + (q if thermal_on else 0.0) * np.ones((6, 6))
+    sel = poses[:: max(1, poses.shape[0] // 500)]
+    sel = sel[np.all(np.isfinite(sel), axis=1)]
+    if sel.shape[0] == 0:
+        return np.full(6, np.nan)
+    jinv = np.linalg.inv(jacobian(device.geometry, sel))
+    pc = jinv @ cov @ np.swapaxes(jinv, 1, 2)
+    return np.sqrt(np.mean(np.diagonal(pc, axis1=1, axis2=2), axis=0))
+
+
 def noise_floor(obs: Observation, device: DeviceDescription, processed: Processed,
                 residual: FloatArray, idx: NDArray[np.int64], thermal_on: bool) -> FloatArray:
     """What the residual cannot go below, per observed component, (k,) [m or rad].
 
-    Encoder quantisation (one count, uniform: res / sqrt(12) per bar, and the same again common
-    to all bars for the reference bar's rounding when thermal compensation is on), propagated
-    into the observation space, plus the sample-to-sample noise of the residual itself (robust
-    standard deviation of its differences / sqrt 2: reference noise, read noise).
+    Encoder quantisation (:func:`quantisation_floor`; for bar lengths one count, and the
+    reference bar's rounding), propagated into the observation space, plus the sample-to-sample
+    noise of the residual itself (robust standard deviation of its differences / sqrt 2:
+    reference noise, read noise), taken over the pairs of consecutive samples in which the bars
+    moved least.
     """
     q = device.encoder_resolution_m ** 2 / 12.0
-    cov = np.eye(6) * q + (q if thermal_on else 0.0) * np.ones((6, 6))
     if obs.kind == 'pose':
-        sel = idx[:: max(1, idx.size // 500)]
-        jinv = np.linalg.inv(jacobian(device.geometry, processed.poses[sel]))
-        pc = jinv @ cov @ np.swapaxes(jinv, 1, 2)
-        quant = np.mean(np.diagonal(pc, axis1=1, axis2=2), axis=0)[obs.components]
+        quant = quantisation_floor(device, processed.poses[idx], thermal_on)[obs.components] ** 2
     else:
-        quant = np.diag(cov)[obs.components]
+        quant = np.full(len(obs.components), q * (2.0 if thermal_on else 1.0))
     consecutive = idx[np.flatnonzero(np.diff(idx) == 1)]
     white = np.zeros(len(obs.components))
     if consecutive.size > 10:
+        # the slowest tenth of the sample pairs (at least 50): a fast bar crosses a short-period
+        # error (cyclic error, a bump) between two samples, which is structure, not noise
+        motion = np.max(np.abs(processed.cdf_lengths_m[consecutive + 1]
+                               - processed.cdf_lengths_m[consecutive]), axis=1)
+        keep = max(50, consecutive.size // 10)
+        if consecutive.size > keep:
+            consecutive = consecutive[np.argsort(motion, kind='stable')[:keep]]
         diff = residual[consecutive + 1] - residual[consecutive]
         mad = np.median(np.abs(diff - np.median(diff, axis=0)), axis=0)
         white = (1.4826 * mad / np.sqrt(2.0)) ** 2
@@ -322,6 +342,11 @@ class FitContext:
     obs: Observation
     options: Any = None
     cache: dict[Any, Any] = field(default_factory=dict)
+    #: the residual of the model analysed, (N, k) [m, rad], NaN where not usable; its noise
+    #: floor (k,) and the training samples (for estimates that look at the residual itself)
+    residual: FloatArray | None = None
+    floor: FloatArray | None = None
+    train_idx: NDArray[np.int64] | None = None
 
     def cached(self, key: Any, make: Callable[[], Any]) -> Any:
         if key not in self.cache:
@@ -332,6 +357,11 @@ class FitContext:
         """Motion direction of each bar (the hysteresis term's play operator), (N, 6)."""
         return self.cached(('dir', travel_m), lambda: HysteresisTerm(np.ones(6), travel_m).directions(
             self.base.pre_lengths_m))
+
+    def friction(self, travel_m: float) -> FloatArray:
+        """Dahl friction state of each bar (the friction term's), (N, 6)."""
+        return self.cached(('friction', travel_m), lambda: friction_state(
+            self.base.pre_lengths_m, travel_m, self.device.encoder_resolution_m, None)[0])
 
     def velocities(self) -> FloatArray:
         """Bar velocities (backward differences of the CDF lengths, the skew term's), (N, 6) [m/s]."""

@@ -8,6 +8,7 @@ one, the reference instrument's reading.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 from dataclasses import dataclass, field
@@ -75,6 +76,16 @@ class RunLog:
     reference_lengths: NDArray[np.float64] | None = None
     metadata: dict[str, Any] = field(default_factory=dict)
     problem: str | None = None
+
+    def content_hash(self) -> str:
+        """Identity of the run: a hash of its raw counts and their stamps (16 hex digits).
+
+        Two logs of the same run (a copy, a renamed file, the log re-written by ``mmd process``)
+        have the same hash; a model file names the runs it was fitted on by it."""
+        h = hashlib.sha256()
+        h.update(np.ascontiguousarray(self.stamps_ns, dtype=np.int64).tobytes())
+        h.update(np.ascontiguousarray(self.counts, dtype=np.float64).tobytes())
+        return h.hexdigest()[:16]
 
     @property
     def times_s(self) -> NDArray[np.float64]:
