@@ -114,8 +114,6 @@ class Effect:
     #: Whose property the parameters are: 'device' (shared by every run), 'calibration' (they
     #: belong to one calibration: fitted per calibration, re-analyse after a new one) or 'run'.
     scope = 'device'
-    #: The setting is a continuous parameter (refined between the grid's best neighbours).
-    continuous = False
 
     def applicable(self, ctx: FitContext) -> str | None:
         """None when the effect can be tested on this log, else why not."""
@@ -130,6 +128,12 @@ class Effect:
 
     def hyper_label(self, hyper: Any) -> str:
         return ''
+
+    def refine_bounds(self, hyper: Any, tried: list[Any], ctxs: list[FitContext]
+                      ) -> tuple[float, float] | None:
+        """For a continuous setting: the interval around the best one tried in which to refine
+        it (golden section in its logarithm); None when the setting is not refined."""
+        return None
 
     def parameters(self, ctx: FitContext, hyper: Any) -> list[Parameter]:
         raise NotImplementedError
@@ -175,13 +179,12 @@ class Hysteresis(Effect):
     physics = ('friction in the ball joints and guides makes a bar read differently when it '
                'lengthens and when it shortens (section 5.3); the friction state turns over '
                'gradually after a reversal (Dahl), within a travel estimated from the data')
-    continuous = True
-
     def hypers(self, ctxs):
         return list(FRICTION_TRAVELS_M)
 
-    def hyper_bounds(self) -> tuple[float, float]:
-        return FRICTION_TRAVELS_M[0], FRICTION_TRAVELS_M[-1]
+    def refine_bounds(self, hyper, tried, ctxs):
+        k = tried.index(hyper)
+        return tried[max(k - 1, 0)], tried[min(k + 1, len(tried) - 1)]
 
     def hyper_label(self, hyper: Any) -> str:
         return f'turn-over travel {hyper / M_PER_UM:.3g} µm'
@@ -506,7 +509,16 @@ class CyclicError(Effect):
         return [p for p, _ in cyclic_periods(ctxs, self._setup)]
 
     def hyper_label(self, hyper):
-        return f'period {hyper / M_PER_UM:.4g} µm'
+        return f'period {hyper / M_PER_UM:.5g} µm'
+
+    def refine_bounds(self, hyper, tried, ctxs):
+        # one bin of the spectrum either side: the phase drifts by a cycle over the travel
+        travel = max((float(np.max(np.ptp(self._phase_position(c, c.train_idx), axis=0)))
+                      for c in ctxs if c.train_idx is not None and c.train_idx.size), default=0.0)
+        if travel <= 0:
+            return None
+        step = hyper * hyper / travel
+        return max(hyper - step, 0.5 * hyper), hyper + step
 
     def parameters(self, ctx, hyper):
         return _bar_names('sin', 'nm', 1e9, 2e-6) + _bar_names('cos', 'nm', 1e9, 2e-6)
