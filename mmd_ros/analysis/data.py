@@ -27,13 +27,13 @@ from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.kinematics import jacobian
 from mmd_ros.core.model import HysteresisTerm, Model
 from mmd_ros.core.pipeline import Pipeline
-from mmd_ros.core.terms import SamplingSkewTerm, friction_state
+from mmd_ros.core.terms import SamplingSkewTerm, dahl_state, play_positions
 from mmd_ros.core.units import ARCSEC_PER_RAD, M_PER_UM
 
 __all__ = [
     'BLOCK', 'DIRECTION_TRAVEL_M', 'FitContext', 'MOVING_M', 'Observation', 'Processed', 'Split',
     'binned_r2', 'effective_samples', 'make_observation', 'make_split', 'noise_floor',
-    'quantisation_floor', 'residual_features', 'run_pipeline',
+    'quantisation_floor', 'residual_features', 'run_pipeline', 'sample_noise',
 ]
 
 FloatArray = NDArray[np.float64]
@@ -283,20 +283,29 @@ def noise_floor(obs: Observation, device: DeviceDescription, processed: Processe
         quant = quantisation_floor(device, processed.poses[idx], thermal_on)[obs.components] ** 2
     else:
         quant = np.full(len(obs.components), q * (2.0 if thermal_on else 1.0))
+    return np.sqrt(quant + sample_noise(residual, processed, idx) ** 2)
+
+
+def sample_noise(values: FloatArray, processed: Processed, idx: NDArray[np.int64]) -> FloatArray:
+    """Sample-to-sample noise of ``values`` (N, k), (k,): the robust standard deviation of the
+    differences of consecutive samples / sqrt 2, over the slowest tenth of the pairs (at least
+    50) in ``idx`` — a fast bar crosses a short-period error (cyclic error, a bump) between two
+    samples, which is structure, not noise. Zero with fewer than 10 pairs."""
     consecutive = idx[np.flatnonzero(np.diff(idx) == 1)]
-    white = np.zeros(len(obs.components))
-    if consecutive.size > 10:
-        # the slowest tenth of the sample pairs (at least 50): a fast bar crosses a short-period
-        # error (cyclic error, a bump) between two samples, which is structure, not noise
-        motion = np.max(np.abs(processed.cdf_lengths_m[consecutive + 1]
-                               - processed.cdf_lengths_m[consecutive]), axis=1)
-        keep = max(50, consecutive.size // 10)
-        if consecutive.size > keep:
-            consecutive = consecutive[np.argsort(motion, kind='stable')[:keep]]
-        diff = residual[consecutive + 1] - residual[consecutive]
-        mad = np.median(np.abs(diff - np.median(diff, axis=0)), axis=0)
-        white = (1.4826 * mad / np.sqrt(2.0)) ** 2
-    return np.sqrt(quant + white)
+    if consecutive.size <= 10:
+        return np.zeros(values.shape[1])
+    motion = np.max(np.abs(processed.cdf_lengths_m[consecutive + 1]
+                           - processed.cdf_lengths_m[consecutive]), axis=1)
+    keep = max(50, consecutive.size // 10)
+    if consecutive.size > keep:
+        consecutive = consecutive[np.argsort(motion, kind='stable')[:keep]]
+    diff = values[consecutive + 1] - values[consecutive]
+    ok = np.all(np.isfinite(diff), axis=1)
+    diff = diff[ok]
+    if diff.shape[0] < 10:
+        return np.zeros(values.shape[1])
+    mad = np.median(np.abs(diff - np.median(diff, axis=0)), axis=0)
+    return 1.4826 * mad / np.sqrt(2.0)
 
 
 def binned_r2(values: FloatArray, feature: FloatArray, n_bins: int = 20) -> float:
@@ -360,8 +369,11 @@ class FitContext:
 
     def friction(self, travel_m: float) -> FloatArray:
         """Dahl friction state of each bar (the friction term's), (N, 6)."""
-        return self.cached(('friction', travel_m), lambda: friction_state(
-            self.base.pre_lengths_m, travel_m, self.device.encoder_resolution_m, None)[0])
+        def make() -> FloatArray:
+            x = self.base.pre_lengths_m
+            pos = self.cached('play', lambda: play_positions(x, self.device.encoder_resolution_m, None))
+            return dahl_state(pos, travel_m, (x[0], np.zeros(6), x[0], np.zeros(6)))[0]
+        return self.cached(('friction', travel_m), make)
 
     def velocities(self) -> FloatArray:
         """Bar velocities (backward differences of the CDF lengths, the skew term's), (N, 6) [m/s]."""

@@ -48,7 +48,7 @@ from threadpoolctl import threadpool_limits
 
 from mmd_ros.analysis.data import (
     FitContext, Observation, Processed, Split, binned_r2, effective_samples, make_observation,
-    make_split, noise_floor, quantisation_floor, residual_features, run_pipeline,
+    make_split, noise_floor, quantisation_floor, residual_features, run_pipeline, sample_noise,
 )
 from mmd_ros.analysis.effects import Effect, Parameter, catalogue
 from mmd_ros.analysis.errors import AnalysisError
@@ -138,7 +138,8 @@ class Unchecked:
     def message(self) -> str:
         u = _unit(self.unit)
         return (f'found in {self.run}; would change {self.component} by up to {self.change:.3g} {u} '
-                f'(undetermined: ± {self.uncertainty:.2g} {u}, floor {self.floor:.2g} {u}), which '
+                f'(± {self.uncertainty:.2g} {u} with what the data leave undetermined, floor '
+                f'{self.floor:.2g} {u}), which '
                 f'these runs cannot check; record a run that sees {self.component}')
 
     def as_dict(self) -> dict[str, Any]:
@@ -484,6 +485,9 @@ class _Active:
     step_gain: float
     explained: float = math.nan  # share of the initial held-out mean square it removed
     norms: FloatArray | None = None
+    #: False for an effect whose whole-pose consequence the data do not determine: it stays in
+    #: the fit (the data hold it; leaving it out would bend the others) but is not written
+    written: bool = True
 
 
 class _Selector:
@@ -966,7 +970,9 @@ def _unchecked(sel: _Selector, a: _Active, theta: FloatArray, cov_beta: FloatArr
     arbitrary choice; with V_n the identified directions in the fit's unit-norm parameter scale,
     the part of b outside them, |b_n - V_n V_n^T b_n|, times the typical size of the identified
     coordinates, is what the unidentified ones could do. A change larger than the component's
-    noise floor (quantisation propagated) and less than twice its uncertainty is unchecked.
+    noise floor (quantisation propagated, and the MMD's own sample-to-sample noise in that
+    component), by more than the analysis' own "at the floor" factor, and less than twice its
+    uncertainty is unchecked.
     """
     out: list[Unchecked] = []
     basis = a.basis
@@ -993,7 +999,9 @@ def _unchecked(sel: _Selector, a: _Active, theta: FloatArray, cov_beta: FloatArr
             jinv = np.linalg.inv(jacobian(ctx.device.geometry, ctx.base.poses[idx]))
             b = np.einsum('nij,njp->nip', jinv, full)                 # (n, 6, PG)
             unseen = [c for c in range(6) if c not in obs.components]
-            floor = quantisation_floor(ctx.device, ctx.base.poses[idx], ctx.thermal_on)
+            floor = ctx.cached('pose_floor', lambda: np.hypot(
+                quantisation_floor(ctx.device, ctx.base.poses[r.split.train_idx], ctx.thermal_on),
+                sample_noise(ctx.base.poses, ctx.base, r.split.train_idx)))
             names = POSE_NAMES
             to_report = np.array([1 / M_PER_UM] * 3 + [ARCSEC_PER_RAD] * 3)
             units = ['um'] * 3 + ['arcsec'] * 3
@@ -1013,7 +1021,7 @@ def _unchecked(sel: _Selector, a: _Active, theta: FloatArray, cov_beta: FloatArr
             perp = bn - (bn @ v_n) @ v_n.T
             undet = np.linalg.norm(perp, axis=1) * scale
             u = np.sqrt(np.maximum(var, 0.0) + undet ** 2)
-            bad = (np.abs(z) > floor[c]) & (np.abs(z) < 2.0 * u)
+            bad = (np.abs(z) > sel.options.floor_factor * floor[c]) & (np.abs(z) < 2.0 * u)
             if bad.any():
                 k = int(np.argmax(np.where(bad, np.abs(z), -1.0)))
                 out.append(Unchecked(a.effect.name, r.run.path.name, names[c], units[c],
@@ -1092,20 +1100,28 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
         # the whole pose: what no reference saw must be determined, or stay at the floor
         flagged = []
         for k, (a, f, (theta, _s, cb)) in enumerate(zip(sel.active, current, fits)):
+            if not a.written:
+                continue
             f.unchecked = _unchecked(sel, a, theta, cb)
             if f.unchecked and not o.accept_unchecked:
                 flagged.append(k)
         if flagged:
-            for k in reversed(flagged):
-                f = current[k]
-                f.claimed = False
-                worst = max(f.unchecked, key=lambda u: u.change / max(u.floor, 1e-300))
-                f.reason = worst.message() + ' (not written; --accept-unchecked writes it)'
-                unchecked.append(f)
-                del sel.active[k]
+            # the one that would move an unseen component most (in floors) is set aside first
+            # (kept in the fit, not written); the others are checked again
+            def size(f: Found) -> float:
+                return max(u.change / max(u.floor, 1e-300) for u in f.unchecked)
+            k = max(flagged, key=lambda j: size(current[j]))
+            f = current[k]
+            f.claimed = False
+            worst = max(f.unchecked, key=lambda u: u.change / max(u.floor, 1e-300))
+            f.reason = worst.message() + ' (not written; --accept-unchecked writes it)'
+            unchecked.append(f)
+            sel.active[k].written = False
             continue
+        if not any(a.written for a in sel.active):
+            break
         say('validating the extended model with the pipeline')
-        chosen = [(a, f.value) for a, f in zip(sel.active, current)]
+        chosen = [(a, f.value) for a, f in zip(sel.active, current) if a.written]
         afters = []
         total_b = total_a = 0.0
         for r in runs:
@@ -1119,18 +1135,32 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
             total_b += float(np.sum((r.res_before[both] / r.floor) ** 2))
             total_a += float(np.sum((res_after[both] / r.floor) ** 2))
         validated = total_b > 0 and math.sqrt(total_a) <= (1.0 - 0.5 * o.min_gain) * math.sqrt(total_b)
+        worse = _made_worse(runs, afters) if validated else ''
+        if worse:
+            # a component some reference sees gets worse: the last effect written is set aside
+            # (kept in the fit, not written) and the rest validated again
+            k = max(j for j, a in enumerate(sel.active) if a.written)
+            f = current[k]
+            f.claimed = False
+            f.reason = (f'with it the pipeline makes {worse}: not written (a correction that is only '
+                        'half of an effect, e.g. friction without the friction state the bars had on '
+                        'the calibration points, can do that)')
+            unchecked.append(f)
+            sel.active[k].written = False
+            afters, chosen, validated = None, [], False
+            continue
         if not validated:
             for f in current:
                 f.claimed = False
                 f.reason = ('the pipeline with the terms did not confirm the linearised gain '
                             f'(held-out sum of squares {total_b:.3g} → {total_a:.3g} floors²)')
-            not_claimed += current
+            not_claimed += [f for a, f in zip(sel.active, current) if a.written]
             sel.active = []
             afters = None
             chosen = []
             break
-        found = current
-        for a, f in zip(sel.active, found):
+        found = [f for a, f in zip(sel.active, current) if a.written]
+        for a, f in zip(sel.active, current):
             f.explained = a.explained
         first_pred = sel.test.pieces(e_pred)[0]
         stats_pred = component_errors(first.obs, -first_pred * first.floor, np.arange(first_pred.shape[0]))
@@ -1180,7 +1210,7 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
                       '(the pipeline re-run); within-run held-out blocks as a second figure')
         if chosen and o.leave_one_out:
             say('leave-one-run-out: refitting without each log')
-            _leave_one_out(runs, chosen, model, o, summaries)
+            _leave_one_out(runs, sel.active, model, o, summaries)
         else:
             for s, r in zip(summaries, runs):
                 every = np.flatnonzero(r.usable)
@@ -1208,6 +1238,23 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
                     validation)
 
 
+def _made_worse(runs: list[_Run], afters: list[tuple[Processed, FloatArray]]) -> str:
+    """The first observed component whose held-out RMS the written model makes worse by more
+    than its noise floor, as text ('' when none)."""
+    for r, (_, res_after) in zip(runs, afters):
+        test = r.split.test_idx
+        both = test[np.all(np.isfinite(res_after[test]), axis=1) & np.all(np.isfinite(r.res_before[test]), axis=1)]
+        if not both.size:
+            continue
+        before = np.sqrt(np.mean(r.res_before[both] ** 2, axis=0))
+        after = np.sqrt(np.mean(res_after[both] ** 2, axis=0))
+        for k in np.flatnonzero(after > before + r.floor):
+            s = r.obs.to_report[k]
+            return (f'{r.obs.names[k]} of {r.run.path.name} worse ({before[k] * s:.3g} → '
+                    f'{after[k] * s:.3g} {_unit(r.obs.units[k])}, floor {r.floor[k] * s:.2g})')
+    return ''
+
+
 def _validity(runs: list[_Run], afters: list[tuple[Processed, FloatArray]] | None) -> dict[str, Any]:
     """What the model was fitted and validated on: the runs (by content hash), their references,
     the range of each bar's length and of the temperature (nodes warn outside them)."""
@@ -1232,19 +1279,21 @@ def _validity(runs: list[_Run], afters: list[tuple[Processed, FloatArray]] | Non
     }
 
 
-def _leave_one_out(runs: list[_Run], chosen: list[tuple[_Active, FloatArray]], model: Model,
+def _leave_one_out(runs: list[_Run], active: list[_Active], model: Model,
                    o: AnalysisOptions, summaries: list[RunSummary]) -> None:
-    """Each log predicted by the chosen effects (same settings) refitted on the other logs; the
-    pipeline re-run over the whole log. Parameters of a calibration or run that no other log
-    shares cannot be predicted and are left out for that log (said in the note)."""
+    """Each log predicted by the effects found (same settings) refitted on the other logs (the
+    ones not written stay in the fit, as in the analysis); the pipeline re-run over the whole
+    log with the written ones. Parameters of a calibration or run that no other log shares
+    cannot be predicted and are left out for that log (said in the note)."""
     for k, r in enumerate(runs):
         others = [x for x in runs if x is not r]
         sel = _Selector(others, o)
-        for a, _ in chosen:
+        for a in active:
             fit = sel.reduce(a.effect, a.hyper)
-            sel.active.append(_Active(a.effect, a.hyper, fit['basis'], a.step_gain, a.explained, fit['norms']))
+            sel.active.append(_Active(a.effect, a.hyper, fit['basis'], a.step_gain, a.explained,
+                                      fit['norms'], a.written))
         fits, _ = sel.final_fit()
-        refit = [(a, theta) for a, (theta, _s, _c) in zip(sel.active, fits)]
+        refit = [(a, theta) for a, (theta, _s, _c) in zip(sel.active, fits) if a.written]
         missing = [a.effect.name for a, _ in refit if sel.group_index(a.effect, r) is None]
         trial = _build_model(model, _terms_for(sel, refit, r), {})
         after = run_pipeline(r.run.device, r.calibration, trial, r.run.times_s, r.run.counts)

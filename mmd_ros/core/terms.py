@@ -45,7 +45,7 @@ from mmd_ros.core.units import M_PER_MM, M_PER_NM, M_PER_UM, PPM
 __all__ = [
     'CdfOffsetsTerm', 'CyclicErrorTerm', 'DriftTerm', 'FrictionTerm', 'GravitySagTerm', 'HysteresisTerm',
     'JointOffsetsTerm', 'PlateScaleTerm', 'SamplingSkewTerm', 'ScaleNonlinearityTerm', 'ThermalGainTerm',
-    'ThermalInterpolationTerm', 'ema', 'friction_state', 'leg_geometry',
+    'ThermalInterpolationTerm', 'dahl_state', 'ema', 'friction_state', 'leg_geometry', 'play_positions',
 ]
 
 FloatArray = NDArray[np.float64]
@@ -166,6 +166,69 @@ class _Replayable(ModelTerm):
 
 
 # -- friction ----------------------------------------------------------------------------------
+def play_positions(lengths_m: FloatArray, deadband_m: float, start: FloatArray | None
+                   ) -> FloatArray:
+    """Output of a play (backlash) of half-width ``deadband_m`` on each column, (N, M): it
+    follows the input only when the input is more than ``deadband_m`` away, so the rounding
+    flicker of a bar at rest does not move it. ``start``: the play's position before the
+    first sample (None: the first sample)."""
+    x = np.asarray(lengths_m, dtype=np.float64)
+    n, m = x.shape
+    out = np.empty_like(x)
+    if n == 0:
+        return out
+    p0 = x[0] if start is None else start
+    w = deadband_m
+    for j in range(m):   # a sequential recurrence: plain floats beat numpy rows here
+        p, column = float(p0[j]), x[:, j].tolist()
+        pos = [0.0] * n
+        for k, v in enumerate(column):
+            if v > p + w:
+                p = v - w
+            elif v < p - w:
+                p = v + w
+            pos[k] = p
+        out[:, j] = pos
+    return out
+
+
+def dahl_state(positions: FloatArray, travel_m: float,
+               state: tuple[FloatArray, FloatArray, FloatArray, FloatArray]
+               ) -> tuple[FloatArray, tuple[FloatArray, FloatArray, FloatArray, FloatArray]]:
+    """Dahl friction state along the play's output (see :func:`friction_state`).
+
+    positions : ndarray, shape (N, M) — output of :func:`play_positions` [m]
+    state : (position before the first sample, direction, anchor position, anchor state)
+    """
+    pos = np.asarray(positions, dtype=np.float64)
+    n, m = pos.shape
+    last, direction, anchor_x, anchor_s = (np.array(v, dtype=np.float64) for v in state)
+    out = np.empty_like(pos)
+    if n == 0:
+        return out, (last, direction, anchor_x, anchor_s)
+    for j in range(m):
+        pj = pos[:, j]
+        prev = np.concatenate(([last[j]], pj[:-1]))
+        step = np.sign(pj - prev)
+        fill = np.maximum.accumulate(np.where(step != 0, np.arange(n), -1))
+        dirs = np.where(fill >= 0, step[np.maximum(fill, 0)], direction[j])
+        before = np.concatenate(([direction[j]], dirs[:-1]))
+        turns = np.flatnonzero(dirs != before)
+        ax = np.empty(turns.size + 1)
+        as_ = np.empty(turns.size + 1)
+        ax[0], as_[0] = anchor_x[j], anchor_s[j]
+        for t, i in enumerate(turns):   # the state where each new direction begins
+            sigma = before[i]
+            as_[t + 1] = as_[t] if sigma == 0 else \
+                sigma - (sigma - as_[t]) * math.exp(-sigma * (prev[i] - ax[t]) / travel_m)
+            ax[t + 1] = prev[i]
+        seg = np.cumsum(dirs != before)
+        s = dirs - (dirs - as_[seg]) * np.exp(-dirs * (pj - ax[seg]) / travel_m)
+        out[:, j] = np.clip(np.where(dirs == 0, as_[seg], s), -1.0, 1.0)
+        last[j], direction[j], anchor_x[j], anchor_s[j] = pj[-1], dirs[-1], ax[-1], as_[-1]
+    return out, (last, direction, anchor_x, anchor_s)
+
+
 def friction_state(lengths_m: FloatArray, travel_m: float, deadband_m: float,
                    state: tuple[FloatArray, FloatArray, FloatArray, FloatArray] | None
                    ) -> tuple[FloatArray, tuple[FloatArray, FloatArray, FloatArray, FloatArray]]:
@@ -188,48 +251,11 @@ def friction_state(lengths_m: FloatArray, travel_m: float, deadband_m: float,
     returns : s, shape (N, M), and the state after the last sample
     """
     x = np.asarray(lengths_m, dtype=np.float64)
-    n, m = x.shape
     if state is None:
-        first = x[0] if n else np.zeros(m)
-        state = (first.copy(), np.zeros(m), first.copy(), np.zeros(m))
-    play, direction, anchor_x, anchor_s = (np.array(v, dtype=np.float64) for v in state)
-    out = np.empty_like(x)
-    w = deadband_m
-    for j in range(m):
-        # the play: a sequential recurrence, plain floats beat numpy rows here
-        p, column = float(play[j]), x[:, j].tolist()
-        pos = [0.0] * n
-        for k, v in enumerate(column):
-            if v > p + w:
-                p = v - w
-            elif v < p - w:
-                p = v + w
-            pos[k] = p
-        pj = np.array(pos)
-        prev = np.concatenate(([play[j]], pj[:-1]))
-        step = np.sign(pj - prev)
-        moved = np.flatnonzero(step != 0)
-        dirs = np.full(n, direction[j])
-        if moved.size:
-            fill = np.maximum.accumulate(np.where(step != 0, np.arange(n), -1))
-            dirs = np.where(fill >= 0, step[np.maximum(fill, 0)], direction[j])
-        before = np.concatenate(([direction[j]], dirs[:-1]))
-        turns = np.flatnonzero(dirs != before)
-        ax = np.empty(turns.size + 1)
-        as_ = np.empty(turns.size + 1)
-        ax[0], as_[0] = anchor_x[j], anchor_s[j]
-        for t, i in enumerate(turns):   # the state where each new direction begins
-            sigma = before[i]
-            if sigma == 0:
-                as_[t + 1] = as_[t]
-            else:
-                as_[t + 1] = sigma - (sigma - as_[t]) * math.exp(-sigma * (prev[i] - ax[t]) / travel_m)
-            ax[t + 1] = prev[i]
-        seg = np.cumsum(dirs != before)
-        s = dirs - (dirs - as_[seg]) * np.exp(-dirs * (pj - ax[seg]) / travel_m)
-        out[:, j] = np.clip(np.where(dirs == 0, as_[seg], s), -1.0, 1.0)
-        play[j], direction[j], anchor_x[j], anchor_s[j] = p, dirs[-1] if n else direction[j], ax[-1], as_[-1]
-    return out, (play, direction, anchor_x, anchor_s)
+        first = x[0] if x.shape[0] else np.zeros(x.shape[1])
+        state = (first.copy(), np.zeros(x.shape[1]), first.copy(), np.zeros(x.shape[1]))
+    positions = play_positions(x, deadband_m, state[0])
+    return dahl_state(positions, travel_m, state)
 
 
 @register_term
