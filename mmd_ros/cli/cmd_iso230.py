@@ -47,6 +47,8 @@ def run_command(args: argparse.Namespace) -> int:
         sys.stdout.write('\n')
         return 0
     print(f'ISO 230-2, axis {report.axis}, log {args.log}')
+    if report.sample_note():
+        print(report.sample_note())
     for tag, text in report.models.items():
         print(f'  {tag}: {text}')
     print(figure_table(report.rows(), report.unit))
