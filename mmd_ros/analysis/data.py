@@ -32,7 +32,7 @@ from mmd_ros.core.units import ARCSEC_PER_RAD, M_PER_UM
 
 __all__ = [
     'BLOCK', 'DIRECTION_TRAVEL_M', 'FitContext', 'MOVING_M', 'Observation', 'Processed', 'Split',
-    'binned_r2', 'effective_samples', 'make_observation', 'make_split', 'noise_floor',
+    'bar_quantisation', 'binned_r2', 'effective_samples', 'make_observation', 'make_split', 'noise_floor',
     'quantisation_floor', 'residual_features', 'run_pipeline', 'sample_noise',
 ]
 
@@ -252,13 +252,30 @@ def effective_samples(series: FloatArray) -> float:
     return max(total, 1.0)
 
 
+#: Mean variance of a linear interpolation between two independent points of equal variance,
+#: relative to that variance: the mean of (1 - w)^2 + w^2 over the segment.
+INTERPOLATED_SHARE = 2.0 / 3.0
+
+
+def bar_quantisation(device: DeviceDescription) -> float:
+    """Variance of a bar's length from rounding to encoder counts [m^2]: the sample's own count
+    (uniform, res^2 / 12), and the CDF points' (Eq. 10): each point is an average of counts that
+    the read noise may be too small to dither (5–10 nm against 50 nm counts), so it can be off
+    by up to half a count, res^2 / 12 again, which the CDF interpolates between the points (on
+    average 2/3 of it along a segment). Systematic, not noise: the twin at 24.2 °C leaves an
+    S-shaped ±0.04 µm x error from it (points off by -14 … +9 nm)."""
+    q = device.encoder_resolution_m ** 2 / 12.0
+    return q * (1.0 + INTERPOLATED_SHARE)
+
+
 def quantisation_floor(device: DeviceDescription, poses: FloatArray, thermal_on: bool) -> FloatArray:
-    """Encoder quantisation propagated into the six pose components, (6,) [m, rad]: one count
-    (uniform: res / sqrt(12)) per bar, and the same again common to all bars for the reference
-    bar's rounding when thermal compensation is on; mean variance over (up to 500 of) ``poses``.
+    """Encoder quantisation propagated into the six pose components, (6,) [m, rad]; mean
+    variance over (up to 500 of) ``poses``. Per bar, :func:`bar_quantisation` [m^2]; and the
+    same as one count again common to all bars for the reference bar's rounding when thermal
+    compensation is on.
     """
     q = device.encoder_resolution_m ** 2 / 12.0
-    cov = np.eye(6) * q + (q if thermal_on else 0.0) * np.ones((6, 6))
+    cov = np.eye(6) * bar_quantisation(device) + (q if thermal_on else 0.0) * np.ones((6, 6))
     sel = poses[:: max(1, poses.shape[0] // 500)]
     sel = sel[np.all(np.isfinite(sel), axis=1)]
     if sel.shape[0] == 0:
@@ -272,8 +289,9 @@ def noise_floor(obs: Observation, device: DeviceDescription, processed: Processe
                 residual: FloatArray, idx: NDArray[np.int64], thermal_on: bool) -> FloatArray:
     """What the residual cannot go below, per observed component, (k,) [m or rad].
 
-    Encoder quantisation (:func:`quantisation_floor`; for bar lengths one count, and the
-    reference bar's rounding), propagated into the observation space, plus the sample-to-sample
+    Encoder quantisation (:func:`quantisation_floor`; for bar lengths
+    :func:`bar_quantisation` and the reference bar's rounding), propagated into the observation
+    space, plus the sample-to-sample
     noise of the residual itself (robust standard deviation of its differences / sqrt 2:
     reference noise, read noise), taken over the pairs of consecutive samples in which the bars
     moved least.
@@ -282,7 +300,7 @@ def noise_floor(obs: Observation, device: DeviceDescription, processed: Processe
     if obs.kind == 'pose':
         quant = quantisation_floor(device, processed.poses[idx], thermal_on)[obs.components] ** 2
     else:
-        quant = np.full(len(obs.components), q * (2.0 if thermal_on else 1.0))
+        quant = np.full(len(obs.components), bar_quantisation(device) + (q if thermal_on else 0.0))
     return np.sqrt(quant + sample_noise(residual, processed, idx) ** 2)
 
 
