@@ -1,10 +1,10 @@
 """``make demo``: the main job on the simulated device, printed for a person to read.
 
 1. The digital twin of the paper's prototype is calibrated on its reference plate (section 3.2)
-   and records a session, as the paper measured its axes: an ISO 230-2 x-axis test with a laser
-   (11 targets over 200 mm, 5 bidirectional cycles), a C-axis test with a rotary calibrator, and
-   a minute of random 6-DOF motion against a 6-DOF reference; later, a second x-axis test kept
-   aside. The room is at 22 °C. Raw counts and references go into MCAP logs (250 Hz).
+   and records a session, as the paper measured its axes: ISO 230-2 x- and y-axis tests with a
+   laser (11 targets over 200 mm, 5 bidirectional cycles), a C-axis test with a rotary
+   calibrator, and two minutes of random 6-DOF motion against a 6-DOF reference; later, a
+   second x-axis test kept aside. The room is at 22 °C. Raw counts and references go into MCAP logs (250 Hz).
 2. ``mmd process`` turns the counts into poses and prints the error against the laser.
 3. ``mmd analyze`` closes the loop on the session: the effects the model lacks, identified
    jointly; what each run's reference cannot check is reported, not written; each run predicted
@@ -48,8 +48,9 @@ def show_calibration(calibration: Calibration) -> None:
 #: The demo's session: (log name, scenario, parameters, start on the twin's clock [s]).
 SESSION = [
     ('x_axis', 'iso_linear', ('axis=x',), 600.0),
-    ('c_axis', 'iso_rotary', ('axis=psi', 'n_cycles=3'), 900.0),
-    ('motion', 'random_motion', ('duration_s=60', 'seed=7'), 1300.0),
+    ('y_axis', 'iso_linear', ('axis=y',), 800.0),
+    ('c_axis', 'iso_rotary', ('axis=psi', 'n_cycles=3'), 1000.0),
+    ('motion', 'random_motion', ('duration_s=120', 'seed=7'), 1300.0),
 ]
 CHECK = ('x_check', 'iso_linear', ('axis=x',), 1500.0)
 RATE_HZ = 250.0
@@ -57,7 +58,7 @@ RATE_HZ = 250.0
 
 def simulate_session(out_dir: Path) -> list[Path]:
     """The session and the run kept aside; prints the calibration. Returns the logs."""
-    heading('1. simulate: a session of the digital twin (x laser, C rotary, 6-DOF) and a check run')
+    heading('1. simulate: a session of the digital twin (x, y laser, C rotary, 6-DOF) and a check run')
     logs = []
     calibration = None
     t0 = time.perf_counter()
