@@ -4,6 +4,7 @@ reference instrument and their difference (``mmd iso230-2``, the demo)."""
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -26,11 +27,19 @@ INSTRUMENTS = ('mmd', 'reference', 'error')
 
 
 class Iso230Report:
-    """Results of one log: per instrument (and per model) an :class:`IsoResult`."""
+    """Results of one log or table: per instrument (and per model) an :class:`IsoResult`.
+
+    models : label -> description of each result compared with the reference (the MMD under
+        each model, or the instruments of a table); their rows get the "− reference figures"
+        rows of Tables 3–4
+    source : what the results were read from ('mcap', or 'csv (... layout)')
+    in_sample : label -> whether that model was fitted on this very run
+    """
 
     def __init__(self, log: str, axis: str, results: dict[str, IsoResult], models: dict[str, str],
-                 in_sample: dict[str, bool] | None = None) -> None:
+                 source: str = 'mcap', in_sample: dict[str, bool] | None = None) -> None:
         self.log, self.axis, self.results, self.models = log, axis, results, models
+        self.source = source
         self.in_sample = in_sample or {}
 
     def sample_note(self) -> str:
@@ -62,14 +71,16 @@ class Iso230Report:
         return rows
 
     def as_dict(self) -> dict[str, Any]:
-        return {'log': self.log, 'axis': self.axis, 'unit': self.unit, 'models': self.models,
-                'in_sample': self.in_sample, 'sample_note': self.sample_note(),
+        return {'log': self.log, 'source': self.source, 'axis': self.axis, 'unit': self.unit,
+                'models': self.models, 'in_sample': self.in_sample, 'sample_note': self.sample_note(),
                 'results': {k: v.as_dict() for k, v in self.results.items()},
                 'table': [{'row': n, **{k: (None if not math.isfinite(v) else v) for k, v in f.items()}}
                           for n, f in self.rows()]}
 
     def markdown(self, figures: dict[str, str] | None = None) -> str:
-        lines = [f'# ISO 230-2 evaluation of axis {self.axis}', '', f'Log: `{self.log}`', '']
+        what = 'Log' if self.source == 'mcap' else 'Table'
+        tail = '' if self.source == 'mcap' else f' ({self.source})'
+        lines = [f'# ISO 230-2 evaluation of axis {self.axis}', '', f'{what}: `{self.log}`{tail}', '']
         if self.sample_note():
             lines += [f'**{self.sample_note()}**', '']
         for tag, text in self.models.items():
@@ -89,11 +100,13 @@ class Iso230Report:
 
 def iso230_of_run(run: RunLog, axis: str | None = None, models: dict[str, Model] | None = None, *,
                   instruments: tuple[str, ...] = INSTRUMENTS, targets: np.ndarray | None = None,
-                  min_dwell_s: float = 0.15, calibration_path: str | None = None) -> Iso230Report:
+                  min_dwell_s: float = 0.15, calibration_path: str | None = None,
+                  progress: Callable[[float], None] | None = None) -> Iso230Report:
     """ISO 230-2 of one axis of a run, for the MMD under each model and the reference.
 
     models : label -> model (default: the log's, else CDF + thermal) — e.g. before and after
     targets : target positions [m or rad]; default the log's ``iso_targets``, else clustered
+    progress : called with the fraction (0..1) of the MMD processing done
     """
     meta = run.metadata.get('iso_targets') or {}
     axis = axis or meta.get('axis')
@@ -110,8 +123,11 @@ def iso230_of_run(run: RunLog, axis: str | None = None, models: dict[str, Model]
         ref = run.reference_pose[:, k]
     models = models or {'MMD': run.model or Model()}
     signals: dict[str, np.ndarray] = {}
-    for label, model in models.items():
-        proc = run_pipeline(run.device, calibration, model, run.times_s, run.counts)
+    total = max(1, len(models) * run.times_s.size)
+    for number, (label, model) in enumerate(models.items()):
+        done = number * run.times_s.size
+        tick = None if progress is None else (lambda n, done=done: progress((done + n) / total))
+        proc = run_pipeline(run.device, calibration, model, run.times_s, run.counts, progress=tick)
         pose = np.where(proc.valid, proc.poses[:, k], np.nan)
         if 'mmd' in instruments:
             signals[label] = pose
@@ -131,7 +147,7 @@ def iso230_of_run(run: RunLog, axis: str | None = None, models: dict[str, Model]
     for label, inside in in_sample.items():
         texts[label] += ' (fitted on this run: in-sample)' if inside else (
             ' (not fitted on this run)' if fitted_runs(models[label]) else '')
-    return Iso230Report(str(run.path), AXIS_NAMES[k], results, texts, in_sample)
+    return Iso230Report(str(run.path), AXIS_NAMES[k], results, texts, in_sample=in_sample)
 
 
 def fitted_runs(model: Model) -> set[str]:
