@@ -106,8 +106,11 @@ class BarCalibration:
     counts: tuple[float, ...]
     distances_m: tuple[float, ...]
 
-    def cdf(self) -> CentreDistanceFunction:
-        return CentreDistanceFunction(self.counts, self.distances_m)
+    def cdf(self, growth: float = 1.0) -> CentreDistanceFunction:
+        """Eq. (10) of this bar; ``growth`` scales the reference distances (the reference plate's
+        expansion from the CMM's 20 °C to the temperature of the calibration, see
+        :func:`mmd_ros.core.thermal.reference_plate_growth`)."""
+        return CentreDistanceFunction(self.counts, np.asarray(self.distances_m) * growth)
 
 
 def channel_roles(channels: Any) -> dict[str, str]:
@@ -217,11 +220,11 @@ class Calibration:
     quality: dict[str, Any] = field(default_factory=dict)
     terminal: TerminalBinding | None = None
 
-    def cdfs(self, channels: list[str]) -> list[CentreDistanceFunction]:
+    def cdfs(self, channels: list[str], growth: float = 1.0) -> list[CentreDistanceFunction]:
         missing = [c for c in channels if c not in self.bars]
         if missing:
             raise CalibrationError(f'calibration of {self.device!r} has no points for {missing}')
-        return [self.bars[c].cdf() for c in channels]
+        return [self.bars[c].cdf(growth) for c in channels]
 
     # -- files ---------------------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:

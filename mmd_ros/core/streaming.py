@@ -32,6 +32,7 @@ from mmd_ros.core.errors import MmdError
 from mmd_ros.core.kinematics import ForwardKinematics
 from mmd_ros.core.model import Model
 from mmd_ros.core.pipeline import Pipeline
+from mmd_ros.core.validity import Validity
 
 __all__ = ['CompensationOut', 'Compensator', 'Kinematics', 'KinematicsOut', 'calibration_created_ns']
 
@@ -85,6 +86,9 @@ class _CompStats:
     held: int = 0
     no_signal: int = 0
     period_no_signal: NDArray[np.int64] = field(default_factory=lambda: np.zeros(6, np.int64))
+    #: samples outside the model's validated range since the last report: per bar, temperature
+    period_outside_bars: NDArray[np.int64] = field(default_factory=lambda: np.zeros(6, np.int64))
+    period_outside_temp: int = 0
 
 
 class Compensator:
@@ -96,6 +100,7 @@ class Compensator:
     def __init__(self, device: DeviceDescription, model: Model) -> None:
         self.device = device
         self.model = model
+        self.validity = Validity.from_model(model)
         self.needs_pose = any(getattr(t, 'needs_pose', False) for t in model.terms)
         self.reference_names = [c.name for c in device.reference_channels]
         self._measuring = list(device.measuring_channels)
@@ -198,6 +203,14 @@ class Compensator:
         if result.reference_error_m.size:
             st.last_ref_error_m = result.reference_error_m[-1].copy()
         st.last_temp_change_c = float(result.temp_change_c[-1])
+        if self.validity is not None:
+            temp = result.temp_change_c
+            if self.validity.absolute:
+                ambient = self.calibration.ambient_c if self.calibration is not None else None
+                temp = None if ambient is None else temp + ambient
+            bars, t_out = self.validity.outside(comp.cdf_lengths_m, temp)
+            st.period_outside_bars += bars
+            st.period_outside_temp += t_out
         return result
 
 
