@@ -42,8 +42,10 @@ __all__ = [
 
 FloatArray = NDArray[np.float64]
 
-#: Keys of a model file. ``analysis`` is the history ``mmd analyze`` appends (free-form).
-MODEL_KEYS = ('format_version', 'thermal', 'length_sigma_um', 'terms', 'analysis')
+#: Keys of a model file. ``analysis`` is the history ``mmd analyze`` appends (free-form);
+#: ``validity`` is what it was fitted and validated on (read by :mod:`mmd_ros.core.validity`).
+RECORD_KEYS = ('analysis', 'validity')
+MODEL_KEYS = ('format_version', 'thermal', 'length_sigma_um', 'terms', *RECORD_KEYS)
 THERMAL_KEYS = ('mode', 'plate_expansion')
 THERMAL_MODES = ('auto', 'single', 'interpolate', 'off')
 #: Largest 1-sigma bar-length uncertainty a model may state [µm] (a bar that uncertain measures
@@ -231,7 +233,7 @@ class Model:
         if not isinstance(raw_terms, list):
             raise ConfigError(source, 'terms', f'must be a list of terms, got {raw_terms!r}')
         terms = [term_from_dict(item, source, f'terms[{k}]') for k, item in enumerate(raw_terms)]
-        extra = {'analysis': data['analysis']} if 'analysis' in data else {}
+        extra = {k: data[k] for k in RECORD_KEYS if k in data}
         return cls(mode, plate, sigma * M_PER_UM, terms, extra, source)
 
     @classmethod
