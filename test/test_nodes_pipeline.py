@@ -167,8 +167,11 @@ def test_calibrate_measure_record_and_replay(tmp_path):
         assert int(replay['sent']) == run.stamps_ns.size and int(replay['lost']) == 0, replay
         n_valid = int(processed.valid.sum())
         # what the nodes computed and published (their count, not what this subscriber got) ...
-        assert client.wait_for(lambda: int(kin()['poses_published']) - published_before == n_valid, 30), \
+        # (a deadline for a loaded machine: fk_node may still be working through its queue)
+        assert client.wait_for(lambda: int(kin()['poses_published']) - published_before >= n_valid, 120), \
             (kin(), n_valid)
+        time.sleep(1.0)
+        assert int(kin()['poses_published']) - published_before == n_valid, (kin(), published_before, n_valid)
         # ... and, through the batched stream, every one of those poses, equal to mmd process
         assert client.wait_for(lambda: len(client.poses) >= n_valid, 60), (len(client.poses), n_valid)
         stamps, poses = client.pose_array()
