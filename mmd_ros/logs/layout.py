@@ -29,7 +29,7 @@ __all__ = [
     'FRAME_LOWER', 'FRAME_UPPER', 'REFERENCE_POSE_NAMES', 'RunLog', 'TOPIC_BAR_LENGTHS',
     'TOPIC_CALIBRATION', 'TOPIC_DEVICE', 'TOPIC_DIAGNOSTICS', 'TOPIC_FK_STATUS', 'TOPIC_MODEL',
     'TOPIC_POSE', 'TOPIC_POSE_COV', 'TOPIC_RAW', 'TOPIC_REF_LENGTHS', 'TOPIC_REF_POSE',
-    'TOPIC_THERMAL', 'read_run', 'write_run',
+    'TOPIC_MACHINE_JOINTS', 'TOPIC_THERMAL', 'MachineJoints', 'read_run', 'write_run',
 ]
 
 TOPIC_DEVICE = '/mmd/device_description'
@@ -44,6 +44,9 @@ TOPIC_POSE = '/mmd/pose'
 TOPIC_POSE_COV = '/mmd/pose_with_covariance'
 TOPIC_FK_STATUS = '/mmd/fk_status'
 TOPIC_DIAGNOSTICS = '/diagnostics'
+#: The machine tool's axis values beside the MMD (sensor_msgs/JointState: names X Y Z A C...,
+#: positions in m and rad), from its controller or the twin's machine session.
+TOPIC_MACHINE_JOINTS = '/mmd/machine/joint_states'
 
 FRAME_LOWER = 'mmd_lower'
 FRAME_UPPER = 'mmd_upper'
@@ -51,6 +54,19 @@ FRAME_UPPER = 'mmd_upper'
 REFERENCE_POSE_NAMES = ['x', 'y', 'z', 'roll', 'pitch', 'yaw']
 BAR_NAMES = [f'bar{i}' for i in range(1, 7)]
 RUN_METADATA = 'mmd_run'
+
+
+@dataclass
+class MachineJoints:
+    """Axis values of the machine tool carrying the MMD, on their own time stamps.
+
+    stamps_ns : ndarray, shape (M,) [ns since the epoch]; names : axis names
+    positions : ndarray, shape (M, n_axes) [m, rad]
+    """
+
+    stamps_ns: NDArray[np.int64]
+    names: list[str]
+    positions: NDArray[np.float64]
 
 
 @dataclass
@@ -62,6 +78,7 @@ class RunLog:
     reference_pose : (N, 6) [m, rad] with NaN for components the reference does not give, or None
     reference_lengths : (N, 6) [m] bar lengths known from the set-up, or None
     metadata : the run's description (scenario, effects, seed...) if the log has one
+    machine_joints : the machine tool's axis values (``/mmd/machine/joint_states``), or None
     """
 
     path: Path
@@ -75,6 +92,7 @@ class RunLog:
     reference_lengths: NDArray[np.float64] | None = None
     metadata: dict[str, Any] = field(default_factory=dict)
     problem: str | None = None
+    machine_joints: MachineJoints | None = None
 
     @property
     def times_s(self) -> NDArray[np.float64]:
@@ -143,6 +161,10 @@ def read_run(path: str | os.PathLike[str]) -> RunLog:
         run.reference_pose = _aligned(reader.joint_states(TOPIC_REF_POSE), raw, REFERENCE_POSE_NAMES, source)
     if reader.has_topic(TOPIC_REF_LENGTHS):
         run.reference_lengths = _aligned(reader.joint_states(TOPIC_REF_LENGTHS), raw, BAR_NAMES, source)
+    if reader.has_topic(TOPIC_MACHINE_JOINTS):
+        js = reader.joint_states(TOPIC_MACHINE_JOINTS)
+        if js.stamps_ns.size:
+            run.machine_joints = MachineJoints(js.stamps_ns, list(js.names), js.values)
     meta = reader.metadata.get(RUN_METADATA, {})
     run.metadata = {k: json.loads(v) for k, v in meta.items()}
     return run
