@@ -14,6 +14,7 @@ import time
 
 import numpy as np
 import pytest
+from test_nodes_faults import check_machine_joints, publish_machine_joints
 from test_nodes_support import Nodes, needs_ros, params
 
 from mmd_ros.logs.processing import process_run
@@ -80,6 +81,7 @@ def test_calibrate_measure_record_and_replay(tmp_path):
         nodes.start('recorder_node', *params(output=str(log_file), flush_period_s=0.5, qos_depth=DEPTH))
         assert client.wait_for(lambda: (client.status(': recorder') or {}).get('values', {})
                                .get('state') == 'recording', 30), nodes.dump()
+        publish_machine_joints(client, 10)
         since = time.time_ns() + int((TRANSITION + 1.0) * 1e9)
         assert client.wait_for(lambda: len(client.errors_against_reference(since)) >= 3000, 180), nodes.dump()
         err = client.errors_against_reference(since)
@@ -98,7 +100,8 @@ def test_calibrate_measure_record_and_replay(tmp_path):
         topics = reader.topics
         for name in ('/mmd/raw_counts', '/mmd/pose', '/mmd/bar_lengths', '/mmd/thermal',
                      '/mmd/pose_with_covariance', '/mmd/fk_status', '/mmd/reference/pose',
-                     '/mmd/calibration', '/mmd/device_description', '/mmd/model', '/diagnostics'):
+                     '/mmd/calibration', '/mmd/device_description', '/mmd/model', '/diagnostics',
+                     '/mmd/machine/joint_states'):
             assert topics[name].count > 0, name
 
         # replay the log through the compensation and kinematics nodes
@@ -107,6 +110,7 @@ def test_calibrate_measure_record_and_replay(tmp_path):
         with client._lock:
             client.poses.clear()
         run = read_run(log_file)
+        check_machine_joints(run, 10)
         processed = process_run(run, Model())
         # half speed, so that the nodes keep up on a loaded machine; the log is as long as the
         # recording above took, which grows with the load, so the deadlines scale with it

@@ -28,7 +28,10 @@ Definitions (``msg_docs/machine.md`` states them with their signs):
 Uncertainty: the approaches' mean poses are drawn ``draws`` times from their covariance (the
 MMD's pose covariance, systematic at a pose, plus the scatter between cycles over their number)
 and the functional point from the stated uncertainty of the upper plate's position; the whole
-identification is repeated on each draw. A second set of draws with the MMD's covariance alone
+identification is repeated on each draw. The MMD's error at a pose is drawn from its
+covariance independently between targets and, once more, as a linear trend along the run: its
+errors follow the bar lengths, which change smoothly along a run, and a trend is what turns into
+a false slope (squareness) or a false location. A second set of draws with the MMD's covariance alone
 gives the MMD's part. A location fit whose residual is larger than its inputs explain (ratio >
 1: component errors the fit cannot tell from location over a partial turn) has its uncertainty
 scaled by that ratio.
@@ -67,12 +70,18 @@ class IdentifyOptions:
     """draws : Monte Carlo draws per uncertainty estimate; seed : their random seed
     limit_m, limit_rad : an error whose standard uncertainty exceeds these is reported as not
         determined by the session (the value is still given)
+    mmd_bound_m, mmd_bound_rad : a stated accuracy of the MMD's pose (± bound of each position
+        and rotation component, e.g. from its data sheet or its own validation), added to its
+        covariance as a uniform distribution (u = bound / sqrt 3) at every approach; 0: the
+        pose covariance alone
     """
 
     draws: int = 200
     seed: int = 0
     limit_m: float = 2e-6
     limit_rad: float = math.radians(2.0 / 3600.0)
+    mmd_bound_m: float = 0.0
+    mmd_bound_rad: float = 0.0
 
 
 @dataclass
@@ -441,15 +450,15 @@ def _interpolation_u(tables: dict[str, ErrorTable], loo: dict[str, FloatArray], 
 # -- Monte Carlo -------------------------------------------------------------------------------
 def _draws(session: _Session, base: dict[str, Any], draws: int, rng: np.random.Generator,
            shift_sigma: float, progress: Callable[[int], None] | None
-           ) -> tuple[dict[str, FloatArray], dict[str, FloatArray]]:
+           ) -> tuple[dict[str, FloatArray], dict[str, FloatArray], dict[str, FloatArray]]:
     """Standard deviation of every numeric output over perturbed inputs: (everything, the MMD's
-    part). Each draw evaluates twice with the same MMD perturbation, once with the scatter
-    between cycles and the functional point's uncertainty added, so the two estimates share
-    their random numbers."""
+    part, the part of the scatter between cycles). Each draw evaluates three times with shared
+    random numbers: all perturbations (the MMD's covariance, the scatter between cycles, the
+    functional point's uncertainty, the interpolation between targets), the MMD's alone, the
+    scatter alone."""
     keys = [k for k, v in base.items() if isinstance(v, np.ndarray) and k != 'frame'
             and not k.endswith(('/jacobian', '/leak'))]
-    acc_all = {k: [] for k in keys}
-    acc_mmd = {k: [] for k in keys}
+    acc = [{k: [] for k in keys} for _ in range(3)]
     roots = {}
     for name, mean in session.means.items():
         roots[name] = tuple(_sqrtm(c) for c in (mean.cov_mmd, mean.cov_stat))
@@ -457,21 +466,39 @@ def _draws(session: _Session, base: dict[str, Any], draws: int, rng: np.random.G
         parts = {}
         for name, mean in session.means.items():
             shape = mean.p.shape[:2] + (6,)
-            z_mmd = np.einsum('mdij,mdj->mdi', roots[name][0], rng.standard_normal(shape))
+            # the MMD's error at a pose: independent between targets, plus a trend along the run
+            # (it follows the bar lengths, which change smoothly along the run)
+            trend = _trend(mean.targets)[:, None, None] * rng.standard_normal(6)[None, None, :]
+            xi = MMD_INDEPENDENT * rng.standard_normal(shape) + MMD_TREND * trend
+            z_mmd = np.einsum('mdij,mdj->mdi', roots[name][0], xi)
             z_stat = np.einsum('mdij,mdj->mdi', roots[name][1], rng.standard_normal(shape))
-            parts[name] = (z_mmd, z_mmd + z_stat)
+            parts[name] = (z_mmd + z_stat, z_mmd, z_stat)
         shift = rng.normal(0.0, shift_sigma, 3) if shift_sigma > 0 else np.zeros(3)
-        for which, acc, dshift in ((1, acc_all, shift), (0, acc_mmd, np.zeros(3))):
-            session.draw_interpolation = which == 1
+        for which in range(3):
+            session.draw_interpolation = which == 0
             p = {n: m.p + parts[n][which][..., :3] for n, m in session.means.items()}
             r = {n: rotation_from_rotvec(parts[n][which][..., 3:]) @ m.r for n, m in session.means.items()}
-            out = session.evaluate(p, r, dshift)
+            out = session.evaluate(p, r, shift if which == 0 else np.zeros(3))
             for k in keys:
-                acc[k].append(np.asarray(out[k], dtype=np.float64))
+                acc[which][k].append(np.asarray(out[k], dtype=np.float64))
         if progress:
             progress(d + 1)
-    std = lambda acc: {k: np.std(np.array(v), axis=0, ddof=1) for k, v in acc.items()}  # noqa: E731
-    return std(acc_all), std(acc_mmd)
+    session.draw_interpolation = False
+    std = lambda a: {k: np.std(np.array(v), axis=0, ddof=1) for k, v in a.items()}  # noqa: E731
+    return std(acc[0]), std(acc[1]), std(acc[2])
+
+
+#: The MMD's pose covariance is drawn twice: independent between targets, and again as a
+#: linear trend along the run (the covariance of one pose says nothing about how the errors of
+#: neighbouring poses go together; both extremes are taken, on the safe side)
+MMD_INDEPENDENT = 1.0
+MMD_TREND = 1.0
+
+
+def _trend(targets: FloatArray) -> FloatArray:
+    """-1 … +1 along a run's targets."""
+    span = float(targets[-1] - targets[0])
+    return (2.0 * (targets - targets[0]) / span - 1.0) if span > 0 else np.zeros_like(targets)
 
 
 def _sqrtm(cov: FloatArray) -> FloatArray:
@@ -518,6 +545,10 @@ def identify(runs: list[AxisRun], machine: MachineDescription, *,
                                        f'{run.log}); give one run per axis')
         seen[run.axis] = run
     means = {run.axis: aggregate(run, machine) for run in runs}
+    if options.mmd_bound_m > 0 or options.mmd_bound_rad > 0:
+        bound = np.diag([options.mmd_bound_m ** 2 / 3.0] * 3 + [options.mmd_bound_rad ** 2 / 3.0] * 3)
+        for mean in means.values():
+            mean.cov_mmd = mean.cov_mmd + bound
     session = _Session(machine, means)
     zero = np.zeros(3)
     base = session.evaluate({n: m.p for n, m in means.items()}, {n: m.r for n, m in means.items()}, zero)
@@ -529,21 +560,21 @@ def identify(runs: list[AxisRun], machine: MachineDescription, *,
         return None if progress is None else (lambda done: progress(label, done, options.draws))
 
     t1 = time.perf_counter()
-    u_total, u_mmd = _draws(session, base, options.draws, rng, sigma_shift, tick('uncertainty'))
+    u_total, u_mmd, u_stat = _draws(session, base, options.draws, rng, sigma_shift, tick('uncertainty'))
     t2 = time.perf_counter()
-    result = _build(machine, session, base, u_total, u_mmd, options, instrument, model_text,
+    result = _build(machine, session, base, u_total, u_mmd, u_stat, options, instrument, model_text,
                     logs or sorted({r.log for r in runs}))
     result.seconds = {'evaluate': t1 - started, 'monte_carlo': t2 - t1,
                       'total': time.perf_counter() - started}
     return result
 
 
-def _coverage(u: Any, u_mmd: Any, n: int) -> FloatArray:
+def _coverage(u: Any, u_stat: Any, n: int) -> FloatArray:
     """Coverage factor(s) for about 95 %: Student's t for the Welch-Satterthwaite degrees of
-    freedom, the scatter between n cycles (taken as what u has beyond the MMD's part, on the
-    safe side) having n - 1 and the rest infinitely many; at least 2."""
+    freedom of u, its part from the scatter between n cycles (``u_stat``) having n - 1 and the
+    rest (the MMD's covariance and the other type-B parts) infinitely many; at least 2."""
     u = np.asarray(u, dtype=np.float64)
-    u_stat2 = np.clip(u ** 2 - np.asarray(u_mmd, dtype=np.float64) ** 2, 0.0, None)
+    u_stat2 = np.minimum(np.asarray(u_stat, dtype=np.float64) ** 2, u ** 2)
     if n < 2:
         return np.full(u.shape, COVERAGE_K)
     with np.errstate(divide='ignore', invalid='ignore'):
@@ -553,20 +584,21 @@ def _coverage(u: Any, u_mmd: Any, n: int) -> FloatArray:
 
 
 def _value(name: str, v: float, u: float, um: float, unit: str, options: IdentifyOptions,
-           note_missing: str | None = None, n: int = 0) -> Value:
+           note_missing: str | None = None, n: int = 0, ustat: float = 0.0) -> Value:
     if note_missing is not None or not math.isfinite(v):
         return Value(name, math.nan, math.nan, math.nan, unit, False, note_missing or 'not measured')
     limit = options.limit_m if unit == 'm' else options.limit_rad
     ok = bool(u <= limit)
     note = '' if ok else (f'uncertainty {u / (1e-6 if unit == "m" else math.radians(1 / 3600)):.2g}'
                           f'{" µm" if unit == "m" else "″"} exceeds the limit: the run does not fix it')
-    return Value(name, float(v), float(u), float(um), unit, ok, note, float(_coverage(u, um, n)))
+    return Value(name, float(v), float(u), float(um), unit, ok, note, float(_coverage(u, ustat, n)))
 
 
 def _build(machine: MachineDescription, session: _Session, base: dict[str, Any],
-           u: dict[str, FloatArray], um: dict[str, FloatArray], options: IdentifyOptions,
-           instrument: str, model_text: str, logs: list[str]) -> MachineResult:
+           u: dict[str, FloatArray], um: dict[str, FloatArray], us: dict[str, FloatArray],
+           options: IdentifyOptions, instrument: str, model_text: str, logs: list[str]) -> MachineResult:
     notes: list[str] = []
+    us_ = us
     lin = {a.component: a for a in machine.linear_axes}
     names = [f'EC0{lin[1].name}', f'EB0{lin[2].name}', f'EA0{lin[2].name}']
     squareness = []
@@ -578,7 +610,7 @@ def _build(machine: MachineDescription, session: _Session, base: dict[str, Any],
             missing = f'needs the {lin[2].name} run in the same setup as {lin[0].name} and {lin[1].name}'
         cycles = min([int(m.n.min()) for m in session.means.values() if not m.axis.rotary] or [0])
         squareness.append(_value(name, base['squareness'][i], u['squareness'][i], um['squareness'][i],
-                                 'rad', options, missing, cycles))
+                                 'rad', options, missing, cycles, us['squareness'][i]))
     if not session.frame_measured:
         notes.append(f'machine frame: the {lin[0].name} or {lin[1].name} run is missing, so the '
                      'frame is {L} as described (its setup misalignment on the table remains '
@@ -609,7 +641,7 @@ def _build(machine: MachineDescription, session: _Session, base: dict[str, Any],
             ex_mean = 0.5 * (ex_up + ex_down)
             n_cyc = int(mean.n.min())
             fig = _value(f'{tname} figure', base[f'{name}/figure'][j], u[f'{name}/figure'][j],
-                         um[f'{name}/figure'][j], unit, options, None, n_cyc)
+                         um[f'{name}/figure'][j], unit, options, None, n_cyc, us_[f'{name}/figure'][j])
             fig.determined = True
             fig.note = ''
             deviation = u_dev = None
@@ -624,12 +656,12 @@ def _build(machine: MachineDescription, session: _Session, base: dict[str, Any],
                 iso = evaluate(mean.targets, _rotary_cycles(mean, j, base, session, sign)[0],
                                _rotary_cycles(mean, j, base, session, sign)[1], axis='psi',
                                instrument=f'{axis.name} positioning')
-            us = {'up': ucol('up', ex_up), 'down': ucol('down', ex_down), 'mean': ucol('mean', ex_mean),
-                  'reversal': ucol('reversal', np.hypot(ex_up, ex_down))}
-            ks = {key: _coverage(val, np.asarray(um[f'{name}/{key}'])[:, j], n_cyc) for key, val in us.items()}
+            unc = {'up': ucol('up', ex_up), 'down': ucol('down', ex_down), 'mean': ucol('mean', ex_mean),
+                   'reversal': ucol('reversal', np.hypot(ex_up, ex_down))}
+            ks = {key: _coverage(val, np.asarray(us_[f'{name}/{key}'])[:, j], n_cyc) for key, val in unc.items()}
             motions.append(ErrorMotion(
                 tname, name, kind, unit, mean.targets, col('up'), col('down'), col('mean'),
-                col('reversal'), us['up'], us['down'], us['mean'], us['reversal'],
+                col('reversal'), unc['up'], unc['down'], unc['mean'], unc['reversal'],
                 np.asarray(um[f'{name}/mean'])[:, j], fig, deviation, u_dev, iso, True,
                 ks['up'], ks['down'], ks['mean'], ks['reversal']))
         location = []
@@ -638,11 +670,13 @@ def _build(machine: MachineDescription, session: _Session, base: dict[str, Any],
             lam, uml = base[f'{name}/location'], um[f'{name}/location']
             ul = np.sqrt(u[f'{name}/location'] ** 2 + np.diag(leak))
             n_cyc = int(mean.n.min())
+            usl = us_[f'{name}/location']
             for i, j in enumerate(perp):
-                location.append(_value(f'E{_XYZ[j]}0{name}', lam[i], ul[i], uml[i], 'm', options, None, n_cyc))
+                location.append(_value(f'E{_XYZ[j]}0{name}', lam[i], ul[i], uml[i], 'm', options, None,
+                                       n_cyc, usl[i]))
             for i, j in enumerate(perp):
                 location.append(_value(f'E{_ABC[j]}0{name}', lam[2 + i], ul[2 + i], uml[2 + i], 'rad',
-                                       options, None, n_cyc))
+                                       options, None, n_cyc, usl[2 + i]))
             if not session.frame_measured:
                 for v in location[2:]:
                     v.determined = False

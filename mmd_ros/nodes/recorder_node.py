@@ -11,7 +11,6 @@ the recording with an error in ``/diagnostics`` and keeps what was written.
 
 from __future__ import annotations
 
-import struct
 import sys
 
 from diagnostic_msgs.msg import DiagnosticArray
@@ -26,7 +25,7 @@ from mmd_ros.nodes.diagnostics import Diagnostics
 from mmd_ros.nodes.outlets import Outlet
 from mmd_ros.nodes.params import Param, ParameterError, declare
 from mmd_ros.nodes.qos import DIAGNOSTICS, LATCHED, data_qos
-from mmd_ros.nodes.recorder_stage import RECORDER_PARAMS, RecorderConfig, RecorderStage
+from mmd_ros.nodes.recorder_stage import RECORDER_PARAMS, RecorderConfig, RecorderStage, raw_writer
 
 __all__ = ['RecorderNode', 'TOPICS', 'main']
 
@@ -44,6 +43,7 @@ TOPICS: dict[str, tuple[type, str, str]] = {
     'fk_status': (JointState, JS, 'data'),
     'pose': (PoseStamped, POSE, 'data'),
     'pose_with_covariance': (PoseWithCovarianceStamped, POSE_COV, 'data'),
+    'machine/joint_states': (JointState, JS, 'data'),
     '/diagnostics': (DiagnosticArray, DIAGNOSTIC_ARRAY, 'diagnostics'),
 }
 
@@ -71,26 +71,15 @@ class RecorderNode(Node):
             cls, type_name, kind = TOPICS[topic]
             qos = {'latched': LATCHED, 'data': data, 'diagnostics': DIAGNOSTICS}[kind]
             log_qos = {'latched': 'latched', 'data': data_kind, 'diagnostics': 'reliable'}[kind]
-            callback = self._writer(self.resolve_topic_name(topic), type_name, log_qos,
-                                    cls is not String)
+            callback = raw_writer(self.stage.queue, self.get_clock(), self.resolve_topic_name(topic),
+                                  type_name, log_qos, cls is not String, self._count)
             self.create_subscription(cls, topic, callback, qos, raw=True)
         self.out_diag = Outlet(self, '/diagnostics', DiagnosticArray, DIAGNOSTIC_ARRAY, DIAGNOSTICS)
         self.diagnostics = Diagnostics(self, self.out_diag, [lambda: [self.stage.report()]],
                                        v['diagnostics_period_s'])
 
-    def _writer(self, topic: str, type_name: str, log_qos: str, stamped: bool):
-        put = self.stage.queue.put_message
-        clock = self.get_clock()
-
-        def write(payload: bytes) -> None:
-            self.received += 1
-            if stamped and len(payload) >= 12:  # header.stamp right after the encapsulation
-                sec, nsec = struct.unpack_from('<iI', payload, 4)
-                stamp = sec * 1_000_000_000 + nsec
-            else:
-                stamp = clock.now().nanoseconds
-            put(topic, type_name, stamp, payload, log_qos)
-        return write
+    def _count(self) -> None:
+        self.received += 1
 
     def destroy_node(self) -> None:
         self.stage.close()
