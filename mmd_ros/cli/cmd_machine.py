@@ -15,6 +15,7 @@ from pathlib import Path
 from mmd_ros.core.machine import load_machine
 from mmd_ros.core.model import load_model
 from mmd_ros.core.progress import Progress
+from mmd_ros.core.units import ARCSEC_PER_RAD
 from mmd_ros.machine import (
     IdentifyOptions, SessionOptions, analyze_session, error_table, linear_map, load_program,
     load_result, rotary_map, write_compensation, write_csv, write_location_yaml, write_outputs,
@@ -48,7 +49,9 @@ def _analyze(args: argparse.Namespace) -> int:
         instrument=args.instrument,
         program=load_program(args.program, machine) if args.program else None,
         identify=IdentifyOptions(draws=args.draws, limit_m=args.limit_um * 1e-6,
-                                 limit_rad=args.limit_arcsec / 206264.80624709636),
+                                 limit_rad=args.limit_arcsec / ARCSEC_PER_RAD,
+                                 mmd_bound_m=args.mmd_accuracy_um * 1e-6,
+                                 mmd_bound_rad=args.mmd_accuracy_arcsec / ARCSEC_PER_RAD),
         calibration_path=args.calibration, progress=not quiet)
     result = analyze_session(args.logs, machine, options, progress=_progress(not quiet))
     written = None
@@ -159,6 +162,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help='a length error whose standard uncertainty exceeds this is "not determined" (default 2)')
     a.add_argument('--limit-arcsec', type=float, default=2.0, dest='limit_arcsec',
                    help='likewise for angles [arc-seconds] (default 2)')
+    a.add_argument('--mmd-accuracy-um', type=float, default=0.0, dest='mmd_accuracy_um',
+                   help='a stated accuracy of the MMD\'s position (± bound per component, e.g. its '
+                   'data sheet), added to its pose covariance (default 0: the covariance alone)')
+    a.add_argument('--mmd-accuracy-arcsec', type=float, default=0.0, dest='mmd_accuracy_arcsec',
+                   help='likewise for its rotations [arc-seconds]')
     a.add_argument('--units', choices=['mm', 'inch'], default='mm',
                    help='machine units of the LinuxCNC compensation files (default mm)')
     a.add_argument('--no-figures', action='store_true', help='skip the figures')

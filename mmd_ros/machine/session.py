@@ -15,9 +15,10 @@ Where the axis values come from:
   pose coordinate along (or about) the axis and matched to the program's targets in order.
 
 Each approach keeps the mean pose over the middle 60 % of its dwell and the mean of the
-samples' pose covariance (``Pipeline.process(..., with_covariance=True)``), converted to
-[dp, dw] screw coordinates, not divided by the number of samples: the covariance stands for the
-MMD's error at that pose, which averaging in one place does not reduce.
+samples' pose covariance (``Pipeline.process(..., with_covariance=True)`` over the dwell's
+central samples; the poses themselves come from one pass over the whole log in time order),
+converted to [dp, dw] screw coordinates, not divided by the number of samples: the covariance
+stands for the MMD's error at that pose, which averaging in one place does not reduce.
 """
 
 from __future__ import annotations
@@ -31,8 +32,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mmd_ros.analysis.iso230 import Dwell, approaches, detect_dwells
+from mmd_ros.core.calibration import load_calibration
 from mmd_ros.core.machine import MachineDescription
 from mmd_ros.core.model import Model
+from mmd_ros.core.pipeline import Pipeline
 from mmd_ros.core.progress import Progress
 from mmd_ros.core.units import M_PER_MM
 from mmd_ros.core.yamlio import read_yaml
@@ -165,32 +168,58 @@ def load_program(path: str | Path, machine: MachineDescription) -> Program:
 # -- poses of a log ---------------------------------------------------------------------------
 @dataclass
 class LogPoses:
-    """Poses of every sample of one log and their covariance (zero for a reference instrument)."""
+    """Poses of every sample of one log; the MMD's pose covariance on request for the stretches
+    that are used (None for a reference instrument: no covariance)."""
 
     path: str
     times_s: FloatArray
     poses: FloatArray
     valid: NDArray[np.bool_]
-    covariance: FloatArray | None
+    pipeline: Pipeline | None = None
+    counts: FloatArray | None = None
+
+    def covariance(self, sl: slice, at: FloatArray) -> FloatArray:
+        """Mean covariance (6, 6) in [dp, dw] of the samples in ``sl`` (a dwell's middle; at
+        most its central :data:`COVARIANCE_SAMPLES`), at the mean pose ``at``: the pipeline run
+        over them with its covariance (``Pipeline.process(..., with_covariance=True)``)."""
+        if self.pipeline is None:
+            return np.zeros((6, 6))
+        start, stop = sl.start, sl.stop
+        if stop - start > COVARIANCE_SAMPLES:
+            start = (start + stop - COVARIANCE_SAMPLES) // 2
+            stop = start + COVARIANCE_SAMPLES
+        self.pipeline.reset()
+        res = self.pipeline.process(self.times_s[start:stop], self.counts[start:stop],
+                                    with_covariance=True)
+        ok = res.valid & np.all(np.isfinite(res.covariance), axis=(1, 2))
+        if not ok.any():
+            return np.full((6, 6), np.nan)
+        return pose_covariance_to_screw(at, res.covariance[ok].mean(axis=0))
+
+
+#: Samples of a dwell whose covariance is computed (its central ones).
+COVARIANCE_SAMPLES = 100
 
 
 def log_poses(run: RunLog, model: Model | None, *, instrument: str = 'mmd',
               calibration_path: str | None = None, progress: bool = False) -> LogPoses:
-    """The MMD's poses of a log (pipeline with covariance), or the log's reference instrument's
-    (``instrument='reference'``: a 6-D reference such as the twin's pose6, no covariance)."""
+    """The MMD's poses of a log (the pipeline over the whole log, in time order), or the log's
+    reference instrument's (``instrument='reference'``: a 6-D reference such as the twin's
+    pose6, no covariance)."""
     times = run.times_s
     if instrument == 'reference':
         ref = run.reference_pose
         if ref is None or not np.isfinite(ref).all(axis=1).mean() > 0.5:
             raise MachineAnalysisError(f'{run.path}: no six-dimensional reference pose to evaluate')
-        return LogPoses(str(run.path), times, ref, np.isfinite(ref).all(axis=1), None)
+        return LogPoses(str(run.path), times, ref, np.isfinite(ref).all(axis=1))
     model = run.model or Model() if model is None else model
     fresh = Model.from_dict(model.to_dict(), model.source)  # term states start anew per log
     bar = Progress(f'poses of {Path(run.path).name}', times.size, enabled=progress)
-    result = process_run(run, fresh, calibration_path=calibration_path, with_covariance=True,
-                         progress=bar)
+    result = process_run(run, fresh, calibration_path=calibration_path, progress=bar)
     bar.close()
-    return LogPoses(str(run.path), times, result.poses, result.valid, result.covariance)
+    calibration = load_calibration(calibration_path) if calibration_path else run.calibration
+    pipeline = Pipeline(run.device, calibration, Model.from_dict(model.to_dict(), model.source))
+    return LogPoses(str(run.path), times, result.poses, result.valid, pipeline, run.counts)
 
 
 # -- dwells -----------------------------------------------------------------------------------
@@ -234,12 +263,10 @@ def _mean_pose(poses: LogPoses, sl: slice) -> tuple[FloatArray, FloatArray, int]
     ok = poses.valid[sl]
     if ok.sum() < 2:
         return None
-    p = poses.poses[sl][ok]
-    mean = p.mean(axis=0)
-    if poses.covariance is None:
-        cov = np.zeros((6, 6))
-    else:
-        cov = pose_covariance_to_screw(mean, poses.covariance[sl][ok].mean(axis=0))
+    mean = poses.poses[sl][ok].mean(axis=0)
+    cov = poses.covariance(sl, mean)
+    if not np.all(np.isfinite(cov)):
+        return None
     return mean, cov, int(ok.sum())
 
 
