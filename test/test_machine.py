@@ -355,6 +355,12 @@ def test_head_table_machine_end_to_end_through_the_command_line(tmp_path, capsys
     for v in data['squareness']:
         assert abs(v['value'] - truth['squareness'][v['name']] / ARCSEC) <= v['U'], v
     assert checked == 8
+    # and every error motion at every target, read back from machine.json
+    result = load_result(json.loads((out / 'machine.json').read_text()), machine)
+    rows = comparisons(result, truth)
+    ratio = np.array([abs(v - t) / u for _, v, t, u, _ in rows])
+    assert len(rows) > 400 and np.mean(ratio <= 1.0) >= 0.95 and ratio.max() <= 2.5, \
+        max(rows, key=lambda r: abs(r[1] - r[2]) / r[3])
     for f in ('report.md', 'machine.json', 'compensation/comp_B.txt', 'location_errors.yaml'):
         assert (out / f).is_file(), f
     # compensation tables from the result, in inch

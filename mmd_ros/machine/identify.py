@@ -653,8 +653,8 @@ def _build(machine: MachineDescription, session: _Session, base: dict[str, Any],
                 iso = _iso230(mean, base['frame'], base, session)
             elif kind == 'positioning':
                 sign = np.sign(axis.direction[axis.component])
-                iso = evaluate(mean.targets, _rotary_cycles(mean, j, base, session, sign)[0],
-                               _rotary_cycles(mean, j, base, session, sign)[1], axis='psi',
+                up_dev, down_dev = _rotary_cycles(mean, j, base, session, sign)
+                iso = evaluate(mean.targets, up_dev, down_dev, axis='psi',
                                instrument=f'{axis.name} positioning')
             unc = {'up': ucol('up', ex_up), 'down': ucol('down', ex_down), 'mean': ucol('mean', ex_mean),
                    'reversal': ucol('reversal', np.hypot(ex_up, ex_down))}

@@ -242,15 +242,16 @@ def _middle(start: int, stop: int) -> slice:
     return slice(start + n // 5, stop - n // 5) if n >= 5 else slice(start, stop)
 
 
-def _cluster(values: FloatArray, directions: NDArray[np.int64] | None = None) -> FloatArray:
-    """Distinct target values: medians of groups separated by more than 1e-3 of the span;
-    with ``directions``, only groups reached from both sides (an ISO target, not a home
-    position visited on the way between runs)."""
+def _cluster(values: FloatArray, directions: NDArray[np.int64] | None = None,
+             tolerance: float = 1e-9) -> FloatArray:
+    """Distinct target values: medians of groups separated by more than ``tolerance`` (the
+    joint states' standstill scatter); with ``directions``, only groups reached from both sides
+    (an ISO target, not a home position visited on the way between runs)."""
     order = np.argsort(values)
     v = values[order]
     if v.size == 0:
         return v
-    gap = max(1e-3 * float(np.ptp(v)), 1e-9)
+    gap = max(tolerance, 1e-9)
     cuts = np.flatnonzero(np.diff(v) > gap) + 1
     groups = np.split(v, cuts)
     if directions is None:
@@ -345,7 +346,8 @@ def _runs_from_joints(run: RunLog, machine: MachineDescription, poses: LogPoses,
             dwells = [Dwell(segments[n][0], segments[n][1], float(values[n, k]), int(last[n, k]))
                       for n in idx]
             moving = [d for d in dwells if d.direction != 0]
-            targets = _cluster(np.array([d.value for d in moving]), np.array([d.direction for d in moving]))
+            targets = _cluster(np.array([d.value for d in moving]), np.array([d.direction for d in moving]),
+                               tol[k])
             if targets.size >= 3:
                 tg, found = approaches(dwells, targets)
                 out.append(_axis_run(run, axis.name, axis.rotary, tg, found, poses,
@@ -381,7 +383,8 @@ def _runs_from_program(run: RunLog, machine: MachineDescription, poses: LogPoses
     coord = np.where(poses.valid, poses.poses[:, comp], np.nan)
     dwells = detect_dwells(poses.times_s, coord, min_dwell_s=min_dwell_s)
     moving = [d for d in dwells if d.direction != 0]
-    found_values = _cluster(np.array([d.value for d in moving]))
+    found_values = _cluster(np.array([d.value for d in moving]),
+                            tolerance=1e-3 * float(np.ptp([d.value for d in moving] or [0.0])))
     if found_values.size != plan.targets.size:
         raise MachineAnalysisError(
             f'{run.path}: found dwells at {found_values.size} positions of the '

@@ -375,8 +375,8 @@ class MachineSession(Scenario):
                 targets = targets + jitter
                 if np.any(np.diff(targets) <= 0):
                     raise TwinError('machine_session: target_jitter_mm is too large for the spacing')
-                for value in extra.get(axis.name, []):
-                    if np.min(np.abs(targets - value)) > 1e-4 and targets[0] <= value <= targets[-1]:
+                for value in extra.get(axis.name, []):   # (within 1 mm of a target: that one)
+                    if np.min(np.abs(targets - value)) > 1e-3 and targets[0] <= value <= targets[-1]:
                         targets = np.sort(np.append(targets, value))
                 out.append(RunPlan(axis.name, targets, self.n_cycles, self.overrun_mm * 1e-3, False))
         return out
