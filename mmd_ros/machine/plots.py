@@ -107,6 +107,6 @@ def machine_figures(result: MachineResult, out: Path, maps: dict[str, Volumetric
         if pos.iso230 is not None:
             figs[f'{name} axis: ISO 230-2 positioning'] = iso230_figure(pos.iso230, out / f'iso230_{name}.png').name
     for key, vmap in maps.items():
-        figs[f'Volumetric error: {key}'] = volumetric_figure(vmap, out / f'volumetric_{key}.png',
+        figs[f'Volumetric error: {key}'] = volumetric_figure(vmap, out / f'volumetric_{key.split()[0]}.png',
                                                              f'volumetric error, {key}').name
     return figs
