@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -47,22 +48,40 @@ def separation_text(result: MachineResult, options: SessionOptions) -> str:
     if result.instrument == 'reference':
         return ('The poses are the log\'s six-dimensional reference instrument, taken as exact '
                 '(no MMD uncertainty is carried).')
-    model = options.model_path or 'the model carried by each log (else CDF + thermal only)'
+    ident = options.identify
+    bound = ''
+    if ident.mmd_bound_m > 0 or ident.mmd_bound_rad > 0:
+        bound = (f' A stated accuracy of the MMD, ±{ident.mmd_bound_m * 1e6:g} µm and '
+                 f'±{math.degrees(ident.mmd_bound_rad) * 3600:g}″ per component (uniform), is added '
+                 'to it.')
     return (
-        f'1. The MMD\'s poses were computed with {model}: the device model from `mmd analyze` '
-        'removes the effects of the MMD it has identified (hysteresis, timing, scale) before the '
-        'machine is evaluated.\n'
+        f'1. The MMD\'s poses were computed with {result.model_text}: a device model from '
+        '`mmd analyze` removes the effects of the MMD it has identified (hysteresis, timing, '
+        'scale, calibration points) before the machine is evaluated; with CDF + thermal only, '
+        'those effects stay in the poses and only item 2 bounds them.\n'
         '2. Every approach carries the pose covariance the pipeline gives for its samples (the '
         'model\'s bar-length uncertainty through the kinematics), averaged over the dwell but '
         'not divided by the number of samples: it stands for the MMD\'s systematic error at '
-        'that pose, which a dwell does not average out. It enters every identified error through '
-        'the Monte Carlo draws (the "MMD part").\n'
+        'that pose, which a dwell does not average out. It is drawn independently between '
+        'targets and once more as a trend along each run (a trend is what would pass for '
+        'squareness or location), and enters every identified error through the Monte Carlo '
+        f'draws (the "MMD part").{bound}\n'
         '3. The repeatability between the cycles (machine and MMD together) adds the statistical '
         'part.\n'
         '4. The plates\' setup (where {L} sits on the table, {U} on the spindle) is not a machine '
         'error: it is removed by definition as ISO 230-1 does: the X run\'s line defines x, the '
         'Y run\'s the xy plane (their slopes are setup), the other slopes are squareness; each '
         'run is taken relative to its own reference position.')
+
+
+def _model_text(options: SessionOptions, log_model: Model | None) -> str:
+    model = options.model if options.model is not None else log_model
+    if model is None or not model.terms:
+        what = 'CDF + thermal only (no device model)'
+    else:
+        what = f'a device model of {len(model.terms)} term(s) ({", ".join(t.type_name for t in model.terms)})'
+    where = options.model_path or ('the given model' if options.model is not None else "the log's model")
+    return f'{where}: {what}' if model is not None else what
 
 
 def analyze_session(logs: list[str | Path], machine: MachineDescription,
@@ -81,7 +100,7 @@ def analyze_session(logs: list[str | Path], machine: MachineDescription,
         run = read_run(path)
         poses = log_poses(run, options.model, instrument=options.instrument,
                           calibration_path=options.calibration_path, progress=options.progress)
-        model_texts.add(options.model_path or ('the log\'s model' if run.model else 'CDF + thermal'))
+        model_texts.add(_model_text(options, run.model))
         plan = options.program.runs[i] if options.program is not None else None
         found = extract_runs(run, machine, poses, program_run=plan,
                              min_dwell_s=options.program.min_dwell_s if options.program else 0.15)
