@@ -394,6 +394,11 @@ def test_a_test_program_matches_the_dwells_as_joint_states_do(tmp_path):
         # the same dwells, found on the MMD's own coordinate instead of the joint states
         assert a.up == pytest.approx(b.up, abs=5e-9) and a.down == pytest.approx(b.down, abs=5e-9)
     assert by_program.axes['X'].source == 'test program'
+    # a stated accuracy of the MMD widens its part of every uncertainty
+    bounded = analyze_session(logs, machine, SessionOptions(
+        model=options['model'], identify=IdentifyOptions(draws=5, mmd_bound_m=1 * UM, mmd_bound_rad=ARCSEC)))
+    assert (bounded.axes['X'].motion('EYX').u_mmd_mean[[0, -1]]
+            > 3 * by_joints.axes['X'].motion('EYX').u_mmd_mean[[0, -1]]).all()
     assert any('frame' in n for n in by_program.not_determined())     # no Y run: no squareness
     csv = tmp_path / 'program.csv'
     csv.write_text('axis,target\nX,-100\nX,0\nX,100\n', encoding='utf-8')
