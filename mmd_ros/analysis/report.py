@@ -3,12 +3,12 @@ and ``model.yaml`` when the model was extended. Units of the report: µm and arc
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
-from typing import Any
 
 from mmd_ros.analysis.identify import Analysis, ComponentError, Found
+from mmd_ros.core import jsonio
+from mmd_ros.core.jsonio import finite_json  # noqa: F401  (re-exported for older callers)
 
 __all__ = ['finite_json', 'format_summary', 'write_report']
 
@@ -79,31 +79,11 @@ def write_report(a: Analysis, out_dir: str | Path, *, figures: bool = True) -> d
     data = a.as_dict()
     data['model_file'] = str(written['model']) if 'model' in written else None
     data['figures'] = figs
-    (out / 'analysis.json').write_text(json.dumps(finite_json(data), indent=2, default=_json_default),
-                                       encoding='utf-8')
+    (out / 'analysis.json').write_text(jsonio.dumps(data), encoding='utf-8')
     written['json'] = out / 'analysis.json'
     (out / 'report.md').write_text(_markdown(a, figs, written.get('model')), encoding='utf-8')
     written['report'] = out / 'report.md'
     return written
-
-
-def finite_json(value: Any) -> Any:
-    """NaN and infinities as null (valid JSON)."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {k: finite_json(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [finite_json(v) for v in value]
-    return value
-
-
-def _json_default(value: Any) -> Any:
-    if hasattr(value, 'tolist'):
-        return value.tolist()
-    if isinstance(value, tuple):
-        return list(value)
-    return str(value)
 
 
 def _markdown(a: Analysis, figs: dict[str, str], model_path: Path | None) -> str:
@@ -113,7 +93,12 @@ def _markdown(a: Analysis, figs: dict[str, str], model_path: Path | None) -> str
           + (' (a constant offset per component removed: the instrument is zeroed)' if o.datum else '') + '  ',
           f'Samples: {a.times_s.size} over {a.times_s[-1]:.1f} s; {a.split.train_idx.size} for fitting, '
           f'{a.split.test_idx.size} held out ({a.split.n_blocks} time blocks, one of each pair held out)', '']
+    for run in a.runs:
+        if run.log_problem:
+            L += [f'**`{run.name}` was not read whole:** {run.log_problem["message"]}', '']
     L += ['## Conclusion', '', a.conclusion, '']
+    L += ['## Validation', '', f'{a.validation[0].upper()}{a.validation[1:]}.', '']
+    L += _runs_table(a) + ['']
     if model_path is not None:
         L += [f'Extended model: `{model_path.name}` (`mmd process --model {model_path.name}`, or the '
               'compensation node\'s `model_file` parameter).', '']
@@ -166,6 +151,17 @@ def _markdown(a: Analysis, figs: dict[str, str], model_path: Path | None) -> str
         L += _param_table(f) + ['']
     for f in a.not_claimed:
         L += [f'Not claimed: {f.title}: {f.reason}.', '']
+    if a.unchecked:
+        L += ['### Found but not written', '',
+              'These explain part of the residual, but what they would do to the pose components '
+              'no reference saw is not determined by these runs (or the pipeline with them makes '
+              'a component worse). They stay in the fit (so that they do not bend the others) and '
+              'are left out of the model; `--accept-unchecked` writes them.', '']
+        for f in a.unchecked:
+            setting = f', {f.hyper_label}' if f.hyper_label else ''
+            L += [f'- **{f.title}** (`{f.effect}`{setting}): {f.reason}.']
+            L += [f'  - {u.message()}' for u in f.unchecked[:6]]
+        L += ['']
     L += ['## 4. Error before and after (held-out blocks, pipeline re-run with the extended model)', '']
     L += _stats_table(a.stats_before, a.stats_after or [], a.stats_predicted) + ['']
     if a.per_bar_before and a.per_bar_after:
@@ -186,15 +182,43 @@ def _markdown(a: Analysis, figs: dict[str, str], model_path: Path | None) -> str
     return '\n'.join(L)
 
 
+def _fmt(stats: list[ComponentError] | None) -> str:
+    if not stats:
+        return '–'
+    return ', '.join(f'{s.name} {s.rms:.3g} {_u(s.unit)}' for s in stats)
+
+
+def _runs_table(a: Analysis) -> list[str]:
+    """Per log: reference, noise floor, RMS before and after (held-out blocks, and each log
+    predicted by the model fitted on the others)."""
+    lines = ['| log | reference | noise floor | held-out blocks: before → after | '
+             'leave-one-run-out: before → after |', '|---|---|---|---|---|']
+    for r in a.runs:
+        floor = ', '.join(f'{n} {v:.2g} {_u(u)}' for (n, v), u in zip(r.floor.items(), r.units))
+        loro = (f'{_fmt(r.loro_before)} → {_fmt(r.loro_after)}' if r.loro_before is not None
+                else '– (one log)')
+        if r.loro_note:
+            loro += f' ({r.loro_note})'
+        lines.append(f'| {Path(r.name).name} | {r.reference} | {floor} | {_fmt(r.before)} → '
+                     f'{_fmt(r.after)} | {loro} |')
+    return lines
+
+
 def format_summary(a: Analysis) -> str:
     """A few lines for the terminal."""
     lines = [f'residual of the current model ({a.obs.description}), held-out RMS: '
              + ', '.join(f'{s.name} {s.rms:.3g} {_u(s.unit)}' for s in a.stats_before)]
+    lines.append(f'validation: {a.validation}')
+    for r in a.runs:
+        if r.loro_before is not None:
+            lines.append(f'  {Path(r.name).name}: leave-one-run-out {_fmt(r.loro_before)} → {_fmt(r.loro_after)}')
     for f in a.found:
         lines.append(f'found {f.effect} ({f.title}{", " + f.hyper_label if f.hyper_label else ""}): '
                      + '; '.join(f.interpretation))
     for f in a.not_claimed:
         lines.append(f'not claimed {f.effect}: {f.reason}')
+    for f in a.unchecked:
+        lines.append(f'not written {f.effect}: {f.reason}')
     if a.stats_after:
         lines.append('after, held-out RMS: ' + ', '.join(f'{s.name} {s.rms:.3g} {_u(s.unit)}' for s in a.stats_after))
     lines.append(a.conclusion)

@@ -8,7 +8,6 @@ device description. See ``msg_docs/design_tools.md``.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 from pathlib import Path
@@ -17,14 +16,23 @@ from typing import Any
 import numpy as np
 
 from mmd_ros.cli.device_args import add_device_arguments, device_geometry
+from mmd_ros.core import jsonio, validate
+from mmd_ros.core.device import find_config
 from mmd_ros.core.progress import Progress
 from mmd_ros.core.units import M_PER_MM, M_PER_UM
 from mmd_ros.design.error_budget import (
-    DEFAULT_READING, METHODS, PAPER_EQ9_UM, PAPER_POSITIONS_M, PARTS, READINGS, ErrorBudget,
-    TopEdgeCylinder, planned_runs, run_study)
+    DEFAULT_READING, JACKKNIFE_GROUPS, METHODS, PAPER_EQ9_UM, PAPER_POSITIONS_M, PARTS, READINGS,
+    ErrorBudget, TopEdgeCylinder, eq9_summary, planned_runs, run_study)
 from mmd_ros.design.errors import DesignError
+from mmd_ros.logs.outputs import check_output_folder
 
 __all__ = ['register', 'run']
+
+#: Bounds of the options: Monte Carlo samples per run, tolerance bounds [µm], grid values per axis.
+MAX_SAMPLES = 1_000_000
+MAX_EPS_UM = 100.0
+MAX_GRID = 100
+FINITE = validate.arg_number()
 
 _EQ9_TERMS = ('1', 'e_j', 'e_d', 'e_j^2', 'e_j e_d', 'e_d^2')
 
@@ -40,28 +48,32 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     'errors, and the largest tolerances that keep a target accuracy.',
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     add_device_arguments(p, 'nominal joint set of the device description')
-    p.add_argument('--pose', action='append', nargs='+', type=float, metavar='V',
+    p.add_argument('--pose', action='append', nargs='+', type=FINITE, metavar='V',
                    help='setting pose X Y Z [PHI THETA PSI] in mm and degrees; repeat for '
                         'several; default the five positions of Fig. 2 at zero rotation. '
                         'Fig. 3 is computed at the first one')
-    p.add_argument('--samples', '-n', type=int, default=10_000, help='N per Monte Carlo run')
-    p.add_argument('--seed', type=int, default=0, help='random seed')
+    p.add_argument('--samples', '-n', type=validate.arg_number(low=2, high=MAX_SAMPLES, integer=True),
+                   default=10_000, help='N per Monte Carlo run')
+    p.add_argument('--seed', type=validate.arg_number(low=0, integer=True), default=0, help='random seed')
     p.add_argument('--perturbation', choices=sorted(READINGS), default=DEFAULT_READING,
                    help='how errors up to a bound are drawn: ' + '; '.join(
                        f'{k}: {v}' for k, v in READINGS.items()))
     p.add_argument('--method', choices=METHODS, default='newton',
                    help='newton: full forward kinematics per sample; linear: first-order model')
-    p.add_argument('--eps-max-um', type=float, default=1.0,
+    p.add_argument('--eps-max-um', type=validate.arg_number(low=0.0, low_open=True, high=MAX_EPS_UM),
+                   default=1.0,
                    help='largest bound of Fig. 2 and of the Fig. 3 grid [µm]')
-    p.add_argument('--eps-step-um', type=float, default=0.1, help='grid step of the bounds [µm]')
-    p.add_argument('--design-point', nargs=2, type=float, default=(0.4, 0.8),
+    p.add_argument('--eps-step-um', type=validate.arg_number(low=0.0, low_open=True, high=MAX_EPS_UM),
+                   default=0.1, help='grid step of the bounds [µm]')
+    p.add_argument('--design-point', nargs=2, type=validate.arg_number(low=0.0, high=MAX_EPS_UM),
+                   default=(0.4, 0.8),
                    metavar=('EPS_J', 'EPS_D'), help='bounds of Fig. 4 and the design ratio [µm]')
-    p.add_argument('--cylinder', nargs=3, type=float, default=(100.0, 248.0, 323.0),
+    p.add_argument('--cylinder', nargs=3, type=FINITE, default=(100.0, 248.0, 323.0),
                    metavar=('RADIUS', 'Z_LOW', 'Z_HIGH'),
                    help='cylindrical workspace of Fig. 4 [mm]')
-    p.add_argument('--target-um', type=float, default=2.0,
+    p.add_argument('--target-um', type=validate.arg_number(low=0.0, low_open=True), default=2.0,
                    help='position accuracy the tolerances must keep [µm]')
-    p.add_argument('--target-arcsec', type=float, default=None,
+    p.add_argument('--target-arcsec', type=validate.arg_number(low=0.0, low_open=True), default=None,
                    help='also keep this rotation accuracy [arc-seconds]')
     p.add_argument('--parts', default=','.join(PARTS),
                    help=f'comma-separated parts to run, of {",".join(PARTS)}')
@@ -90,16 +102,17 @@ def _grid(eps_max_um: float, step_um: float) -> np.ndarray:
     if not (eps_max_um > 0 and step_um > 0 and step_um <= eps_max_um):
         raise DesignError('need 0 < --eps-step-um <= --eps-max-um')
     count = int(round(eps_max_um / step_um))
+    if count > MAX_GRID:
+        raise DesignError(f'--eps-max-um / --eps-step-um gives {count} grid steps; at most {MAX_GRID}')
     return np.linspace(0.0, count * step_um, count + 1) * M_PER_UM
 
 
 def run(args: argparse.Namespace) -> int:
+    check_output_folder('--out', args.out, [find_config(args.device)], ('*.png',))
     parts = [s.strip() for s in args.parts.split(',') if s.strip()]
     unknown = set(parts) - set(PARTS)
     if unknown:
         raise DesignError(f'--parts: unknown {sorted(unknown)}; use some of {list(PARTS)}')
-    if args.samples < 2:
-        raise DesignError(f'--samples must be >= 2, got {args.samples}')
     device, geometry = device_geometry(args)
     poses = _poses(args.pose)
     eps = _grid(args.eps_max_um, args.eps_step_um)
@@ -134,7 +147,7 @@ def run(args: argparse.Namespace) -> int:
     summary.update(study.summary())
     if comparison:
         summary['readings'] = {
-            reading: {'eq9_fitted': np.round(sf.coefficients_um, 4).tolist(),
+            reading: {**eq9_summary(sf),
                       'rms_fit_vs_paper_um': round(sf.rms_um(PAPER_EQ9_UM), 4),
                       'rms_points_vs_paper_um': round(sf.rms_um(PAPER_EQ9_UM, 'points'), 4)}
             for reading, sf in comparison}
@@ -143,8 +156,7 @@ def run(args: argparse.Namespace) -> int:
         args.out.mkdir(parents=True, exist_ok=True)
         summary['figures'] = [str(f) for f in plots.error_budget_figures(study, args.out)]
     if args.json:
-        json.dump(summary, sys.stdout, indent=1)
-        sys.stdout.write('\n')
+        jsonio.dump(summary, sys.stdout, indent=1)
     else:
         _print_report(summary)
     return 0
@@ -152,6 +164,12 @@ def run(args: argparse.Namespace) -> int:
 
 def _fmt(values: Any, width: int = 8, digits: int = 3) -> str:
     return ''.join(f'{v:{width}.{digits}f}' for v in values)
+
+
+def _eq9_cells(f: dict[str, Any]) -> str:
+    """The fitted Eq. (9) coefficients, each as value ± standard error when known."""
+    cells = f.get('eq9_text') or [f'{v:.4f}' for v in f['eq9_fitted']]
+    return ''.join(f'{c:>16s}' for c in cells)
 
 
 def _print_report(s: dict[str, Any]) -> None:
@@ -182,9 +200,13 @@ def _print_report(s: dict[str, Any]) -> None:
         out(f"\nFig. 3 at ({', '.join(f'{v:g}' for v in f['position_mm'])}) mm: Eq. (9) fitted "
             f"over eps_j, eps_d in {f['eps_um'][0]:g}..{f['eps_um'][-1]:g} µm "
             f"({len(f['eps_um'])} x {len(f['eps_um'])} grid)\n")
-        out('  term     ' + ''.join(f'{t:>9s}' for t in _EQ9_TERMS) + '\n')
-        out('  fitted   ' + _fmt(f['eq9_fitted'], 9) + '\n')
-        out('  paper    ' + _fmt(f['eq9_paper'], 9) + '\n')
+        out('  term     ' + ''.join(f'{t:>16s}' for t in _EQ9_TERMS) + '\n')
+        out('  fitted   ' + _eq9_cells(f) + '\n')
+        out('  paper    ' + ''.join(f'{v:16.2f}' for v in f['eq9_paper']) + '\n')
+        if f.get('eq9_standard_error') is not None:
+            out(f"  ± is the Monte Carlo standard error (jackknife over {JACKKNIFE_GROUPS} groups "
+                "of each run's samples); fitted − paper in standard errors: "
+                + ', '.join(f'{v:+.1f}' for v in f['eq9_paper_deviation_se']) + '\n')
         out(f"  surface RMS, fitted vs paper Eq. (9): {f['rms_fit_vs_paper_um']:.4f} µm; "
             f"Monte Carlo points vs paper: {f['rms_points_vs_paper_um']:.4f} µm "
             f"(max {f['max_abs_points_vs_paper_um']:.3f}); points vs own fit: "
@@ -220,9 +242,9 @@ def _print_report(s: dict[str, Any]) -> None:
                 f"{p['eps_dist_um']:10.3f}  {p['binding']}\n")
     if 'readings' in s:
         out('\nEq. (9) under each perturbation reading (Fig. 3 grid at the first position):\n')
-        out('  reading        ' + ''.join(f'{t:>9s}' for t in _EQ9_TERMS)
+        out('  reading        ' + ''.join(f'{t:>16s}' for t in _EQ9_TERMS)
             + '   RMS vs paper [µm]\n')
         for reading, f in s['readings'].items():
-            out(f"  {reading:14s} {_fmt(f['eq9_fitted'], 9)}   {f['rms_fit_vs_paper_um']:.4f}\n")
+            out(f"  {reading:14s} {_eq9_cells(f)}   {f['rms_fit_vs_paper_um']:.4f}\n")
     if 'figures' in s:
         out('\nFigures: ' + ', '.join(s['figures']) + '\n')

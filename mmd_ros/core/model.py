@@ -30,16 +30,26 @@ import numpy as np
 import yaml
 from numpy.typing import NDArray
 
+from mmd_ros.core import validate
 from mmd_ros.core.errors import ConfigError, ModelError
 from mmd_ros.core.units import M_PER_UM
 from mmd_ros.core.yamlio import atomic_write_text, parse_yaml, read_yaml
 
 __all__ = [
     'HysteresisTerm', 'Model', 'ModelTerm', 'TERM_TYPES', 'TermContext', 'load_model',
-    'register_term',
+    'register_term', 'six_values', 'term_from_dict',
 ]
 
 FloatArray = NDArray[np.float64]
+
+#: Keys of a model file. ``analysis`` is the history ``mmd analyze`` appends (free-form).
+MODEL_KEYS = ('format_version', 'thermal', 'length_sigma_um', 'terms', 'analysis', 'validity')
+THERMAL_KEYS = ('mode', 'plate_expansion')
+THERMAL_MODES = ('auto', 'single', 'interpolate', 'off')
+#: Largest 1-sigma bar-length uncertainty a model may state [µm] (a bar that uncertain measures
+#: nothing), and largest hysteresis play half-width [µm] (the bars' whole range).
+MAX_LENGTH_SIGMA_UM = 1000.0
+MAX_TRAVEL_UM = 1_000_000.0
 
 
 @dataclass
@@ -99,11 +109,14 @@ def register_term(cls: type[ModelTerm]) -> type[ModelTerm]:
 
 
 def six_values(params: dict[str, Any], key: str, source: str) -> FloatArray:
-    """A per-bar parameter: one number for all bars or a list of six."""
-    value = params.get(key)
-    arr = np.array(value, dtype=np.float64) if value is not None else None
-    if arr is None or arr.shape not in ((), (6,)) or not np.all(np.isfinite(arr)):
-        raise ConfigError(source, key, f'must be a number or a list of six numbers, got {value!r}')
+    """A per-bar parameter: one number for all bars or a list of six (finite numbers; a bool or
+    a string is refused)."""
+    what = 'a number or a list of six numbers'
+    if key not in params:
+        raise ConfigError(source, key, f'is missing; must be {what}')
+    arr = validate.floats(params[key], source, key, what=what)
+    if arr.shape not in ((), (6,)):
+        raise ConfigError(source, key, f'must be {what}, got {params[key]!r}')
     return np.broadcast_to(arr, (6,)).copy()
 
 
@@ -159,9 +172,8 @@ class HysteresisTerm(ModelTerm):
     @classmethod
     def from_params(cls, params: dict[str, Any], source: str) -> HysteresisTerm:
         amp = six_values(params, 'amplitude_um', source) * M_PER_UM
-        travel = params.get('travel_um', 5.0)
-        if not isinstance(travel, (int, float)) or travel <= 0:
-            raise ConfigError(source, 'travel_um', f'must be a number > 0, got {travel!r}')
+        travel = validate.number(params.get('travel_um', 5.0), source, 'travel_um', low=0.0,
+                                 low_open=True, high=MAX_TRAVEL_UM)
         return cls(amp, travel * M_PER_UM)
 
     def params(self) -> dict[str, Any]:
@@ -203,38 +215,42 @@ class Model:
 
     @classmethod
     def from_dict(cls, data: Any, source: str = '<model>') -> Model:
+        """Validate a model mapping (as loaded from YAML): every field is checked, unknown keys
+        (a typo such as ``thermall``) are refused, in the terms too."""
+        f = validate.Fields(source)
         if not isinstance(data, dict) or data.get('format_version') != 1:
             raise ConfigError(source, 'format_version', 'not a model file of format 1')
-        thermal = data.get('thermal', {})
-        if not isinstance(thermal, dict):
-            raise ConfigError(source, 'thermal', 'must be a mapping')
-        mode = thermal.get('mode', 'auto')
-        if mode not in ('auto', 'single', 'interpolate', 'off'):
-            raise ConfigError(source, 'thermal.mode',
-                              f'must be auto, single, interpolate or off, got {mode!r}')
-        plate = thermal.get('plate_expansion', True)
-        if not isinstance(plate, bool):
-            raise ConfigError(source, 'thermal.plate_expansion', f'must be true or false, got {plate!r}')
-        sigma = data.get('length_sigma_um', 0.4)
-        if not isinstance(sigma, (int, float)) or sigma <= 0:
-            raise ConfigError(source, 'length_sigma_um', f'must be a number > 0, got {sigma!r}')
-        terms = []
-        raw_terms = data.get('terms') or []
+        f.known_keys(data, MODEL_KEYS)
+        thermal = f.mapping(data, 'thermal', default={})
+        f.known_keys(thermal, THERMAL_KEYS, 'thermal')
+        mode = f.choice(thermal, 'mode', 'thermal', THERMAL_MODES, default='auto')
+        plate = f.boolean(thermal, 'plate_expansion', 'thermal', default=True)
+        sigma = f.number(data, 'length_sigma_um', default=0.4, low=0.0, low_open=True,
+                         high=MAX_LENGTH_SIGMA_UM)
+        raw_terms = f.get(data, 'terms', default=None) or []
         if not isinstance(raw_terms, list):
-            raise ConfigError(source, 'terms', 'must be a list')
-        for k, item in enumerate(raw_terms):
-            if not isinstance(item, dict) or item.get('type') not in TERM_TYPES:
-                raise ConfigError(source, f'terms[{k}].type',
-                                  f'must be one of {sorted(TERM_TYPES)}, got {item!r}')
-            params = {key: v for key, v in item.items() if key != 'type'}
-            terms.append(TERM_TYPES[item['type']].from_params(params, f'{source}: terms[{k}]'))
-        known = {'format_version', 'thermal', 'length_sigma_um', 'terms'}
-        extra = {k: v for k, v in data.items() if k not in known}
-        return cls(mode, plate, float(sigma) * M_PER_UM, terms, extra, source)
+            raise ConfigError(source, 'terms', f'must be a list of terms, got {raw_terms!r}')
+        terms = [term_from_dict(item, source, f'terms[{k}]') for k, item in enumerate(raw_terms)]
+        extra = {key: data[key] for key in ('analysis', 'validity') if key in data}
+        return cls(mode, plate, sigma * M_PER_UM, terms, extra, source)
 
     @classmethod
     def from_yaml(cls, text: str, source: str = '<model>') -> Model:
         return cls.from_dict(parse_yaml(text, source), source)
+
+
+def term_from_dict(item: Any, source: str, where: str = 'term') -> ModelTerm:
+    """One term of a model file (``where``, e.g. ``terms[2]``, in ``source``): ``type`` and its
+    parameters, none unknown to the term."""
+    if not isinstance(item, dict) or item.get('type') not in TERM_TYPES:
+        given = item.get('type') if isinstance(item, dict) else item
+        raise ConfigError(source, f'{where}.type',
+                          f'must be one of {", ".join(sorted(TERM_TYPES))}, got {given!r}')
+    params = {key: v for key, v in item.items() if key != 'type'}
+    term = TERM_TYPES[item['type']].from_params(params, f'{source}: {where}')
+    # A term writes every parameter it reads (params()), so its keys are the known ones.
+    validate.known_keys(params, ['type', *term.params()], f'{source}: {where}')
+    return term
 
 
 def load_model(path: str | os.PathLike[str] | None) -> Model:

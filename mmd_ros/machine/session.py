@@ -213,12 +213,11 @@ def log_poses(run: RunLog, model: Model | None, *, instrument: str = 'mmd',
             raise MachineAnalysisError(f'{run.path}: no six-dimensional reference pose to evaluate')
         return LogPoses(str(run.path), times, ref, np.isfinite(ref).all(axis=1))
     model = run.model or Model() if model is None else model
-    fresh = Model.from_dict(model.to_dict(), model.source)  # term states start anew per log
     bar = Progress(f'poses of {Path(run.path).name}', times.size, enabled=progress)
-    result = process_run(run, fresh, calibration_path=calibration_path, progress=bar)
-    bar.close()
+    result = process_run(run, model, calibration_path=calibration_path, progress=bar)   # (its own
+    bar.close()                                                                           # term state)
     calibration = load_calibration(calibration_path) if calibration_path else run.calibration
-    pipeline = Pipeline(run.device, calibration, Model.from_dict(model.to_dict(), model.source))
+    pipeline = Pipeline(run.device, calibration, model)
     return LogPoses(str(run.path), times, result.poses, result.valid, pipeline, run.counts)
 
 
