@@ -31,7 +31,8 @@ __all__ = [
     'FRAME_LOWER', 'FRAME_UPPER', 'REFERENCE_POSE_NAMES', 'RunLog', 'TOPIC_BAR_LENGTHS',
     'TOPIC_CALIBRATION', 'TOPIC_DEVICE', 'TOPIC_DIAGNOSTICS', 'TOPIC_FK_STATUS', 'TOPIC_MODEL',
     'TOPIC_POSE', 'TOPIC_POSE_COV', 'TOPIC_RAW', 'TOPIC_REF_LENGTHS', 'TOPIC_REF_POSE',
-    'TOPIC_THERMAL', 'monotonic_runs', 'read_run', 'write_run',
+    'TOPIC_MACHINE_JOINTS', 'TOPIC_THERMAL', 'MachineJoints', 'monotonic_runs', 'read_run',
+    'write_run',
 ]
 
 TOPIC_DEVICE = '/mmd/device_description'
@@ -46,6 +47,9 @@ TOPIC_POSE = '/mmd/pose'
 TOPIC_POSE_COV = '/mmd/pose_with_covariance'
 TOPIC_FK_STATUS = '/mmd/fk_status'
 TOPIC_DIAGNOSTICS = '/diagnostics'
+#: The machine tool's axis values beside the MMD (sensor_msgs/JointState: names X Y Z A C...,
+#: positions in m and rad), from its controller or the twin's machine session.
+TOPIC_MACHINE_JOINTS = '/mmd/machine/joint_states'
 
 FRAME_LOWER = 'mmd_lower'
 FRAME_UPPER = 'mmd_upper'
@@ -53,6 +57,19 @@ FRAME_UPPER = 'mmd_upper'
 REFERENCE_POSE_NAMES = ['x', 'y', 'z', 'roll', 'pitch', 'yaw']
 BAR_NAMES = [f'bar{i}' for i in range(1, 7)]
 RUN_METADATA = 'mmd_run'
+
+
+@dataclass
+class MachineJoints:
+    """Axis values of the machine tool carrying the MMD, on their own time stamps.
+
+    stamps_ns : ndarray, shape (M,) [ns since the epoch]; names : axis names
+    positions : ndarray, shape (M, n_axes) [m, rad]
+    """
+
+    stamps_ns: NDArray[np.int64]
+    names: list[str]
+    positions: NDArray[np.float64]
 
 
 @dataclass
@@ -66,6 +83,7 @@ class RunLog:
     metadata : the run's description (scenario, effects, seed...) if the log has one
     problem : what was lost reading the log (damage, an unclean end), or None
     segment : (k, n) — the k-th of the log's n segments of increasing stamps
+    machine_joints : the machine tool's axis values (``/mmd/machine/joint_states``), or None
     """
 
     path: Path
@@ -80,6 +98,7 @@ class RunLog:
     metadata: dict[str, Any] = field(default_factory=dict)
     problem: LogProblem | None = None
     segment: tuple[int, int] = (1, 1)
+    machine_joints: MachineJoints | None = None
 
     def content_hash(self) -> str:
         """Identity of the run: a hash of its raw counts and their stamps (16 hex digits).
@@ -193,6 +212,11 @@ def read_run(path: str | os.PathLike[str], *, segment: int | None = None) -> Run
         if reader.has_topic(topic):
             ref = _segment_of(reader.joint_states(topic), len(runs), segment or 1, topic, source)
             setattr(run, attr, _aligned(ref, sel, names, source))
+    if reader.has_topic(TOPIC_MACHINE_JOINTS) and sel.stamps_ns.size:
+        js = reader.joint_states(TOPIC_MACHINE_JOINTS)
+        keep = (js.stamps_ns >= sel.stamps_ns[0] - 10**9) & (js.stamps_ns <= sel.stamps_ns[-1] + 10**9)
+        if keep.any():
+            run.machine_joints = MachineJoints(js.stamps_ns[keep], list(js.names), js.values[keep])
     meta = reader.metadata.get(RUN_METADATA, {})
     try:
         run.metadata = {k: json.loads(v) for k, v in meta.items()}

@@ -42,7 +42,7 @@ from mmd_ros.nodes.diagnostics import Diagnostics
 from mmd_ros.nodes.outlets import Outlet
 from mmd_ros.nodes.params import Param, declare
 from mmd_ros.nodes.qos import DIAGNOSTICS, LATCHED, data_qos
-from mmd_ros.nodes.recorder_stage import RECORDER_PARAMS, RecorderConfig, RecorderStage
+from mmd_ros.nodes.recorder_stage import RECORDER_PARAMS, RecorderConfig, RecorderStage, raw_writer
 from mmd_ros.nodes.reports import compensation_report, kinematics_report
 from mmd_ros.nodes.terminal import TERMINAL_PARAMS, TerminalConfig, TerminalStage
 
@@ -100,6 +100,13 @@ class PoseNode(CalibrationService, Node):
         # recorded: the same poses are in pose)
         self.out_pose_batch = Outlet(self, 'pose_batch', Path, PATH, qos, log_qos)
         self.out_diag = outlet('/diagnostics', DiagnosticArray, DIAGNOSTIC_ARRAY, DIAGNOSTICS, 'reliable')
+        if rec is not None:
+            # the machine tool's axis positions beside the poses (mmd machine), when a controller
+            # publishes them: recorded as received
+            self.create_subscription(
+                JointState, 'machine/joint_states',
+                raw_writer(rec, self.get_clock(), self.resolve_topic_name('machine/joint_states'),
+                           JS, log_qos, True), qos, raw=True)
         self.publish_covariance = v['publish_covariance']
         self.thermal_warn_c = v['thermal_warn_c']
 

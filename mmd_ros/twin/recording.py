@@ -18,7 +18,7 @@ from mmd_ros.core.progress import Progress
 from mmd_ros.core.yamlio import read_yaml
 from mmd_ros.logs.layout import (
     BAR_NAMES, FRAME_LOWER, REFERENCE_POSE_NAMES, RUN_METADATA, TOPIC_CALIBRATION, TOPIC_DEVICE,
-    TOPIC_RAW, TOPIC_REF_LENGTHS, TOPIC_REF_POSE,
+    TOPIC_MACHINE_JOINTS, TOPIC_RAW, TOPIC_REF_LENGTHS, TOPIC_REF_POSE,
 )
 from mmd_ros.logs.outputs import replacing
 from mmd_ros.logs.writer import LogWriter
@@ -138,6 +138,10 @@ def simulate_to_log(spec: SimulationSpec, out: Path, *, progress: bool = True
                 streams.append((TOPIC_REF_POSE, 'sensor_msgs/msg/JointState',
                                 log.joint_state_rows(REFERENCE_POSE_NAMES, stamps, chunk.reference,
                                                      FRAME_LOWER)))
+            if chunk.machine_joints is not None:
+                streams.append((TOPIC_MACHINE_JOINTS, 'sensor_msgs/msg/JointState',
+                                log.joint_state_rows(chunk.machine_joint_names, stamps,
+                                                     chunk.machine_joints)))
             log.write_rows(streams, stamps)
             total += chunk.n_samples
             if bar:

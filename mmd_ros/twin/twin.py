@@ -27,12 +27,12 @@ from mmd_ros.core.device import DeviceDescription
 from mmd_ros.hardware.protocol import MAX_SAMPLE_RATE_HZ
 from mmd_ros.twin.effects import Effects
 from mmd_ros.twin.errors import TwinError
+from mmd_ros.twin.machine import MachineTrajectory
 from mmd_ros.twin.mechanism import bar_legs, check_workspace, rotation_matrices
 from mmd_ros.twin.physics import BarPhysics, DahlState, dahl
 from mmd_ros.twin.reference import reference_names, reference_values
 from mmd_ros.twin.scenarios import MAX_DURATION_S, RestingBars, Scenario
 from mmd_ros.twin.thermal import REFERENCE_TEMP_C, AmbientProfile
-from mmd_ros.twin.trajectories import Trajectory
 
 __all__ = ['MAX_CLOCK_S', 'MAX_SAMPLES', 'IsoTargets', 'Placement', 'SimulatedRun', 'TwinDevice',
            'check_clock']
@@ -111,6 +111,9 @@ class SimulatedRun:
     targets : IsoTargets of an ISO 230-2 run, else None
     start_s : the twin's clock at the run's start [s]
     start_sample : index of the first sample in the whole run
+    machine_joints : ndarray, shape (N, n_axes), or None — commanded axis values of the machine
+        tool carrying the MMD (a machine session) [m, rad]
+    machine_joint_names : their names (X Y Z A C ...)
     """
 
     times_s: FloatArray
@@ -128,6 +131,8 @@ class SimulatedRun:
     targets: IsoTargets | None
     start_s: float
     start_sample: int = 0
+    machine_joints: FloatArray | None = None
+    machine_joint_names: list[str] | None = None
 
     #: Per-sample fields of a run and of its targets (what chunks concatenate along).
     ARRAY_FIELDS: ClassVar[tuple[str, ...]] = (
@@ -152,10 +157,14 @@ class SimulatedRun:
                 first.targets.axis, first.targets.positions, first.targets.commanded_poses,
                 **{name: np.concatenate([getattr(r.targets, name) for r in runs])
                    for name in cls.TARGET_ARRAY_FIELDS})
+        joints = None
+        if first.machine_joints is not None:
+            joints = np.concatenate([r.machine_joints for r in runs])
         return cls(**arrays, reference_kind=first.reference_kind,
                    reference_names=first.reference_names, channel_names=first.channel_names,
                    metadata=first.metadata, targets=targets, start_s=first.start_s,
-                   start_sample=first.start_sample)
+                   start_sample=first.start_sample, machine_joints=joints,
+                   machine_joint_names=first.machine_joint_names)
 
 
 class TwinDevice:
@@ -371,7 +380,7 @@ class _Plan:
             raise TwinError(f'{scenario.kind}: {self.n_samples:.3g} samples ({self.motion.duration_s:g} s '
                             f'at {self.rate:g} Hz); at most {MAX_SAMPLES:.0e} can be simulated in one '
                             'run: lower the sample rate')
-        if isinstance(self.motion, Trajectory):
+        if not isinstance(self.motion, RestingBars):
             times = self.motion.check_times(min(self.rate, CHECK_RATE_HZ))
             poses = self.motion.pose(times)
             rot = rotation_matrices(poses)
@@ -405,9 +414,13 @@ class _Plan:
         if spec is not None:
             targets = IsoTargets(spec.axis, spec.positions, spec.commanded_poses,
                                  **{k: arrays.pop(k) for k in SimulatedRun.TARGET_ARRAY_FIELDS})
+        joint_names = None
+        if 'machine_joints' in arrays:
+            joint_names = list(self.motion.machine.names)
         run = SimulatedRun(**arrays, reference_kind=self.reference, reference_names=self.names,
                            channel_names=self.twin.device.channel_names, metadata=self.metadata,
-                           targets=targets, start_s=self.start_s, start_sample=k0)
+                           targets=targets, start_s=self.start_s, start_sample=k0,
+                           machine_joint_names=joint_names)
         return run, state
 
     def _block(self, k0: int, k1: int, state: DahlState) -> tuple[dict[str, NDArray], DahlState]:
@@ -421,7 +434,7 @@ class _Plan:
         counts = np.empty((t.size, len(dev.channels)), dtype=np.int64)
         out: dict[str, NDArray] = {}
 
-        if isinstance(self.motion, Trajectory):
+        if not isinstance(self.motion, RestingBars):
             poses = self.motion.pose(t)
             rot = rotation_matrices(poses)
             geo = dev.measured_geometry
@@ -446,6 +459,8 @@ class _Plan:
                                            legs[:, :, 2] / lengths)
             if self.motion.targets is not None:
                 out.update(self.motion.labels(t))
+            if isinstance(self.motion, MachineTrajectory):
+                out['machine_joints'] = self.motion.joints(t)
         else:
             poses = np.full((t.size, 6), np.nan)
             reading, lengths = twin._on_pairs(meas, list(self.motion.pairs), clock, index,
