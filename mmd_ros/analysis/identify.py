@@ -43,6 +43,7 @@ from mmd_ros.analysis.data import (
 )
 from mmd_ros.analysis.effects import Effect, Parameter, catalogue
 from mmd_ros.analysis.errors import AnalysisError
+from mmd_ros.analysis.uncertainty import with_fit_uncertainty
 from mmd_ros.core.calibration import Calibration
 from mmd_ros.core.kinematics import jacobian
 from mmd_ros.core.model import Model, ModelTerm
@@ -124,6 +125,7 @@ class Found:
     explained: float = math.nan
     claimed: bool = True
     reason: str = ''
+    covariance: FloatArray | None = None  # (P, P) of the parameters [SI]
 
     def parameter_rows(self) -> list[dict[str, Any]]:
         rows = []
@@ -560,7 +562,7 @@ class _Selector:
             cb = cov[start:start + r, start:start + r]
             theta = a.basis @ beta
             sig = np.sqrt(np.maximum(np.einsum('pr,rs,ps->p', a.basis, cb, a.basis), 0.0))
-            out.append((theta, sig))
+            out.append((theta, sig, a.basis @ cb @ a.basis.T))
             start += r
         return out, self.test.y - d_te @ coef
 
@@ -682,12 +684,13 @@ def _analyze(run: RunLog, model: Model | None, calibration: Calibration | None,
             break
         fits, e_pred = sel.final_fit()
         current = []
-        for a, (theta, sigma) in zip(sel.active, fits):
+        for a, (theta, sigma, cov_theta) in zip(sel.active, fits):
             params = a.effect.parameters(ctx, a.hyper)
             ident = np.linalg.norm(a.basis, axis=1) > 0
             current.append(Found(a.effect.name, a.effect.title, a.effect.term_type, a.hyper,
                                  a.effect.hyper_label(a.hyper), params, theta, sigma, ident,
-                                 a.step_gain, a.effect.interpret(ctx, a.hyper, theta, sigma)))
+                                 a.step_gain, a.effect.interpret(ctx, a.hyper, theta, sigma),
+                                 covariance=cov_theta))
         # an effect must remove most of the structure along its own coordinate; one that fits
         # only part of it follows something else (the worst is dropped, then all are refitted)
         worst_k, worst_ratio, worst_txt = -1, 0.0, ''
@@ -761,6 +764,8 @@ def _analyze(run: RunLog, model: Model | None, calibration: Calibration | None,
             'units': {s.name: s.unit for s in stats_before},
         })
         extended = _build_model(model, ctx, [(_effect(f), f.hyper, f.value) for f in found], record)
+        # the model's own uncertainty: its fitted terms' covariance and the residual left
+        extended = with_fit_uncertainty(extended, ctx, found, after, res_after, split.test_idx)
     conclusion = _conclusion(obs, found, not_claimed, at_floor, structure_after, stats_before,
                              stats_after, floor)
     return Analysis(str(run.path), o, obs, split, times, floor, before, after, res_before,

@@ -20,6 +20,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from mmd_ros.core.compiled import fast, use_compiled
 from mmd_ros.core.errors import CalibrationError, ConfigError
+from mmd_ros.core.uncertainty import CalibrationUncertainty
 from mmd_ros.core.units import M_PER_MM
 from mmd_ros.core.yamlio import atomic_write_text, parse_yaml, read_yaml
 
@@ -115,6 +116,8 @@ class Calibration:
         expansion is counted from the CMM's 20 °C), or None when not known
     created : free text time stamp (ISO 8601)
     valid : False after a terminal counter reset until the bars are re-referenced
+    uncertainty : what the routine measured about its own points (read noise, friction
+        hysteresis and seating repeatability of two-sided captures); empty for old files
     """
 
     device: str
@@ -124,6 +127,7 @@ class Calibration:
     created: str = ''
     valid: bool = True
     quality: dict[str, Any] = field(default_factory=dict)
+    uncertainty: CalibrationUncertainty = field(default_factory=CalibrationUncertainty)
 
     def cdfs(self, channels: list[str]) -> list[CentreDistanceFunction]:
         missing = [c for c in channels if c not in self.bars]
@@ -148,6 +152,7 @@ class Calibration:
                 } for name, b in self.bars.items()
             },
             'quality': self.quality,
+            'uncertainty': self.uncertainty.to_dict(),
         }
 
     def to_yaml(self) -> str:
@@ -189,6 +194,7 @@ class Calibration:
             created=str(data.get('created', '')),
             valid=bool(data.get('valid', True)),
             quality=dict(data.get('quality') or {}),
+            uncertainty=CalibrationUncertainty.from_dict(data.get('uncertainty'), source),
         )
 
     @classmethod

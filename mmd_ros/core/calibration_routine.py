@@ -30,6 +30,7 @@ current time as text, and persists the :class:`Calibration` that a capture retur
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -40,16 +41,134 @@ from mmd_ros.core.calibration import BarCalibration, Calibration
 from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.errors import CalibrationError
 from mmd_ros.core.thermal import ReferenceBar, ThermalCompensation
+from mmd_ros.core.uncertainty import (
+    CalibrationUncertainty, averaged_quantisation_var, read_noise_from_dither, two_sided_figures,
+)
 from mmd_ros.core.units import M_PER_MM, M_PER_UM, PPM
 
 __all__ = [
-    'CalibrationRoutine', 'CaptureResult', 'RoutineSettings', 'Step', 'Window', 'bar_quality',
+    'APPROACHES', 'CalibrationRoutine', 'CaptureResult', 'CaptureStats', 'RoutineSettings', 'Step',
+    'Window', 'bar_quality', 'capture_uncertainty',
 ]
 
 FloatArray = NDArray[np.float64]
 
 KINDS = ('calibrate', 'thermal_zero', 're_reference')
 MODES = ('auto', 'full', 're_reference')
+#: How a bar is seated on a pair: from shorter (its guide lengthens into the sockets: friction
+#: state +1) or from longer (-1); '' when the routine does not say.
+APPROACHES = {'short': 1.0, 'long': -1.0}
+
+
+@dataclass(frozen=True)
+class CaptureStats:
+    """One capture of the calibration routine, as its uncertainty needs it.
+
+    channel, pair : the bar and the pair it sat on; approach : 'short', 'long' or ''
+    mean_counts : the averaged count; var_counts2 : the counts' variance in the window
+    samples : samples averaged
+    time_s : middle of the window on any clock of the routine [s], NaN when unknown
+    kind : 'point' (a calibration point or a thermal zero) or 'drift' (a reference bar on its
+        resting pair before the measuring bars, to see the temperature change over the routine)
+    """
+
+    channel: str
+    pair: str
+    approach: str
+    mean_counts: float
+    var_counts2: float
+    samples: int
+    time_s: float = math.nan
+    kind: str = 'point'
+
+
+def capture_uncertainty(device: DeviceDescription, captures: list[CaptureStats],
+                        cdfs: dict[str, Callable[[NDArray[np.float64]], Any]]
+                        ) -> CalibrationUncertainty:
+    """What a calibration's captures say about its own points (``msg_docs/frames.md``).
+
+    - read noise: the captures' mean variance is g(sigma) of a still, quantised reading over
+      its unknown position within a count (:func:`~mmd_ros.core.uncertainty.dither_var`),
+      solved for sigma;
+    - with two captures per pair, from shorter and from longer: each bar's friction hysteresis
+      h (half their mean difference, as CDF lengths) and the seating repeatability (their
+      scatter about h, pooled over bars);
+    - with a ``drift`` capture of a reference bar on its resting pair before the measuring bars
+      and its thermal zero after them: the temperature change over the routine dT (the change
+      of its reading over its sensitivity, Fig. 10), and the thermal error every point carries
+      from its capture time, -S(d_j) dT (t_ij - t_zero) / (t_zero - t_drift).
+
+    cdfs : per bar, what reads its counts as lengths: its new CDF (the points are the captures'
+        means) or anything that returns (lengths, ...) for an array of counts
+    """
+    resolution_m = device.encoder_resolution_m
+    drifts = [c for c in captures if c.kind == 'drift']
+    captures = [c for c in captures if c.kind != 'drift']
+    if not captures:
+        return CalibrationUncertainty()
+    var = float(np.mean([c.var_counts2 for c in captures])) * resolution_m ** 2
+    noise = read_noise_from_dither(resolution_m, var)
+    samples = int(np.median([c.samples for c in captures]))
+    by_bar: dict[str, dict[str, dict[str, float]]] = {}
+    for c in captures:
+        if c.approach in APPROACHES:
+            by_bar.setdefault(c.channel, {}).setdefault(c.pair, {})[c.approach] = c.mean_counts
+    short, long, names = [], [], []
+    for name, pairs in by_bar.items():
+        both = [p for p, v in pairs.items() if len(v) == 2]
+        if len(both) < 2 or name not in cdfs:
+            continue
+        f = cdfs[name]
+        short.append(f(np.array([pairs[p]['short'] for p in both]))[0])
+        long.append(f(np.array([pairs[p]['long'] for p in both]))[0])
+        names.append(name)
+    bias = averaged_quantisation_var(resolution_m, noise) + noise * noise / max(samples, 1)
+    if names:
+        h, seating, dof = two_sided_figures(short, long, bias)
+        hyst = dict(zip(names, (float(v) for v in h)))
+        seating_m = None if not math.isfinite(seating) else seating
+    else:
+        hyst, seating_m, dof = {}, None, 0
+    capture_var = bias + (seating_m or 0.0) ** 2
+    temp, drift, temp_sigma = _routine_drift(device, captures, drifts, cdfs, capture_var)
+    return CalibrationUncertainty(noise, samples, 2 if names else 1, hyst, seating_m, dof, temp,
+                                  drift, temp_sigma)
+
+
+def _routine_drift(device: DeviceDescription, points: list[CaptureStats], drifts: list[CaptureStats],
+                   cdfs: dict[str, Callable[[NDArray[np.float64]], Any]], capture_var_m2: float
+                   ) -> tuple[float | None, dict[str, list[float]], float | None]:
+    """The temperature change over the routine, each point's thermal error (see
+    :func:`capture_uncertainty`) and the change's standard uncertainty (two captures of
+    variance ``capture_var_m2`` each), from the first reference bar with a drift capture."""
+    for start in drifts:
+        ends = [c for c in points if c.channel == start.channel and c.pair == start.pair]
+        if not ends or start.channel not in cdfs or not math.isfinite(start.time_s):
+            continue
+        end = max(ends, key=lambda c: c.time_s)
+        span = end.time_s - start.time_s
+        if not span > 0:
+            continue
+        fixed = device.fixed_length_m
+
+        def sensitivity(d: float) -> float:
+            return -(device.rod_cte_per_c * fixed + device.scale_cte_per_c * (d - fixed))
+
+        f = cdfs[start.channel]
+        moved = float(f(np.array([end.mean_counts]))[0][0] - f(np.array([start.mean_counts]))[0][0])
+        d_ref = device.pair(start.pair).distance_m
+        temp = moved / sensitivity(d_ref)
+        times: dict[str, dict[str, list[float]]] = {}
+        for c in points:
+            if math.isfinite(c.time_s):
+                times.setdefault(c.channel, {}).setdefault(c.pair, []).append(c.time_s)
+        drift = {}
+        for name, by_pair in times.items():
+            pairs = [p for p in device.pairs if p.name in by_pair]
+            drift[name] = [float(-sensitivity(p.distance_m) * temp
+                                 * (np.mean(by_pair[p.name]) - end.time_s) / span) for p in pairs]
+        return temp, drift, math.sqrt(2.0 * capture_var_m2) / abs(sensitivity(d_ref))
+    return None, {}, None
 
 
 @dataclass(frozen=True)

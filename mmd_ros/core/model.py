@@ -7,11 +7,18 @@ compensation node (parameter ``model_file``), so that both compute the same leng
     thermal:
       mode: auto              # auto | single (Eq. 13) | interpolate (Eq. 12) | off
       plate_expansion: true   # joint positions scaled by the estimated plate expansion
-    length_sigma_um: 0.4      # 1-sigma bar-length uncertainty for pose covariance
     terms:                    # optional corrections added to the compensated lengths
       - type: hysteresis      # section 5.3: direction-dependent mean correction
         amplitude_um: [0.3, 0.3, 0.3, 0.3, 0.3, 0.3]
         travel_um: 5.0
+    uncertainty:              # optional: the bar-length uncertainty (msg_docs/frames.md)
+      thermal_mismatch_fraction: 0.058   # default: the device description's
+      read_noise_nm: 5.0                 # default: estimated from the stream
+      fit: {...}                         # written by mmd analyze (see ModelUncertainty)
+
+Without an ``uncertainty`` section every source takes its documented default, computed from the
+device description and the calibration (:mod:`mmd_ros.core.budget`). ``length_sigma_um`` (a
+fixed bar-length sigma of model files before the uncertainty budget) is read and ignored.
 
 Every term is a :class:`ModelTerm`: given the samples of a run (consecutive, in time order),
 it returns a length correction per sample and bar, and carries whatever state it needs from
@@ -35,8 +42,8 @@ from mmd_ros.core.units import M_PER_UM
 from mmd_ros.core.yamlio import atomic_write_text, parse_yaml, read_yaml
 
 __all__ = [
-    'HysteresisTerm', 'Model', 'ModelTerm', 'TERM_TYPES', 'TermContext', 'load_model',
-    'register_term',
+    'FIT_REPLACEABLE', 'FitUncertainty', 'HysteresisTerm', 'Model', 'ModelTerm',
+    'ModelUncertainty', 'TERM_TYPES', 'TermContext', 'load_model', 'register_term',
 ]
 
 FloatArray = NDArray[np.float64]
@@ -169,28 +176,192 @@ class HysteresisTerm(ModelTerm):
                 'travel_um': self.travel_m / M_PER_UM}
 
 
+#: Sources of the uncertainty budget that a fit's measured residual may stand in for: the
+#: systematic errors derived from the calibration (msg_docs/frames.md).
+FIT_REPLACEABLE = ('calibration_points', 'calibration_drift', 'reference_distances', 'interpolation',
+                   'hysteresis')
+
+
+def _matrix6(value: Any, source: str, key: str) -> FloatArray:
+    try:
+        arr = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        arr = None
+    if arr is None or arr.shape != (6, 6) or not np.all(np.isfinite(arr)) \
+            or np.max(np.abs(arr - arr.T)) > 1e-9 * max(float(np.max(np.abs(arr))), 1.0) \
+            or np.min(np.linalg.eigvalsh(0.5 * (arr + arr.T))) < -1e-6 * max(float(np.max(np.abs(arr))), 1e-12):
+        raise ConfigError(source, key, 'must be a symmetric positive semi-definite 6 x 6 matrix, '
+                          f'got {value!r}')
+    return 0.5 * (arr + arr.T)
+
+
+@dataclass
+class FitUncertainty:
+    """What ``mmd analyze`` measured about the uncertainty of the model it wrote.
+
+    residual_m2 : (6, 6) — covariance of the bar-length residual the fit left, beyond the
+        per-sample sources the budget keeps (read noise, quantisation, reference bar, thermal)
+        [m^2]; added to every sample
+    replaces : budget sources (of :data:`FIT_REPLACEABLE`) the residual stands in for: it
+        measured them, so they are not added again
+    systematic_scale : factor on the variance of the replaceable sources that are kept (a
+        reference that sees only some pose components sizes them in those components only)
+    directions : one sigma of the fitted correction along each principal direction of the
+        fitted parameters' covariance, each as the model term(s) that apply it (the sum of a
+        direction's corrections is c_k(t); sum_k c_k c_k^T per sample)
+    mean_terms_m2 : (6, 6) — the mean of sum_k c_k c_k^T over the fit's samples, for a stage
+        that cannot evaluate the terms (fk_node sees no counts) [m^2]
+    record : where the figures come from (log, reference, samples)
+    """
+
+    residual_m2: FloatArray = field(default_factory=lambda: np.zeros((6, 6)))
+    replaces: tuple[str, ...] = ()
+    systematic_scale: float = 1.0
+    directions: list[list[ModelTerm]] = field(default_factory=list)
+    mean_terms_m2: FloatArray = field(default_factory=lambda: np.zeros((6, 6)))
+    record: dict[str, Any] = field(default_factory=dict)
+
+    def reset(self) -> None:
+        for group in self.directions:
+            for term in group:
+                term.reset()
+
+    def to_dict(self) -> dict[str, Any]:
+        nm2 = 1e18
+        return {
+            'residual_nm2': np.round(self.residual_m2 * nm2, 4).tolist(),
+            'replaces': list(self.replaces),
+            'systematic_scale': float(self.systematic_scale),
+            'mean_terms_nm2': np.round(self.mean_terms_m2 * nm2, 4).tolist(),
+            'directions': [[{'type': t.type_name, **t.params()} for t in group]
+                           for group in self.directions],
+            'from': self.record,
+        }
+
+    @classmethod
+    def from_dict(cls, data: Any, source: str) -> FitUncertainty:
+        if not isinstance(data, dict):
+            raise ConfigError(source, 'uncertainty.fit', 'must be a mapping')
+        residual = _matrix6(data.get('residual_nm2', np.zeros((6, 6))), source,
+                            'uncertainty.fit.residual_nm2') * 1e-18
+        mean_terms = _matrix6(data.get('mean_terms_nm2', np.zeros((6, 6))), source,
+                              'uncertainty.fit.mean_terms_nm2') * 1e-18
+        replaces = data.get('replaces') or []
+        if not isinstance(replaces, list) or any(r not in FIT_REPLACEABLE for r in replaces):
+            raise ConfigError(source, 'uncertainty.fit.replaces',
+                              f'must list some of {list(FIT_REPLACEABLE)}, got {replaces!r}')
+        scale = data.get('systematic_scale', 1.0)
+        if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not 0 <= scale < 1e6:
+            raise ConfigError(source, 'uncertainty.fit.systematic_scale',
+                              f'must be a number >= 0, got {scale!r}')
+        groups = data.get('directions') or []
+        if not isinstance(groups, list):
+            raise ConfigError(source, 'uncertainty.fit.directions', 'must be a list of term lists')
+        directions = [_parse_terms(g, source, f'uncertainty.fit.directions[{k}]')
+                      for k, g in enumerate(groups)]
+        record = data.get('from') or {}
+        return cls(residual, tuple(replaces), float(scale), directions, mean_terms,
+                   dict(record) if isinstance(record, dict) else {})
+
+
+@dataclass
+class ModelUncertainty:
+    """The model file's ``uncertainty`` section: numbers that override the budget's defaults
+    (the device description's, the calibration's, the stream's) and what a fit measured.
+
+    thermal_mismatch_fraction : sigma of a bar's thermal error left after Eqs. (12)/(13), as a
+        fraction of the error subtracted; None takes the device description's
+    read_noise_m : read noise of every channel [m]; None estimates it from the stream (the
+        calibration's figure until the stream has shown enough)
+    fit : what ``mmd analyze`` measured, or None
+    """
+
+    thermal_mismatch_fraction: float | None = None
+    read_noise_m: float | None = None
+    fit: FitUncertainty | None = None
+
+    def reset(self) -> None:
+        if self.fit is not None:
+            self.fit.reset()
+
+    def to_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        if self.thermal_mismatch_fraction is not None:
+            out['thermal_mismatch_fraction'] = float(self.thermal_mismatch_fraction)
+        if self.read_noise_m is not None:
+            out['read_noise_nm'] = float(self.read_noise_m / 1e-9)
+        if self.fit is not None:
+            out['fit'] = self.fit.to_dict()
+        return out
+
+    @classmethod
+    def from_dict(cls, data: Any, source: str) -> ModelUncertainty:
+        if data is None:
+            return cls()
+        if not isinstance(data, dict):
+            raise ConfigError(source, 'uncertainty', 'must be a mapping')
+        unknown = sorted(set(data) - {'thermal_mismatch_fraction', 'read_noise_nm', 'fit'})
+        if unknown:
+            raise ConfigError(source, f'uncertainty.{unknown[0]}', 'is not a key of the uncertainty '
+                              'section (thermal_mismatch_fraction, read_noise_nm, fit)')
+        frac = data.get('thermal_mismatch_fraction')
+        if frac is not None and (isinstance(frac, bool) or not isinstance(frac, (int, float))
+                                 or not 0 <= frac <= 1):
+            raise ConfigError(source, 'uncertainty.thermal_mismatch_fraction',
+                              f'must be a number in [0, 1], got {frac!r}')
+        noise = data.get('read_noise_nm')
+        if noise is not None and (isinstance(noise, bool) or not isinstance(noise, (int, float))
+                                  or not 0 <= noise <= 1e4):
+            raise ConfigError(source, 'uncertainty.read_noise_nm',
+                              f'must be a number in [0, 10000] nm, got {noise!r}')
+        fit = FitUncertainty.from_dict(data['fit'], source) if data.get('fit') is not None else None
+        return cls(None if frac is None else float(frac),
+                   None if noise is None else float(noise) * 1e-9, fit)
+
+
+def _parse_terms(raw_terms: Any, source: str, key: str) -> list[ModelTerm]:
+    if not isinstance(raw_terms, list):
+        raise ConfigError(source, key, 'must be a list')
+    terms = []
+    for k, item in enumerate(raw_terms):
+        if not isinstance(item, dict) or item.get('type') not in TERM_TYPES:
+            raise ConfigError(source, f'{key}[{k}].type',
+                              f'must be one of {sorted(TERM_TYPES)}, got {item!r}')
+        params = {name: v for name, v in item.items() if name != 'type'}
+        terms.append(TERM_TYPES[item['type']].from_params(params, f'{source}: {key}[{k}]'))
+    return terms
+
+
 @dataclass
 class Model:
-    """Which compensation terms are active, and their parameters."""
+    """Which compensation terms are active, and their parameters.
+
+    length_sigma_m : a fixed bar-length sigma of old model files; read, not used, not written
+    uncertainty : the model file's ``uncertainty`` section (defaults when absent)
+    """
 
     thermal_mode: str = 'auto'
     plate_expansion: bool = True
-    length_sigma_m: float = 0.4e-6
+    length_sigma_m: float | None = None
     terms: list[ModelTerm] = field(default_factory=list)
     extra: dict[str, Any] = field(default_factory=dict)
     source: str = '<default model>'
+    uncertainty: ModelUncertainty = field(default_factory=ModelUncertainty)
 
     def reset(self) -> None:
         for term in self.terms:
             term.reset()
+        self.uncertainty.reset()
 
     def to_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {
             'format_version': 1,
             'thermal': {'mode': self.thermal_mode, 'plate_expansion': self.plate_expansion},
-            'length_sigma_um': self.length_sigma_m / M_PER_UM,
             'terms': [{'type': t.type_name, **t.params()} for t in self.terms],
         }
+        unc = self.uncertainty.to_dict()
+        if unc:
+            out['uncertainty'] = unc
         out.update(self.extra)
         return out
 
@@ -215,22 +386,16 @@ class Model:
         plate = thermal.get('plate_expansion', True)
         if not isinstance(plate, bool):
             raise ConfigError(source, 'thermal.plate_expansion', f'must be true or false, got {plate!r}')
-        sigma = data.get('length_sigma_um', 0.4)
-        if not isinstance(sigma, (int, float)) or sigma <= 0:
+        sigma = data.get('length_sigma_um')
+        if sigma is not None and (isinstance(sigma, bool) or not isinstance(sigma, (int, float))
+                                  or sigma <= 0):
             raise ConfigError(source, 'length_sigma_um', f'must be a number > 0, got {sigma!r}')
-        terms = []
-        raw_terms = data.get('terms') or []
-        if not isinstance(raw_terms, list):
-            raise ConfigError(source, 'terms', 'must be a list')
-        for k, item in enumerate(raw_terms):
-            if not isinstance(item, dict) or item.get('type') not in TERM_TYPES:
-                raise ConfigError(source, f'terms[{k}].type',
-                                  f'must be one of {sorted(TERM_TYPES)}, got {item!r}')
-            params = {key: v for key, v in item.items() if key != 'type'}
-            terms.append(TERM_TYPES[item['type']].from_params(params, f'{source}: terms[{k}]'))
-        known = {'format_version', 'thermal', 'length_sigma_um', 'terms'}
+        terms = _parse_terms(data.get('terms') or [], source, 'terms')
+        uncertainty = ModelUncertainty.from_dict(data.get('uncertainty'), source)
+        known = {'format_version', 'thermal', 'length_sigma_um', 'terms', 'uncertainty'}
         extra = {k: v for k, v in data.items() if k not in known}
-        return cls(mode, plate, float(sigma) * M_PER_UM, terms, extra, source)
+        return cls(mode, plate, None if sigma is None else float(sigma) * M_PER_UM, terms, extra,
+                   source, uncertainty)
 
     @classmethod
     def from_yaml(cls, text: str, source: str = '<model>') -> Model:

@@ -1,0 +1,392 @@
+"""The uncertainty budget of the compensated bar lengths: Sigma_d (6 x 6) of every sample.
+
+One :class:`LengthBudget` belongs to one device, calibration and model (as a
+:class:`~mmd_ros.core.pipeline.Pipeline` does). What it needs per sample is what every stage of
+the live pipeline has: the compensated lengths, the thermal state (Eq. 11 error of each
+reference bar, the temperature change) and, when the model carries fitted terms, the
+corrections of their one-sigma perturbations. The sources, their formulas and defaults are
+listed in :mod:`mmd_ros.core.uncertainty` and documented in ``msg_docs/frames.md``.
+
+Where the numbers come from:
+
+- the device description: the encoder resolution, the scale CTE (Eq. 13's approximation), the
+  reference distances' standard uncertainty (``reference_plate.distance_uncertainty_um``, when
+  stated), the bars' thermal mismatch (``bars.thermal_mismatch_fraction``);
+- the calibration: its points (hat functions of Eq. 10, the interpolation error fitted to
+  them) and what the routine measured (read noise, hysteresis, seating repeatability);
+- the stream: each channel's read noise where it stands still (:class:`NoiseEstimator`);
+- the model file's ``uncertainty`` section: overrides, and what ``mmd analyze`` measured.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mmd_ros.core.calibration import Calibration
+from mmd_ros.core.device import DeviceDescription
+from mmd_ros.core.errors import CalibrationError
+from mmd_ros.core.model import HysteresisTerm, Model
+from mmd_ros.core.thermal import CMM_TEMP_C
+from mmd_ros.core.uncertainty import (
+    InterpolationError, NoiseEstimator, averaged_quantisation_var, fit_interpolation_error,
+    quantisation_cross_cov,
+)
+
+__all__ = ['DIRECTION_TRAVEL_M', 'LengthBudget', 'Observed', 'SOURCES']
+
+FloatArray = NDArray[np.float64]
+
+#: Half-width of the play operator that tells a bar's motion direction for the hysteresis
+#: source: it flips after 2 um of reverse travel [m].
+DIRECTION_TRAVEL_M = 1e-6
+
+
+@dataclass(frozen=True)
+class Observed:
+    """What the budget learned from N samples (:meth:`LengthBudget.observe`).
+
+    read_noise_m : (N, 6 + k) — read noise in force per column (measuring bars, reference bars)
+    directions : (N, 6) — each bar's motion direction, +1 lengthening, -1 shortening, 0 before
+        its first move (the friction state's sign)
+    """
+
+    read_noise_m: FloatArray
+    directions: FloatArray
+
+    def __getitem__(self, index: Any) -> Observed:
+        return Observed(self.read_noise_m[index], self.directions[index])
+
+#: The budget's sources, in the order reports list them.
+SOURCES = ('quantisation', 'read_noise', 'reference_bar', 'calibration_points',
+           'calibration_drift', 'reference_distances', 'plate_expansion', 'interpolation',
+           'thermal_approximation', 'thermal_mismatch', 'hysteresis', 'fitted_terms', 'residual')
+
+
+class LengthBudget:
+    """Sigma_d of N samples for one device, calibration and model (see the module docstring).
+
+    device, calibration, model : what the pipeline uses
+    """
+
+    def __init__(self, device: DeviceDescription, calibration: Calibration, model: Model) -> None:
+        self.device = device
+        self.resolution_m = res = device.encoder_resolution_m
+        names = device.channel_names
+        measuring = [names[k] for k in device.measuring_channels]
+        self.reference_names = [c.name for c in device.reference_channels]
+        figures = calibration.uncertainty
+        self.figures = figures
+        unc = model.uncertainty
+        fit = unc.fit
+        self.fit = fit
+        self.notes: list[str] = []
+
+        # -- the thermal compensation in use
+        mode = model.thermal_mode
+        refs = [c for c in device.reference_channels if c.name in calibration.bars]
+        if mode == 'auto':
+            mode = 'interpolate' if len(refs) >= 2 else 'single'
+        if not refs:
+            mode = 'off'
+        self.thermal_mode = mode
+        self.ref_distances_m = np.array([device.pair(c.pair).distance_m for c in refs])
+        self.scale_cte = device.scale_cte_per_c
+
+        # -- read noise: the model's figure, else the stream's, else the calibration's
+        self.fixed_noise_m = unc.read_noise_m
+        self.calibration_noise_m = figures.read_noise_m
+        if self.fixed_noise_m is None and self.calibration_noise_m is None:
+            self.notes.append('read noise: the calibration does not give it; estimated from the '
+                              'stream where bars stand still, 0 until then')
+        self.noise = NoiseEstimator(6 + len(refs), res)
+
+        # -- calibration points (Eq. 10 hat functions), per measuring bar
+        calibration.cdfs(measuring)  # every measuring bar has points (else CalibrationError)
+        bars = [calibration.bars[m] for m in measuring]
+        if len({len(b.distances_m) for b in bars}) != 1:
+            raise CalibrationError('all bars need the same number of calibration points')
+        knots, pair_idx, devs, drift = [], [], [], []
+        pair_names = [p.name for p in device.pairs]
+        for name, b in zip(measuring, bars):
+            d = np.asarray(b.distances_m)
+            order = np.argsort(d)
+            knots.append(d[order])
+            pair_idx.append([pair_names.index(b.pairs[k]) if b.pairs[k] in pair_names else -1
+                             for k in order])
+            beta = figures.drift_m.get(name)
+            drift.append(np.asarray(beta)[order] if beta is not None and len(beta) == d.size
+                         else np.zeros(d.size))
+        self.knots_m = np.array(knots)                         # (6, n) increasing
+        self.pair_index = np.array(pair_idx, dtype=np.intp)     # (6, n)
+        self.drift_m = np.array(drift)                         # (6, n) each point's thermal error
+        # the measured change is noisy: scale the profile to the unbiased estimate of its square
+        temp, temp_sigma = figures.routine_temp_change_c, figures.routine_temp_sigma_c or 0.0
+        if temp:
+            self.drift_m *= math.sqrt(max(temp * temp - temp_sigma ** 2, 0.0)) / abs(temp)
+        if figures.routine_temp_change_c is None:
+            self.notes.append('calibration drift: the routine did not measure the temperature '
+                              'change over its course (a reference bar on its resting pair first)')
+        self.point_var_m2 = figures.point_var(res)
+        if figures.read_noise_m is None:
+            self.notes.append('calibration points: the calibration does not give its read noise; '
+                              'each point taken as quantised without dither (Delta^2/12)')
+        if figures.approaches < 2:
+            self.notes.append('calibration points: one placement per pair; the friction state '
+                              'and seating of each placement are not measured (a two-sided '
+                              'calibration measures them)')
+        pair_sigma = np.array([p.sigma_m for p in device.pairs])
+        self.pair_var_m2 = pair_sigma ** 2
+        if not np.any(pair_sigma > 0):
+            self.notes.append('reference distances: the device description states no uncertainty '
+                              'of the reference plate (reference_plate.distance_uncertainty_um)')
+
+        # -- interpolation between the points: a smooth scale error fitted to all bars' points
+        all_bars = bars + [calibration.bars[c.name] for c in refs]
+        all_bars = [b for b in all_bars if len(b.distances_m) == self.knots_m.shape[1]]
+        for b in all_bars:
+            cdf = b.cdf()
+            d = np.asarray(cdf.distances_m)
+            q = np.asarray(cdf.counts)
+            sign = 1.0 if (d[-1] - d[0]) * (q[-1] - q[0]) > 0 else -1.0
+            order = np.argsort(d)
+            devs.append((sign * q * res - d)[order])
+        all_knots = np.array([np.sort(b.distances_m) for b in all_bars])
+        self.interpolation: InterpolationError = fit_interpolation_error(
+            all_knots, np.array(devs), np.full(all_knots.shape, self.point_var_m2))
+
+        # -- thermal
+        frac = unc.thermal_mismatch_fraction
+        if frac is None:
+            frac = device.thermal_mismatch_fraction
+        if frac is None:
+            self.notes.append('thermal mismatch: the device description does not state '
+                              'bars.thermal_mismatch_fraction')
+        self.mismatch_fraction = float(frac or 0.0) if mode != 'off' else 0.0
+
+        # -- the reference plate's expansion, which the compensation leaves out: Table 2 holds its
+        # distances at the CMM's 20 °C, the calibration happened at ambient_c, so every point
+        # (and every length) is short by alpha_refplate (ambient_c - 20) d
+        self.scale_error = 0.0
+        if calibration.ambient_c is not None:
+            self.scale_error = -device.reference_plate_cte_per_c * (calibration.ambient_c - CMM_TEMP_C)
+        else:
+            self.notes.append('reference plate expansion: the calibration does not give the '
+                              'ambient temperature (ambient_c)')
+
+        # -- the reference bar(s): live reading and the thermal zero (one capture)
+        s_cal = figures.read_noise_m or 0.0
+        self.zero_noise_m = s_cal
+        self.zero_var_m2 = averaged_quantisation_var(res, s_cal) + s_cal ** 2 / max(
+            int(figures.capture_samples or 1), 1)
+
+        # -- friction hysteresis measured by a two-sided calibration, unless compensated: a bar
+        # that last lengthened reads short by h (the sign from its motion, a play operator)
+        compensated = any(t.type_name == 'hysteresis' for t in model.terms)
+        h = np.array([figures.hysteresis_m.get(m, 0.0) for m in measuring])
+        self.hysteresis_m = np.zeros(6) if compensated else np.abs(h)
+        self._direction = HysteresisTerm(np.ones(6), DIRECTION_TRAVEL_M)
+
+        # -- what a fit replaced, and how much of the rest it kept
+        self.replaced = set(fit.replaces) if fit is not None else set()
+        self.systematic_scale = fit.systematic_scale if fit is not None else 1.0
+        self.residual_m2 = fit.residual_m2 if fit is not None else np.zeros((6, 6))
+        self.mean_terms_m2 = fit.mean_terms_m2 if fit is not None else np.zeros((6, 6))
+        self.has_fit_terms = bool(fit is not None and fit.directions)
+
+    def reset(self) -> None:
+        """A new run: the stream's read-noise estimate and the bars' motion directions start
+        again."""
+        self.noise.reset()
+        self._direction.reset()
+
+    # -- per-sample inputs ---------------------------------------------------------------------
+    def bar_error(self, lengths_m: FloatArray, reference_error_m: FloatArray) -> FloatArray:
+        """The thermal error the pipeline subtracted from each bar (Eq. 13 or Eq. 12), (N, 6) [m],
+        from the compensated lengths and the Eq. (11) errors (for a stage that has only those)."""
+        n = lengths_m.shape[0]
+        eps = np.asarray(reference_error_m, dtype=np.float64).reshape(n, -1)
+        if self.thermal_mode == 'off' or eps.shape[1] == 0:
+            return np.zeros((n, 6))
+        if self.thermal_mode == 'single':
+            return np.repeat(eps[:, :1], 6, axis=1)
+        lo, hi = self.ref_distances_m[0], self.ref_distances_m[-1]
+        frac = (lengths_m - lo) / (hi - lo)
+        return eps[:, :1] + frac * (eps[:, -1:] - eps[:, :1])
+
+    def observe(self, cdf_lengths_m: FloatArray, reference_error_m: FloatArray) -> Observed:
+        """What the budget learns from N consecutive samples (call once per sample, in time
+        order): the read-noise estimate from the CDF lengths (or the lengths plus the thermal
+        error subtracted, which differ by terms that do not change while a bar stands still)
+        and the reference bars' Eq. (11) errors, and each bar's motion direction.
+
+        returns : what :meth:`covariance` needs of these samples
+        """
+        n = cdf_lengths_m.shape[0]
+        eps = np.asarray(reference_error_m, dtype=np.float64).reshape(n, -1)
+        k = self.noise.columns - 6
+        est = self.noise.feed(np.column_stack([cdf_lengths_m, eps[:, :k]]) if k else cdf_lengths_m)
+        directions = (self._direction.directions(np.asarray(cdf_lengths_m, dtype=np.float64))
+                      if np.any(self.hysteresis_m) else np.zeros((n, 6)))
+        return Observed(self._resolve(est), directions)
+
+    def _resolve(self, estimate: FloatArray) -> FloatArray:
+        if self.fixed_noise_m is not None:
+            return np.full(estimate.shape, self.fixed_noise_m)
+        return np.where(np.isfinite(estimate), estimate, self.calibration_noise_m or 0.0)
+
+    def read_noise_m(self) -> FloatArray:
+        """Read noise in force now per column (six measuring bars, then the reference bars) [m]."""
+        return self._resolve(self.noise.sigma_m())
+
+    # -- the budget ----------------------------------------------------------------------------
+    def _kept(self, source: str) -> float:
+        """Factor on a replaceable source: 0 when a fit measured it, else the fit's scale."""
+        return 0.0 if source in self.replaced else self.systematic_scale
+
+    def sources(self, lengths_m: FloatArray, reference_error_m: FloatArray,
+                temp_change_c: FloatArray, bar_error_m: FloatArray | None = None,
+                fit_columns_m: FloatArray | None = None, observed: Observed | None = None
+                ) -> tuple[dict[str, FloatArray], dict[str, FloatArray]]:
+        """Each source of N samples: the random ones as covariances (N, 6, 6) [m^2], and the
+        errors whose size and sign the device knows but the compensation does not correct as
+        signed vectors (N, 6) [m] (their sum b enters Sigma_d as b b^T).
+
+        lengths_m : (N, 6) compensated lengths [m]
+        reference_error_m : (N, k) Eq. (11) errors [m]; temp_change_c : (N,) [°C]
+        bar_error_m : (N, 6) thermal error subtracted; None computes it (:meth:`bar_error`)
+        fit_columns_m : (N, 6, r) corrections of the fitted terms' one-sigma perturbations, or
+            None (then their mean over the fit's samples is used)
+        observed : what :meth:`observe` returned for these samples, or None: the read-noise
+            estimate in force now, no motion direction known
+        """
+        x = np.asarray(lengths_m, dtype=np.float64)
+        n = x.shape[0]
+        res2 = self.resolution_m ** 2
+        bias: dict[str, FloatArray] = {}
+        eps = np.asarray(reference_error_m, dtype=np.float64).reshape(n, -1)
+        if bar_error_m is None:
+            bar_error_m = self.bar_error(x, eps)
+        noise = (np.broadcast_to(self.read_noise_m(), (n, self.noise.columns))
+                 if observed is None else observed.read_noise_m)
+        eye = np.eye(6)
+        out: dict[str, FloatArray] = {}
+
+        def diag(v: FloatArray) -> FloatArray:
+            return np.broadcast_to(v, (n, 6))[:, :, None] * eye
+
+        out['quantisation'] = diag(np.full(6, res2 / 12.0))
+        out['read_noise'] = diag(noise[:, :6] ** 2)
+        if self.thermal_mode != 'off':
+            # live reading and thermal zero: their quantisation biases are correlated when the
+            # reading is within a count of its zero (delta ~ eps, Eq. 11)
+            k_ref = noise.shape[1] - 6
+            cross = np.stack([quantisation_cross_cov(self.resolution_m, float(np.mean(noise[:, 6 + r])),
+                                                     self.zero_noise_m, eps[:, r])
+                              for r in range(k_ref)], axis=1) if k_ref else np.zeros((n, 0))
+            ref_var = np.maximum(res2 / 12.0 + noise[:, 6:] ** 2 + self.zero_var_m2 - 2.0 * cross,
+                                 0.0)                                                  # (N, k)
+            if self.thermal_mode == 'single':
+                w = np.ones((n, 6, 1))
+                ref_var = ref_var[:, :1]
+            else:
+                lo, hi = self.ref_distances_m[0], self.ref_distances_m[-1]
+                frac = (x - lo) / (hi - lo)
+                w = np.stack([1.0 - frac, frac], axis=2)
+                ref_var = ref_var[:, [0, -1]]
+            out['reference_bar'] = np.einsum('nik,nk,njk->nij', w, ref_var, w)
+        # hat functions of Eq. (10)
+        k = self.knots_m
+        rows = np.arange(6)[None, :]
+        seg = np.clip(np.sum(x[:, :, None] >= k[None], axis=2) - 1, 0, k.shape[1] - 2)
+        x0, x1 = k[rows, seg], k[rows, seg + 1]
+        u = (x - x0) / (x1 - x0)
+        kept = self._kept('calibration_points')
+        out['calibration_points'] = diag(kept * self.point_var_m2 * ((1.0 - u) ** 2 + u ** 2))
+        if np.any(self.drift_m) and self._kept('calibration_drift'):
+            e = self.drift_m[rows, seg] * (1.0 - u) + self.drift_m[rows, seg + 1] * u
+            bias['calibration_drift'] = math.sqrt(self._kept('calibration_drift')) * e
+        if np.any(self.pair_var_m2 > 0) and self._kept('reference_distances'):
+            h = np.zeros((n, 6, self.pair_var_m2.size))
+            pj0, pj1 = self.pair_index[rows, seg], self.pair_index[rows, seg + 1]
+            nn = np.arange(n)[:, None]
+            h[nn, rows, pj0] += 1.0 - u
+            h[nn, rows, pj1] += u
+            out['reference_distances'] = self._kept('reference_distances') * np.einsum(
+                'nip,p,njp->nij', h, self.pair_var_m2, h)
+        if self.scale_error:
+            bias['plate_expansion'] = self.scale_error * x
+        out['interpolation'] = diag(self._kept('interpolation')
+                                    * self.interpolation.variance(x, self.knots_m))
+        if self.thermal_mode == 'single':
+            bias['thermal_approximation'] = -(x - self.ref_distances_m[0]) * self.scale_cte \
+                * np.asarray(temp_change_c)[:, None]
+        if self.mismatch_fraction:
+            out['thermal_mismatch'] = diag((self.mismatch_fraction * bar_error_m) ** 2)
+        if np.any(self.hysteresis_m > 0) and self._kept('hysteresis'):
+            s_dir = np.zeros((n, 6)) if observed is None else observed.directions
+            kept = self._kept('hysteresis')
+            bias['hysteresis'] = -math.sqrt(kept) * self.hysteresis_m * s_dir
+            out['hysteresis'] = diag(kept * self.hysteresis_m ** 2 * (1.0 - s_dir ** 2))
+        if fit_columns_m is not None and fit_columns_m.shape[-1]:
+            out['fitted_terms'] = fit_columns_m @ np.swapaxes(fit_columns_m, 1, 2)
+        elif np.any(self.mean_terms_m2):
+            out['fitted_terms'] = np.broadcast_to(self.mean_terms_m2, (n, 6, 6))
+        if np.any(self.residual_m2):
+            out['residual'] = np.broadcast_to(self.residual_m2, (n, 6, 6))
+        return out, bias
+
+    def variances(self, lengths_m: FloatArray, reference_error_m: FloatArray,
+                  temp_change_c: FloatArray, bar_error_m: FloatArray | None = None,
+                  fit_columns_m: FloatArray | None = None,
+                  observed: Observed | None = None) -> dict[str, FloatArray]:
+        """Each source's share of Sigma_d of N samples, (N, 6, 6) each [m^2] (a known error b_s
+        as b_s b_s^T: the shares of the known errors do not add up to their joint b b^T)."""
+        cov, bias = self.sources(lengths_m, reference_error_m, temp_change_c, bar_error_m,
+                                 fit_columns_m, observed)
+        for name, b in bias.items():
+            cov[name] = cov.get(name, 0.0) + b[:, :, None] * b[:, None, :]
+        return {name: cov[name] for name in SOURCES if name in cov}
+
+    def covariance(self, lengths_m: FloatArray, reference_error_m: FloatArray,
+                   temp_change_c: FloatArray, bar_error_m: FloatArray | None = None,
+                   fit_columns_m: FloatArray | None = None,
+                   observed: Observed | None = None) -> FloatArray:
+        """Sigma_d of N samples, (N, 6, 6) [m^2]: the random sources' covariances plus b b^T
+        of the sum b of the known errors (:meth:`sources`)."""
+        cov, bias = self.sources(lengths_m, reference_error_m, temp_change_c, bar_error_m,
+                                 fit_columns_m, observed)
+        total = sum(cov.values())
+        if bias:
+            b = sum(bias.values())
+            total = total + b[:, :, None] * b[:, None, :]
+        return total  # type: ignore[return-value]
+
+    def summary(self) -> dict[str, Any]:
+        """The budget's numbers, for reports (SI units in the keys' names)."""
+        noise = self.read_noise_m()
+        return {
+            'thermal_mode': self.thermal_mode,
+            'resolution_nm': self.resolution_m * 1e9,
+            'read_noise_nm': [round(float(v) * 1e9, 3) for v in noise],
+            'read_noise_from': ('model file' if self.fixed_noise_m is not None else
+                                ['stream' if w >= self.noise.min_windows else 'calibration'
+                                 for w in self.noise.windows]),
+            'calibration_point_nm': round(math.sqrt(self.point_var_m2) * 1e9, 3),
+            'routine_temp_change_c': self.figures.routine_temp_change_c,
+            'calibration_drift_nm': round(float(np.max(np.abs(self.drift_m))) * 1e9, 3),
+            'thermal_zero_nm': round(math.sqrt(self.zero_var_m2) * 1e9, 3),
+            'interpolation': self.interpolation.as_dict(),
+            'thermal_mismatch_fraction': self.mismatch_fraction,
+            'hysteresis_nm': [round(float(v) * 1e9, 2) for v in self.hysteresis_m],
+            'fit': None if self.fit is None else {
+                'replaces': sorted(self.replaced), 'systematic_scale': self.systematic_scale,
+                'residual_nm': [round(float(math.sqrt(max(v, 0.0))) * 1e9, 2)
+                                for v in np.diag(self.residual_m2)],
+                'directions': len(self.fit.directions)},
+            'notes': list(self.notes),
+        }
