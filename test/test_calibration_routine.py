@@ -93,6 +93,9 @@ def test_full_routine_matches_the_twins_own_calibration(world):
         quality = cal.quality['bars'][name]
         assert abs(quality['scale_ppm']) < 200 and quality['nonlinearity_um'] < 10
     assert abs(cal.thermal_zero_m['ref1']) < 1e-12  # read where its last point was taken
+    # the captures measured their own read noise (the twin's: 10 nm) for the uncertainty budget
+    assert 5e-9 < cal.uncertainty.read_noise_m < 15e-9
+    assert cal.uncertainty.capture_samples == int(WINDOW_S * RATE)
     assert cal.ambient_c == 20.0
     Pipeline(device, cal)  # a complete calibration makes a pipeline
     again = Calibration.from_yaml(cal.to_yaml())

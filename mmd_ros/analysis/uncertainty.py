@@ -89,7 +89,7 @@ def _psd(matrix: FloatArray) -> FloatArray:
 
 
 def fit_uncertainty(ctx: FitContext, found: list[Any], after: Processed, residual: FloatArray,
-                    idx: IntArray, model: Model) -> FitUncertainty:
+                    idx: IntArray, model: Model, *, unseen: bool = False) -> FitUncertainty:
     """The ``uncertainty.fit`` section of the model a fit writes (see the module docstring).
 
     ctx : the fit's context (device, calibration, run)
@@ -99,6 +99,11 @@ def fit_uncertainty(ctx: FitContext, found: list[Any], after: Processed, residua
         not usable; a zeroed reference's offsets removed)
     idx : samples to judge on (the held-out ones)
     model : the extended model (its terms; its uncertainty section is not used)
+    unseen : the residual comes from data the fit never saw (other runs: leave-one-run-out).
+        Only then may it replace the calibration-derived sources: blocks of the fitted run
+        interleave with the training blocks and show how well the model fits that run, not
+        how it does on another motion, so otherwise the calibration-derived sources stay and
+        the residual adds only what exceeds them
     """
     obs: Observation = ctx.obs
     idx = idx[np.all(np.isfinite(residual[idx]), axis=1) & after.measured(obs.kind)[idx]]
@@ -135,7 +140,7 @@ def fit_uncertainty(ctx: FitContext, found: list[Any], after: Processed, residua
             dd = np.zeros((idx.size, 6))
             dd[:, obs.components] = r
         observed_cov = dd.T @ dd / idx.size
-        predicted = np.mean(kept, axis=0)
+        predicted = np.mean(kept if unseen else kept + replaceable, axis=0)
         excess = _psd(observed_cov - predicted)
         if obs.kind == 'lengths' and len(obs.components) < 6:
             unseen = [i for i in range(6) if i not in obs.components]
@@ -145,7 +150,8 @@ def fit_uncertainty(ctx: FitContext, found: list[Any], after: Processed, residua
             fit.record['note'] = ('bars without a reference keep the calibration-derived sources')
             return fit
         fit.residual_m2 = excess
-        fit.replaces = tuple(FIT_REPLACEABLE)
+        fit.replaces = tuple(FIT_REPLACEABLE) if unseen else ()
+        fit.record['residual_from'] = 'runs the fit did not see' if unseen else 'held-out blocks of the fitted run'
         fit.record['residual_rms_nm'] = [round(float(math.sqrt(max(v, 0.0))) * 1e9, 3)
                                          for v in np.diag(observed_cov)]
         return fit
@@ -165,10 +171,11 @@ def fit_uncertainty(ctx: FitContext, found: list[Any], after: Processed, residua
 
 
 def with_fit_uncertainty(model: Model, ctx: FitContext, found: list[Any], after: Processed,
-                         residual: FloatArray, idx: IntArray) -> Model:
+                         residual: FloatArray, idx: IntArray, *, unseen: bool = False) -> Model:
     """``model`` with its ``uncertainty.fit`` section measured by the fit (the overrides of the
-    model it started from are kept)."""
+    model it started from are kept); ``unseen`` as :func:`fit_uncertainty`."""
     previous = ctx.model.uncertainty
-    model.uncertainty = ModelUncertainty(previous.thermal_mismatch_fraction, previous.read_noise_m,
-                                         fit_uncertainty(ctx, found, after, residual, idx, model))
+    model.uncertainty = ModelUncertainty(
+        previous.thermal_mismatch_fraction, previous.read_noise_m,
+        fit_uncertainty(ctx, found, after, residual, idx, model, unseen=unseen))
     return model

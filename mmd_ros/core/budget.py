@@ -21,7 +21,7 @@ Where the numbers come from:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -33,8 +33,8 @@ from mmd_ros.core.errors import CalibrationError
 from mmd_ros.core.model import HysteresisTerm, Model
 from mmd_ros.core.thermal import CMM_TEMP_C
 from mmd_ros.core.uncertainty import (
-    InterpolationError, NoiseEstimator, averaged_quantisation_var, fit_interpolation_error,
-    quantisation_cross_cov,
+    InterpolationError, NoiseEstimator, capture_var, fit_interpolation_error,
+    quantisation_cross_weights,
 )
 
 __all__ = ['DIRECTION_TRAVEL_M', 'LengthBudget', 'Observed', 'SOURCES']
@@ -44,6 +44,29 @@ FloatArray = NDArray[np.float64]
 #: Half-width of the play operator that tells a bar's motion direction for the hysteresis
 #: source: it flips after 2 um of reverse travel [m].
 DIRECTION_TRAVEL_M = 1e-6
+
+
+@dataclass
+class _Terms:
+    """The sources of N samples by form: per-bar variances (N, 6), a variance common to every
+    bar (N,) (Eq. 13's reference bar) or per reference bar with weights (Eq. 12), full
+    matrices (N, 6, 6), constant matrices (6, 6), and known errors (N, 6)."""
+
+    diag: dict[str, FloatArray] = field(default_factory=dict)
+    common: FloatArray | None = None
+    weights: FloatArray | None = None
+    weight_var: FloatArray | None = None
+    full: dict[str, FloatArray] = field(default_factory=dict)
+    constant: dict[str, FloatArray] = field(default_factory=dict)
+    bias: dict[str, FloatArray] = field(default_factory=dict)
+
+    def reference(self, n: int) -> FloatArray | None:
+        """The reference bar's share as (N, 6, 6), or None."""
+        if self.common is not None:
+            return np.broadcast_to(self.common[:, None, None], (n, 6, 6)).copy()
+        if self.weights is not None:
+            return np.einsum('nik,nk,njk->nij', self.weights, self.weight_var, self.weights)
+        return None
 
 
 @dataclass(frozen=True)
@@ -181,8 +204,7 @@ class LengthBudget:
         # -- the reference bar(s): live reading and the thermal zero (one capture)
         s_cal = figures.read_noise_m or 0.0
         self.zero_noise_m = s_cal
-        self.zero_var_m2 = averaged_quantisation_var(res, s_cal) + s_cal ** 2 / max(
-            int(figures.capture_samples or 1), 1)
+        self.zero_var_m2 = capture_var(res, s_cal, int(figures.capture_samples or 1))
 
         # -- friction hysteresis measured by a two-sided calibration, unless compensated: a bar
         # that last lengthened reads short by h (the sign from its motion, a play operator)
@@ -197,6 +219,14 @@ class LengthBudget:
         self.residual_m2 = fit.residual_m2 if fit is not None else np.zeros((6, 6))
         self.mean_terms_m2 = fit.mean_terms_m2 if fit is not None else np.zeros((6, 6))
         self.has_fit_terms = bool(fit is not None and fit.directions)
+        # what the per-sample path needs, decided once
+        self._has_drift = bool(np.any(self.drift_m))
+        self._has_pairs = bool(np.any(self.pair_var_m2 > 0))
+        self._has_hysteresis = bool(np.any(self.hysteresis_m > 0))
+        self._has_mean_terms = bool(np.any(self.mean_terms_m2))
+        self._has_residual = bool(np.any(self.residual_m2))
+        self._cross_key: tuple[float, ...] | None = None
+        self._cross_w: FloatArray = np.zeros((0, 0))
 
     def reset(self) -> None:
         """A new run: the stream's read-noise estimate and the bars' motion directions start
@@ -231,7 +261,7 @@ class LengthBudget:
         k = self.noise.columns - 6
         est = self.noise.feed(np.column_stack([cdf_lengths_m, eps[:, :k]]) if k else cdf_lengths_m)
         directions = (self._direction.directions(np.asarray(cdf_lengths_m, dtype=np.float64))
-                      if np.any(self.hysteresis_m) else np.zeros((n, 6)))
+                      if self._has_hysteresis else np.zeros((n, 6)))
         return Observed(self._resolve(est), directions)
 
     def _resolve(self, estimate: FloatArray) -> FloatArray:
@@ -247,6 +277,95 @@ class LengthBudget:
     def _kept(self, source: str) -> float:
         """Factor on a replaceable source: 0 when a fit measured it, else the fit's scale."""
         return 0.0 if source in self.replaced else self.systematic_scale
+
+    def _terms(self, lengths_m: FloatArray, reference_error_m: FloatArray,
+               temp_change_c: FloatArray, bar_error_m: FloatArray | None,
+               fit_columns_m: FloatArray | None, observed: Observed | None) -> _Terms:
+        """Every source of N samples, in the form that is cheapest to add up."""
+        x = np.asarray(lengths_m, dtype=np.float64)
+        n = x.shape[0]
+        res2 = self.resolution_m ** 2
+        eps = np.asarray(reference_error_m, dtype=np.float64).reshape(n, -1)
+        if bar_error_m is None:
+            bar_error_m = self.bar_error(x, eps)
+        noise = (np.broadcast_to(self.read_noise_m(), (n, self.noise.columns))
+                 if observed is None else observed.read_noise_m)
+        t = _Terms()
+        t.diag['quantisation'] = np.full((n, 6), res2 / 12.0)
+        t.diag['read_noise'] = noise[:, :6] ** 2
+        if self.thermal_mode != 'off':
+            # live reading and thermal zero: their quantisation biases are correlated when the
+            # reading is within a count of its zero (delta ~ eps, Eq. 11)
+            cross = self._cross(noise[-1, 6:], eps)
+            ref_var = np.maximum(res2 / 12.0 + noise[:, 6:] ** 2 + self.zero_var_m2 - 2.0 * cross,
+                                 0.0)                                                  # (N, k)
+            if self.thermal_mode == 'single':
+                t.common = ref_var[:, 0]
+            else:
+                lo, hi = self.ref_distances_m[0], self.ref_distances_m[-1]
+                frac = (x - lo) / (hi - lo)
+                t.weights = np.stack([1.0 - frac, frac], axis=2)
+                t.weight_var = ref_var[:, [0, -1]]
+        # hat functions of Eq. (10)
+        k = self.knots_m
+        rows = np.arange(6)[None, :]
+        seg = np.clip(np.sum(x[:, :, None] >= k[None], axis=2) - 1, 0, k.shape[1] - 2)
+        x0, x1 = k[rows, seg], k[rows, seg + 1]
+        u = (x - x0) / (x1 - x0)
+        kept = self._kept('calibration_points')
+        if kept:
+            t.diag['calibration_points'] = kept * self.point_var_m2 * ((1.0 - u) ** 2 + u ** 2)
+        if self._has_drift and self._kept('calibration_drift'):
+            e = self.drift_m[rows, seg] * (1.0 - u) + self.drift_m[rows, seg + 1] * u
+            t.bias['calibration_drift'] = math.sqrt(self._kept('calibration_drift')) * e
+        if self._has_pairs and self._kept('reference_distances'):
+            h = np.zeros((n, 6, self.pair_var_m2.size))
+            pj0, pj1 = self.pair_index[rows, seg], self.pair_index[rows, seg + 1]
+            nn = np.arange(n)[:, None]
+            h[nn, rows, pj0] += 1.0 - u
+            h[nn, rows, pj1] += u
+            t.full['reference_distances'] = self._kept('reference_distances') * np.einsum(
+                'nip,p,njp->nij', h, self.pair_var_m2, h)
+        if self.scale_error:
+            t.bias['plate_expansion'] = self.scale_error * x
+        if self.interpolation.sigma_m > 0 and self._kept('interpolation'):
+            t.diag['interpolation'] = self._kept('interpolation') * self.interpolation.segment_variance(
+                x - x0, x1 - x, x1 - x0, u)
+        if self.thermal_mode == 'single':
+            t.bias['thermal_approximation'] = -(x - self.ref_distances_m[0]) * self.scale_cte \
+                * np.asarray(temp_change_c)[:, None]
+        if self.mismatch_fraction:
+            t.diag['thermal_mismatch'] = (self.mismatch_fraction * bar_error_m) ** 2
+        if self._has_hysteresis and self._kept('hysteresis'):
+            s_dir = np.zeros((n, 6)) if observed is None else observed.directions
+            kept = self._kept('hysteresis')
+            t.bias['hysteresis'] = -math.sqrt(kept) * self.hysteresis_m * s_dir
+            t.diag['hysteresis'] = kept * self.hysteresis_m ** 2 * (1.0 - s_dir ** 2)
+        if fit_columns_m is not None and fit_columns_m.shape[-1]:
+            t.full['fitted_terms'] = fit_columns_m @ np.swapaxes(fit_columns_m, 1, 2)
+        elif self._has_mean_terms:
+            t.constant['fitted_terms'] = self.mean_terms_m2
+        if self._has_residual:
+            t.constant['residual'] = self.residual_m2
+        return t
+
+    def _cross(self, noise_ref_m: FloatArray, eps: FloatArray) -> FloatArray:
+        """quantisation_cross_cov of each reference bar's live reading and its zero at the
+        distance eps, (N, k) [m^2]; the harmonics' weights are kept while the noise stays."""
+        key = tuple(np.round(noise_ref_m * 1e12))
+        if key != self._cross_key:
+            self._cross_key = key
+            w = np.stack([quantisation_cross_weights(self.resolution_m, float(v), self.zero_noise_m)
+                          for v in noise_ref_m], axis=1) if len(key) else np.zeros((0, 0))
+            # harmonics that no longer matter (read noise damps them) are left out
+            keep = np.flatnonzero(np.max(w, axis=1) > 1e-6 * max(float(w.max()), 1e-300)) \
+                if w.size else np.zeros(0, int)
+            self._cross_w = w[:keep[-1] + 1] if keep.size else w[:1]
+        if not len(key):
+            return np.zeros((eps.shape[0], 0))
+        k = np.arange(1, self._cross_w.shape[0] + 1)
+        phase = np.cos((2.0 * math.pi / self.resolution_m) * eps[:, None, :len(key)] * k[None, :, None])
+        return np.einsum('nkr,kr->nr', phase, self._cross_w)
 
     def sources(self, lengths_m: FloatArray, reference_error_m: FloatArray,
                 temp_change_c: FloatArray, bar_error_m: FloatArray | None = None,
@@ -264,81 +383,18 @@ class LengthBudget:
         observed : what :meth:`observe` returned for these samples, or None: the read-noise
             estimate in force now, no motion direction known
         """
-        x = np.asarray(lengths_m, dtype=np.float64)
-        n = x.shape[0]
-        res2 = self.resolution_m ** 2
-        bias: dict[str, FloatArray] = {}
-        eps = np.asarray(reference_error_m, dtype=np.float64).reshape(n, -1)
-        if bar_error_m is None:
-            bar_error_m = self.bar_error(x, eps)
-        noise = (np.broadcast_to(self.read_noise_m(), (n, self.noise.columns))
-                 if observed is None else observed.read_noise_m)
+        t = self._terms(lengths_m, reference_error_m, temp_change_c, bar_error_m, fit_columns_m,
+                        observed)
+        n = np.asarray(lengths_m).shape[0]
         eye = np.eye(6)
-        out: dict[str, FloatArray] = {}
-
-        def diag(v: FloatArray) -> FloatArray:
-            return np.broadcast_to(v, (n, 6))[:, :, None] * eye
-
-        out['quantisation'] = diag(np.full(6, res2 / 12.0))
-        out['read_noise'] = diag(noise[:, :6] ** 2)
-        if self.thermal_mode != 'off':
-            # live reading and thermal zero: their quantisation biases are correlated when the
-            # reading is within a count of its zero (delta ~ eps, Eq. 11)
-            k_ref = noise.shape[1] - 6
-            cross = np.stack([quantisation_cross_cov(self.resolution_m, float(np.mean(noise[:, 6 + r])),
-                                                     self.zero_noise_m, eps[:, r])
-                              for r in range(k_ref)], axis=1) if k_ref else np.zeros((n, 0))
-            ref_var = np.maximum(res2 / 12.0 + noise[:, 6:] ** 2 + self.zero_var_m2 - 2.0 * cross,
-                                 0.0)                                                  # (N, k)
-            if self.thermal_mode == 'single':
-                w = np.ones((n, 6, 1))
-                ref_var = ref_var[:, :1]
-            else:
-                lo, hi = self.ref_distances_m[0], self.ref_distances_m[-1]
-                frac = (x - lo) / (hi - lo)
-                w = np.stack([1.0 - frac, frac], axis=2)
-                ref_var = ref_var[:, [0, -1]]
-            out['reference_bar'] = np.einsum('nik,nk,njk->nij', w, ref_var, w)
-        # hat functions of Eq. (10)
-        k = self.knots_m
-        rows = np.arange(6)[None, :]
-        seg = np.clip(np.sum(x[:, :, None] >= k[None], axis=2) - 1, 0, k.shape[1] - 2)
-        x0, x1 = k[rows, seg], k[rows, seg + 1]
-        u = (x - x0) / (x1 - x0)
-        kept = self._kept('calibration_points')
-        out['calibration_points'] = diag(kept * self.point_var_m2 * ((1.0 - u) ** 2 + u ** 2))
-        if np.any(self.drift_m) and self._kept('calibration_drift'):
-            e = self.drift_m[rows, seg] * (1.0 - u) + self.drift_m[rows, seg + 1] * u
-            bias['calibration_drift'] = math.sqrt(self._kept('calibration_drift')) * e
-        if np.any(self.pair_var_m2 > 0) and self._kept('reference_distances'):
-            h = np.zeros((n, 6, self.pair_var_m2.size))
-            pj0, pj1 = self.pair_index[rows, seg], self.pair_index[rows, seg + 1]
-            nn = np.arange(n)[:, None]
-            h[nn, rows, pj0] += 1.0 - u
-            h[nn, rows, pj1] += u
-            out['reference_distances'] = self._kept('reference_distances') * np.einsum(
-                'nip,p,njp->nij', h, self.pair_var_m2, h)
-        if self.scale_error:
-            bias['plate_expansion'] = self.scale_error * x
-        out['interpolation'] = diag(self._kept('interpolation')
-                                    * self.interpolation.variance(x, self.knots_m))
-        if self.thermal_mode == 'single':
-            bias['thermal_approximation'] = -(x - self.ref_distances_m[0]) * self.scale_cte \
-                * np.asarray(temp_change_c)[:, None]
-        if self.mismatch_fraction:
-            out['thermal_mismatch'] = diag((self.mismatch_fraction * bar_error_m) ** 2)
-        if np.any(self.hysteresis_m > 0) and self._kept('hysteresis'):
-            s_dir = np.zeros((n, 6)) if observed is None else observed.directions
-            kept = self._kept('hysteresis')
-            bias['hysteresis'] = -math.sqrt(kept) * self.hysteresis_m * s_dir
-            out['hysteresis'] = diag(kept * self.hysteresis_m ** 2 * (1.0 - s_dir ** 2))
-        if fit_columns_m is not None and fit_columns_m.shape[-1]:
-            out['fitted_terms'] = fit_columns_m @ np.swapaxes(fit_columns_m, 1, 2)
-        elif np.any(self.mean_terms_m2):
-            out['fitted_terms'] = np.broadcast_to(self.mean_terms_m2, (n, 6, 6))
-        if np.any(self.residual_m2):
-            out['residual'] = np.broadcast_to(self.residual_m2, (n, 6, 6))
-        return out, bias
+        cov: dict[str, FloatArray] = {name: v[:, :, None] * eye for name, v in t.diag.items()}
+        ref = t.reference(n)
+        if ref is not None:
+            cov['reference_bar'] = ref
+        cov.update(t.full)
+        for name, m in t.constant.items():
+            cov[name] = np.broadcast_to(m, (n, 6, 6))
+        return cov, dict(t.bias)
 
     def variances(self, lengths_m: FloatArray, reference_error_m: FloatArray,
                   temp_change_c: FloatArray, bar_error_m: FloatArray | None = None,
@@ -358,13 +414,24 @@ class LengthBudget:
                    observed: Observed | None = None) -> FloatArray:
         """Sigma_d of N samples, (N, 6, 6) [m^2]: the random sources' covariances plus b b^T
         of the sum b of the known errors (:meth:`sources`)."""
-        cov, bias = self.sources(lengths_m, reference_error_m, temp_change_c, bar_error_m,
-                                 fit_columns_m, observed)
-        total = sum(cov.values())
-        if bias:
-            b = sum(bias.values())
-            total = total + b[:, :, None] * b[:, None, :]
-        return total  # type: ignore[return-value]
+        t = self._terms(lengths_m, reference_error_m, temp_change_c, bar_error_m, fit_columns_m,
+                        observed)
+        n = np.asarray(lengths_m).shape[0]
+        total = np.zeros((n, 6, 6))
+        idx = np.arange(6)
+        total[:, idx, idx] = sum(t.diag.values())
+        if t.common is not None:
+            total += t.common[:, None, None]
+        elif t.weights is not None:
+            total += np.einsum('nik,nk,njk->nij', t.weights, t.weight_var, t.weights)
+        for m in t.full.values():
+            total += m
+        for m in t.constant.values():
+            total += m
+        if t.bias:
+            b = sum(t.bias.values())
+            total += b[:, :, None] * b[:, None, :]
+        return total
 
     def summary(self) -> dict[str, Any]:
         """The budget's numbers, for reports (SI units in the keys' names)."""

@@ -42,7 +42,7 @@ from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.errors import CalibrationError
 from mmd_ros.core.thermal import ReferenceBar, ThermalCompensation
 from mmd_ros.core.uncertainty import (
-    CalibrationUncertainty, averaged_quantisation_var, read_noise_from_dither, two_sided_figures,
+    CalibrationUncertainty, capture_var, read_noise_from_dither, two_sided_figures,
 )
 from mmd_ros.core.units import M_PER_MM, M_PER_UM, PPM
 
@@ -122,15 +122,15 @@ def capture_uncertainty(device: DeviceDescription, captures: list[CaptureStats],
         short.append(f(np.array([pairs[p]['short'] for p in both]))[0])
         long.append(f(np.array([pairs[p]['long'] for p in both]))[0])
         names.append(name)
-    bias = averaged_quantisation_var(resolution_m, noise) + noise * noise / max(samples, 1)
+    bias = capture_var(resolution_m, noise, samples)
     if names:
         h, seating, dof = two_sided_figures(short, long, bias)
         hyst = dict(zip(names, (float(v) for v in h)))
         seating_m = None if not math.isfinite(seating) else seating
     else:
         hyst, seating_m, dof = {}, None, 0
-    capture_var = bias + (seating_m or 0.0) ** 2
-    temp, drift, temp_sigma = _routine_drift(device, captures, drifts, cdfs, capture_var)
+    one = bias + (seating_m or 0.0) ** 2
+    temp, drift, temp_sigma = _routine_drift(device, captures, drifts, cdfs, one)
     return CalibrationUncertainty(noise, samples, 2 if names else 1, hyst, seating_m, dof, temp,
                                   drift, temp_sigma)
 
@@ -265,6 +265,7 @@ class CaptureResult:
 class _Point:
     count: float
     std_m: float
+    samples: int = 0
 
 
 def bar_quality(bar: BarCalibration, resolution_m: float, noise_m: float | None = None
@@ -317,6 +318,7 @@ class CalibrationRoutine:
         self._order: dict[str, list[str]] = {}
         self._completed: set[str] = set()
         self._needs_zero: set[str] = set()
+        self._captures: list[CaptureStats] = []
         self.calibration: Calibration | None = None
         self.pending: list[str] = []
         self.set_calibration(calibration)
@@ -344,6 +346,7 @@ class CalibrationRoutine:
         self._order.clear()
         self._completed.clear()
         self._needs_zero.clear()
+        self._captures.clear()
 
     def session_points(self, channel: str) -> dict[str, float]:
         """Counts captured in this session for ``channel``, by pair."""
@@ -569,7 +572,7 @@ class CalibrationRoutine:
         if why:
             return self._refuse(step, why, bar, pair, mode)
         points = self._points.setdefault(step.channel, {})
-        points[step.pair] = _Point(q, std_m)
+        points[step.pair] = _Point(q, std_m, int(window.counts.shape[0]))
         self._order.setdefault(step.channel, [])
         if step.pair in self._order[step.channel]:
             self._order[step.channel].remove(step.pair)
@@ -606,6 +609,14 @@ class CalibrationRoutine:
         quality = bar_quality(new_bar, self.device.encoder_resolution_m, noise)
         quality['captured'] = when
         cal = self._merged(channel, new_bar, when, quality)
+        # what the session's captures measured about their own points (read noise, from the
+        # dither of the still readings): msg_docs/frames.md
+        res = self.device.encoder_resolution_m
+        self._captures += [CaptureStats(channel, p, '', v.count, (v.std_m / res) ** 2 * v.samples
+                                        / max(v.samples - 1, 1), v.samples)
+                           for p, v in points.items() if v.samples > 1]
+        cal = replace(cal, uncertainty=capture_uncertainty(
+            self.device, self._captures, {c: b.cdf() for c, b in cal.bars.items()}))
         last_pair = self._order[channel][-1]
         zero_text = ''
         if channel in self._resting:
@@ -657,7 +668,8 @@ class CalibrationRoutine:
         zero = dict(old.thermal_zero_m) if old is not None else {}
         return Calibration(device=self.device.name, bars=bars, thermal_zero_m=zero,
                            ambient_c=old.ambient_c if old is not None else None, created=when,
-                           valid=not pending, quality=q)
+                           valid=not pending, quality=q,
+                           uncertainty=old.uncertainty if old is not None else CalibrationUncertainty())
 
     def _with_zero(self, cal: Calibration, channel: str, q: float, when: str,
                    ambient_c: float | None) -> Calibration:

@@ -56,14 +56,22 @@ from scipy.optimize import brentq, minimize
 from mmd_ros.core.errors import ConfigError
 
 __all__ = [
-    'CalibrationUncertainty', 'InterpolationError', 'NoiseEstimator', 'averaged_quantisation_var',
+    'CalibrationUncertainty', 'InterpolationError', 'capture_var', 'NoiseEstimator', 'averaged_quantisation_var',
     'dither_var', 'fit_interpolation_error', 'pose_covariance', 'quantisation_cross_cov',
+    'quantisation_cross_weights',
     'read_noise_from_dither', 'two_sided_figures',
 ]
 
 FloatArray = NDArray[np.float64]
 
-_HARMONICS = np.arange(1, 41, dtype=np.float64)
+_HARMONICS = np.arange(1, 65, dtype=np.float64)
+
+
+def _tail(c: float) -> float:
+    """sum_{k > K} exp(-c k^2) / (2 pi^2 k^2) for the K harmonics summed (an integral bound,
+    exact at c = 0 to 1 / (2 pi^2 K)^2 relative)."""
+    k = float(_HARMONICS[-1])
+    return math.exp(-c * (k + 0.5) ** 2) / (2.0 * math.pi ** 2 * (k + 0.5))
 
 
 # -- quantisation of a dithered reading ----------------------------------------------------------
@@ -72,9 +80,17 @@ def averaged_quantisation_var(resolution_m: float, noise_m: float) -> float:
     the bias of the mean of many quantised readings with Gaussian read noise ``noise_m``."""
     r = float(resolution_m)
     s = max(float(noise_m), 0.0)
-    terms = r * r / (2.0 * math.pi ** 2 * _HARMONICS ** 2) \
-        * np.exp(-4.0 * math.pi ** 2 * _HARMONICS ** 2 * s * s / (r * r))
-    return float(terms.sum())
+    c = 4.0 * math.pi ** 2 * s * s / (r * r)
+    terms = r * r / (2.0 * math.pi ** 2 * _HARMONICS ** 2) * np.exp(-c * _HARMONICS ** 2)
+    return float(terms.sum()) + r * r * _tail(c)
+
+
+def quantisation_cross_weights(resolution_m: float, noise_a_m: float, noise_b_m: float) -> FloatArray:
+    """The weights of the harmonics k = 1.. of :func:`quantisation_cross_cov` [m^2]."""
+    r = float(resolution_m)
+    k = _HARMONICS
+    return r * r / (2.0 * math.pi ** 2 * k ** 2) * np.exp(
+        -2.0 * math.pi ** 2 * k ** 2 * (noise_a_m ** 2 + noise_b_m ** 2) / (r * r))
 
 
 def quantisation_cross_cov(resolution_m: float, noise_a_m: float, noise_b_m: float,
@@ -83,12 +99,20 @@ def quantisation_cross_cov(resolution_m: float, noise_a_m: float, noise_b_m: flo
     two (averaged) readings of x and of x + delta with read noise a and b [m^2]:
     sum_k Delta^2 / (2 pi^2 k^2) exp(-2 pi^2 k^2 (a^2 + b^2) / Delta^2) cos(2 pi k delta / Delta).
     With a = b and delta = 0 it is :func:`averaged_quantisation_var`."""
-    r = float(resolution_m)
     d = np.asarray(delta_m, dtype=np.float64)
-    k = _HARMONICS[:12]
-    w = r * r / (2.0 * math.pi ** 2 * k ** 2) * np.exp(
-        -2.0 * math.pi ** 2 * k ** 2 * (noise_a_m ** 2 + noise_b_m ** 2) / (r * r))
-    return np.cos(2.0 * math.pi * d[..., None] * k / r) @ w
+    w = quantisation_cross_weights(resolution_m, noise_a_m, noise_b_m)
+    return np.cos(2.0 * math.pi * d[..., None] * _HARMONICS / float(resolution_m)) @ w
+
+
+
+
+
+def capture_var(resolution_m: float, noise_m: float, samples: int) -> float:
+    """Variance of one averaged capture of a still value [m^2]: the quantisation bias b^2 left
+    in the mean and the mean's standard error over ``samples`` readings, g(sigma) / N (the
+    readings vary by g, dither and noise together)."""
+    return averaged_quantisation_var(resolution_m, noise_m) + dither_var(resolution_m, noise_m) / max(
+        int(samples), 1)
 
 
 def dither_var(resolution_m: float, noise_m: float) -> float:
@@ -102,7 +126,7 @@ def read_noise_from_dither(resolution_m: float, mean_var_m2: float) -> float:
     """The read noise sigma [m] whose :func:`dither_var` is ``mean_var_m2``: g is 0 at sigma = 0
     and increases, so the inverse is unique (0 for a reading that never toggles)."""
     v = float(mean_var_m2)
-    if not v > 0.0:
+    if not v > dither_var(resolution_m, 0.0):
         return 0.0
     hi = max(math.sqrt(v), float(resolution_m)) * 4.0
     if dither_var(resolution_m, hi) <= v:
@@ -174,6 +198,16 @@ class InterpolationError:
             out[:, b] = (1.0 + (1 - u) ** 2 + u ** 2 - 2 * (1 - u) * rho(x[:, b] - x0)
                          - 2 * u * rho(x1 - x[:, b]) + 2 * u * (1 - u) * rho(x1 - x0))
         return np.maximum(out, 0.0) * self.sigma_m ** 2
+
+    def segment_variance(self, from_start_m: FloatArray, to_end_m: FloatArray,
+                         segment_m: FloatArray, u: FloatArray) -> FloatArray:
+        """V of samples given their distances to the ends of their segment [m] and their
+        fraction u in it, any shape [m^2] (what :meth:`variance` computes, for callers that
+        have the segments already)."""
+        rho = lambda r: _matern52(r, self.length_m)  # noqa: E731
+        v = (1.0 + (1 - u) ** 2 + u ** 2 - 2 * (1 - u) * rho(from_start_m) - 2 * u * rho(to_end_m)
+             + 2 * u * (1 - u) * rho(segment_m))
+        return np.maximum(v, 0.0) * self.sigma_m ** 2
 
     def as_dict(self) -> dict[str, Any]:
         return {'sigma_um': round(self.sigma_m * 1e6, 6), 'length_mm': round(self.length_m * 1e3, 3),
@@ -270,6 +304,7 @@ class NoiseEstimator:
         self._buffer = np.zeros((0, self.columns))
         self.sum_var = np.zeros(self.columns)
         self.windows = np.zeros(self.columns, dtype=np.int64)
+        self._now: FloatArray | None = None
 
     def _invert(self, mean_var: FloatArray) -> FloatArray:
         v = np.asarray(mean_var, dtype=np.float64)
@@ -286,7 +321,9 @@ class NoiseEstimator:
     def sigma_m(self) -> FloatArray:
         """Read noise per column after everything fed so far [m], NaN where too few still
         windows were seen."""
-        return self._estimate(self.sum_var, self.windows.astype(np.float64))
+        if self._now is None:
+            self._now = self._estimate(self.sum_var, self.windows.astype(np.float64))
+        return self._now
 
     def feed(self, values_m: FloatArray) -> FloatArray:
         """Add N consecutive samples, shape (N, columns) [m] (a window with a NaN is skipped).
@@ -297,11 +334,13 @@ class NoiseEstimator:
         """
         v = np.asarray(values_m, dtype=np.float64).reshape(-1, self.columns)
         offset = self._buffer.shape[0]
-        buf = np.concatenate([self._buffer, v]) if offset else v
         w = self.window
+        if offset + v.shape[0] < w:   # the common case of a stream: no window completes
+            self._buffer = np.concatenate([self._buffer, v]) if offset else v.copy()
+            return np.broadcast_to(self.sigma_m(), v.shape)
+        buf = np.concatenate([self._buffer, v]) if offset else v
         full = buf.shape[0] // w
-        before = self.sigma_m()
-        out = np.broadcast_to(before, v.shape).copy()
+        out = np.broadcast_to(self.sigma_m(), v.shape).copy()
         if full:
             blocks = buf[:full * w].reshape(full, w, self.columns)
             finite = np.all(np.isfinite(blocks), axis=1)
@@ -320,6 +359,7 @@ class NoiseEstimator:
             out[has] = est[np.minimum(done[has], full) - 1]
             self.sum_var = cum_var[-1].copy()
             self.windows = cum_n[-1].copy()
+            self._now = None
         self._buffer = buf[full * w:].copy()
         return out
 
@@ -361,7 +401,7 @@ class CalibrationUncertainty:
         two-sided point is the mean of two captures."""
         s = self.read_noise_m or 0.0
         n = max(int(self.capture_samples or 1), 1)
-        one = averaged_quantisation_var(resolution_m, s) + s * s / n + (self.seating_m or 0.0) ** 2
+        one = capture_var(resolution_m, s, n) + (self.seating_m or 0.0) ** 2
         return one / max(self.approaches, 1)
 
     def to_dict(self) -> dict[str, Any]:

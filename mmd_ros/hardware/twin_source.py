@@ -360,5 +360,6 @@ class TwinSource:
                                         bar.distances_m)
         return Calibration(device=cal.device, bars=bars, thermal_zero_m=dict(cal.thermal_zero_m),
                            ambient_c=cal.ambient_c, created=cal.created, valid=True,
+                           uncertainty=cal.uncertainty,
                            quality={'source': f'factory calibration of the digital twin '
                                               f'(seed {self.twin.seed}) at t = {at:.0f} s'})

@@ -183,7 +183,7 @@ class CalibrationStage:
         if self.routine.calibration is None and factory is not None and not self.path.exists():
             cal = factory()
             cal = Calibration(cal.device, cal.bars, cal.thermal_zero_m, cal.ambient_c, now_iso(),
-                              True, cal.quality)
+                              True, cal.quality, uncertainty=cal.uncertainty)
             self._persist(cal)
             self.routine.set_calibration(cal)
             self.log.info(f'simulation: factory calibration of the twin written to {self.path}')
