@@ -293,3 +293,20 @@ def test_mmd_process_json_reports_the_coverage(tmp_path, capsys):
     for row in report['per_component']:
         assert 0.5 < row['ratio'] < 3.0 and math.isfinite(row['observed_sigma'])
     assert 0.8 < report['ellipsoid_coverage'] <= 1.0
+
+
+def test_the_streaming_sum_is_the_sum_of_the_sources(realistic):
+    """Sigma_d as the nodes add it up for every transfer equals the sources listed one by one
+    (random ones plus b b^T of the known errors)."""
+    _, _, calibration, run = realistic
+    pipeline = Pipeline(DEVICE, calibration)
+    res = pipeline.process(run.times_s, run.counts)
+    comp, th = res.compensated, res.compensated.thermal
+    budget = LengthBudget(DEVICE, calibration, Model())
+    observed = budget.observe(comp.cdf_lengths_m, th.reference_error_m)
+    args = (comp.lengths_m, th.reference_error_m, th.temp_change_c, th.bar_error_m, None, observed)
+    assert np.any(observed.directions != 0)
+    cov, bias = budget.sources(*args)
+    b = sum(bias.values())
+    expected = sum(cov.values()) + b[:, :, None] * b[:, None, :]
+    np.testing.assert_allclose(budget.covariance(*args), expected, rtol=1e-9, atol=1e-30)

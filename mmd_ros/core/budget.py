@@ -226,6 +226,8 @@ class LengthBudget:
         self._has_mean_terms = bool(np.any(self.mean_terms_m2))
         self._has_residual = bool(np.any(self.residual_m2))
         self._cross_key: tuple[float, ...] | None = None
+        self._tab: dict[str, FloatArray] | None = None
+        self._fast_parts: dict[str, Any] | None = None
         self._cross_w: FloatArray = np.zeros((0, 0))
 
     def reset(self) -> None:
@@ -306,19 +308,23 @@ class LengthBudget:
                 frac = (x - lo) / (hi - lo)
                 t.weights = np.stack([1.0 - frac, frac], axis=2)
                 t.weight_var = ref_var[:, [0, -1]]
-        # hat functions of Eq. (10)
-        k = self.knots_m
+        # what depends on a bar's length only, through the hat functions of Eq. (10):
+        # tabulated once per bar on a fine grid, read by linear interpolation
+        tables = self._tables()
+        pos = (x - self._grid_lo) / self._grid_step
+        i0 = np.clip(pos.astype(np.intp), 0, self._grid_n - 2)
+        f = pos - i0
         rows = np.arange(6)[None, :]
-        seg = np.clip(np.sum(x[:, :, None] >= k[None], axis=2) - 1, 0, k.shape[1] - 2)
-        x0, x1 = k[rows, seg], k[rows, seg + 1]
-        u = (x - x0) / (x1 - x0)
-        kept = self._kept('calibration_points')
-        if kept:
-            t.diag['calibration_points'] = kept * self.point_var_m2 * ((1.0 - u) ** 2 + u ** 2)
-        if self._has_drift and self._kept('calibration_drift'):
-            e = self.drift_m[rows, seg] * (1.0 - u) + self.drift_m[rows, seg + 1] * u
-            t.bias['calibration_drift'] = math.sqrt(self._kept('calibration_drift')) * e
+        for name, tab in tables.items():
+            value = tab[rows, i0] * (1.0 - f) + tab[rows, i0 + 1] * f
+            if name == 'calibration_drift':
+                t.bias[name] = value
+            else:
+                t.diag[name] = value
         if self._has_pairs and self._kept('reference_distances'):
+            k = self.knots_m
+            seg = np.clip(np.sum(x[:, :, None] >= k[None], axis=2) - 1, 0, k.shape[1] - 2)
+            u = (x - k[rows, seg]) / (k[rows, seg + 1] - k[rows, seg])
             h = np.zeros((n, 6, self.pair_var_m2.size))
             pj0, pj1 = self.pair_index[rows, seg], self.pair_index[rows, seg + 1]
             nn = np.arange(n)[:, None]
@@ -328,9 +334,6 @@ class LengthBudget:
                 'nip,p,njp->nij', h, self.pair_var_m2, h)
         if self.scale_error:
             t.bias['plate_expansion'] = self.scale_error * x
-        if self.interpolation.sigma_m > 0 and self._kept('interpolation'):
-            t.diag['interpolation'] = self._kept('interpolation') * self.interpolation.segment_variance(
-                x - x0, x1 - x, x1 - x0, u)
         if self.thermal_mode == 'single':
             t.bias['thermal_approximation'] = -(x - self.ref_distances_m[0]) * self.scale_cte \
                 * np.asarray(temp_change_c)[:, None]
@@ -348,6 +351,35 @@ class LengthBudget:
         if self._has_residual:
             t.constant['residual'] = self.residual_m2
         return t
+
+    def _tables(self) -> dict[str, FloatArray]:
+        """Per bar, on a grid of lengths (G,) over the calibrated span and 10 mm beyond: the
+        calibration points' and the interpolation's variance and the routine drift's error,
+        (6, G) each, as the fit keeps them."""
+        if self._tab is not None:
+            return self._tab
+        k = self.knots_m
+        lo, hi = float(k.min()) - 0.01, float(k.max()) + 0.01
+        self._grid_n = 8192
+        self._grid_lo = lo
+        self._grid_step = (hi - lo) / (self._grid_n - 1)
+        grid = np.linspace(lo, hi, self._grid_n)
+        x = np.repeat(grid[:, None], 6, axis=1)
+        rows = np.arange(6)[None, :]
+        seg = np.clip(np.sum(x[:, :, None] >= k[None], axis=2) - 1, 0, k.shape[1] - 2)
+        u = (x - k[rows, seg]) / (k[rows, seg + 1] - k[rows, seg])
+        tab: dict[str, FloatArray] = {}
+        if self._kept('calibration_points'):
+            tab['calibration_points'] = (self._kept('calibration_points') * self.point_var_m2
+                                         * ((1.0 - u) ** 2 + u ** 2)).T
+        if self._has_drift and self._kept('calibration_drift'):
+            e = self.drift_m[rows, seg] * (1.0 - u) + self.drift_m[rows, seg + 1] * u
+            tab['calibration_drift'] = (math.sqrt(self._kept('calibration_drift')) * e).T
+        if self.interpolation.sigma_m > 0 and self._kept('interpolation'):
+            tab['interpolation'] = (self._kept('interpolation')
+                                    * self.interpolation.variance(x, k)).T
+        self._tab = {name: np.ascontiguousarray(v) for name, v in tab.items()}
+        return self._tab
 
     def _cross(self, noise_ref_m: FloatArray, eps: FloatArray) -> FloatArray:
         """quantisation_cross_cov of each reference bar's live reading and its zero at the
@@ -413,17 +445,80 @@ class LengthBudget:
                    fit_columns_m: FloatArray | None = None,
                    observed: Observed | None = None) -> FloatArray:
         """Sigma_d of N samples, (N, 6, 6) [m^2]: the random sources' covariances plus b b^T
-        of the sum b of the known errors (:meth:`sources`)."""
-        t = self._terms(lengths_m, reference_error_m, temp_change_c, bar_error_m, fit_columns_m,
-                        observed)
-        n = np.asarray(lengths_m).shape[0]
+        of the sum b of the known errors (what :meth:`sources` lists, added up in as few array
+        operations as the streaming nodes can afford for every transfer)."""
+        x = np.asarray(lengths_m, dtype=np.float64)
+        n = x.shape[0]
+        if self._has_pairs and self._kept('reference_distances') or self.thermal_mode == 'interpolate':
+            return self._covariance_by_sources(x, reference_error_m, temp_change_c, bar_error_m,
+                                               fit_columns_m, observed)
+        eps = np.asarray(reference_error_m, dtype=np.float64).reshape(n, -1)
+        noise = (np.broadcast_to(self.read_noise_m(), (n, self.noise.columns))
+                 if observed is None else observed.read_noise_m)
+        fast = self._fast()
+        pos = (x - self._grid_lo) * (1.0 / self._grid_step)
+        i0 = np.clip(pos.astype(np.intp), 0, self._grid_n - 2)
+        f = pos - i0
+        g = 1.0 - f
+        rows = fast['rows']
+        diag = fast['q12'] + noise[:, :6] ** 2
+        if fast['diag'] is not None:
+            tab = fast['diag']
+            diag += tab[rows, i0] * g + tab[rows, i0 + 1] * f
+        bias = self.scale_error * x if self.scale_error else np.zeros((n, 6))
+        if fast['drift'] is not None:
+            tab = fast['drift']
+            bias += tab[rows, i0] * g + tab[rows, i0 + 1] * f
+        if self.thermal_mode == 'single':
+            bias -= (x - self.ref_distances_m[0]) * (self.scale_cte * np.asarray(temp_change_c))[:, None]
+            if self.mismatch_fraction:
+                diag += (self.mismatch_fraction * eps[:, :1]) ** 2 if bar_error_m is None \
+                    else (self.mismatch_fraction * bar_error_m) ** 2
+        kept = fast['hysteresis']
+        if kept:
+            s_dir = np.zeros((n, 6)) if observed is None else observed.directions
+            bias -= math.sqrt(kept) * self.hysteresis_m * s_dir
+            diag += kept * self.hysteresis_m ** 2 * (1.0 - s_dir * s_dir)
+        total = bias[:, :, None] * bias[:, None, :]
+        total[:, rows[0], rows[0]] += diag
+        if self.thermal_mode == 'single':
+            cross = self._cross(noise[-1, 6:], eps)[:, 0]
+            ref = np.maximum(fast['q12'] + noise[:, 6] ** 2 + self.zero_var_m2 - 2.0 * cross, 0.0)
+            total += ref[:, None, None]
+        if fit_columns_m is not None and fit_columns_m.shape[-1]:
+            total += fit_columns_m @ np.swapaxes(fit_columns_m, 1, 2)
+        elif self._has_mean_terms:
+            total += self.mean_terms_m2
+        if self._has_residual:
+            total += self.residual_m2
+        return total
+
+    def _fast(self) -> dict[str, Any]:
+        """What :meth:`covariance` reads for every call, made once."""
+        if self._fast_parts is None:
+            tables = self._tables()
+            diag = [tables[k] for k in ('calibration_points', 'interpolation') if k in tables]
+            self._fast_parts = {
+                'rows': np.arange(6)[None, :],
+                'q12': self.resolution_m ** 2 / 12.0,
+                'diag': np.ascontiguousarray(sum(diag)) if diag else None,
+                'drift': tables.get('calibration_drift'),
+                'hysteresis': self._kept('hysteresis') if self._has_hysteresis else 0.0,
+            }
+        return self._fast_parts
+
+    def _covariance_by_sources(self, x: FloatArray, reference_error_m: FloatArray,
+                               temp_change_c: FloatArray, bar_error_m: FloatArray | None,
+                               fit_columns_m: FloatArray | None, observed: Observed | None
+                               ) -> FloatArray:
+        t = self._terms(x, reference_error_m, temp_change_c, bar_error_m, fit_columns_m, observed)
+        n = x.shape[0]
         total = np.zeros((n, 6, 6))
         idx = np.arange(6)
         total[:, idx, idx] = sum(t.diag.values())
-        if t.common is not None:
-            total += t.common[:, None, None]
-        elif t.weights is not None:
-            total += np.einsum('nik,nk,njk->nij', t.weights, t.weight_var, t.weights)
+        ref = t.reference(n)
+        if ref is not None:
+            total += ref
         for m in t.full.values():
             total += m
         for m in t.constant.values():
