@@ -218,7 +218,6 @@ class LengthBudget:
         self.systematic_scale = fit.systematic_scale if fit is not None else 1.0
         self.residual_m2 = fit.residual_m2 if fit is not None else np.zeros((6, 6))
         self.mean_terms_m2 = fit.mean_terms_m2 if fit is not None else np.zeros((6, 6))
-        self.has_fit_terms = bool(fit is not None and fit.directions)
         # what the per-sample path needs, decided once
         self._has_drift = bool(np.any(self.drift_m))
         self._has_pairs = bool(np.any(self.pair_var_m2 > 0))

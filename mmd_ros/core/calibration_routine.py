@@ -32,6 +32,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from datetime import datetime, timezone
 from typing import Any
 
 import numpy as np
@@ -53,7 +54,7 @@ __all__ = [
 
 FloatArray = NDArray[np.float64]
 
-KINDS = ('calibrate', 'thermal_zero', 're_reference')
+KINDS = ('calibrate', 'thermal_zero', 're_reference', 'drift')
 MODES = ('auto', 'full', 're_reference')
 #: How a bar is seated on a pair: from shorter (its guide lengthens into the sockets: friction
 #: state +1) or from longer (-1); '' when the routine does not say.
@@ -183,6 +184,11 @@ class RoutineSettings:
         off by at least the 16 mm between two pairs
     thermal_mode : the model's thermal mode, used to re-reference measuring bars
     re_reference_pair : pair on which measuring bars are re-referenced; None: the middle one
+    approaches : 1 — each bar once on each pair (the paper's routine); 2 — each bar on each
+        pair twice, seated from shorter and from longer (the point is the mean: the friction
+        state cancels, and half the difference and its scatter measure the bar's friction
+        hysteresis and the seating repeatability), and first a reference bar on its resting
+        pair (with its thermal zero at the end: the temperature drift over the routine)
     """
 
     settle_std_m: float = 0.25e-6
@@ -191,6 +197,7 @@ class RoutineSettings:
     plausibility_m: float = 0.2e-3
     thermal_mode: str = 'auto'
     re_reference_pair: str | None = None
+    approaches: int = 1
 
     def __post_init__(self) -> None:
         for name in ('settle_std_m', 'settle_drift_m', 'plausibility_m'):
@@ -199,6 +206,8 @@ class RoutineSettings:
                 raise CalibrationError(f'{name} must be > 0, got {value}')
         if self.min_samples < 2:
             raise CalibrationError(f'min_samples must be >= 2, got {self.min_samples}')
+        if self.approaches not in (1, 2):
+            raise CalibrationError(f'approaches must be 1 or 2, got {self.approaches!r}')
 
 
 @dataclass(frozen=True)
@@ -206,19 +215,27 @@ class Step:
     """One placement: put ``channel`` (a bar) on reference ``pair``.
 
     kind : 'calibrate' (a calibration point), 'thermal_zero' (a reference bar back on its
-        resting pair to set Eq. 11's zero) or 're_reference' (one point restores the count offset)
+        resting pair to set Eq. 11's zero), 're_reference' (one point restores the count offset)
+        or 'drift' (a reference bar on its resting pair before the measuring bars)
+    approach : 'short' (seat it from shorter: the bar lengthens into the sockets), 'long' (from
+        longer) or '' (as it comes)
     """
 
     kind: str
     channel: str
     pair: str
+    approach: str = ''
 
     def describe(self, device: DeviceDescription) -> str:
         p = device.pair(self.pair)
         what = {'calibrate': '', 'thermal_zero': ' to set the thermal zero (Eq. 11)',
-                're_reference': ' to re-reference it'}[self.kind]
+                're_reference': ' to re-reference it',
+                'drift': ' to read the temperature before the measuring bars (it comes off '
+                         'again)'}[self.kind]
+        how = {'': '', 'short': ' from short (push it in, let it lengthen into the sockets)',
+               'long': ' from long (pull it out, let it shorten into the sockets)'}[self.approach]
         return (f'place {self.channel} on {self.pair} (sockets {p.sockets[0]}-{p.sockets[1]}, '
-                f'{p.distance_m / M_PER_MM:.4f} mm){what}')
+                f'{p.distance_m / M_PER_MM:.4f} mm){how}{what}')
 
 
 @dataclass(frozen=True)
@@ -263,9 +280,18 @@ class CaptureResult:
 
 @dataclass
 class _Point:
-    count: float
-    std_m: float
-    samples: int = 0
+    """A pair's capture(s) of one bar: per approach ('' , 'short', 'long') the mean count, the
+    counts' standard deviation [m], the samples and the time [s] (NaN unknown)."""
+
+    captures: dict[str, tuple[float, float, int, float]]
+
+    @property
+    def count(self) -> float:
+        return float(np.mean([c[0] for c in self.captures.values()]))
+
+    @property
+    def std_m(self) -> float:
+        return max(c[1] for c in self.captures.values())
 
 
 def bar_quality(bar: BarCalibration, resolution_m: float, noise_m: float | None = None
@@ -289,6 +315,17 @@ def bar_quality(bar: BarCalibration, resolution_m: float, noise_m: float | None 
     if noise_m is not None:
         out['noise_um'] = round(noise_m / M_PER_UM, 4)
     return out
+
+
+def _seconds(when: str) -> float:
+    """An ISO 8601 time as seconds since the epoch, NaN when it is not one."""
+    try:
+        stamp = datetime.fromisoformat(when)
+    except (TypeError, ValueError):
+        return math.nan
+    if stamp.tzinfo is None:
+        stamp = stamp.replace(tzinfo=timezone.utc)
+    return stamp.timestamp()
 
 
 class CalibrationRoutine:
@@ -319,6 +356,8 @@ class CalibrationRoutine:
         self._completed: set[str] = set()
         self._needs_zero: set[str] = set()
         self._captures: list[CaptureStats] = []
+        self._drift: CaptureStats | None = None
+        self._last_approach: dict[str, str] = {}
         self.calibration: Calibration | None = None
         self.pending: list[str] = []
         self.set_calibration(calibration)
@@ -347,6 +386,7 @@ class CalibrationRoutine:
         self._completed.clear()
         self._needs_zero.clear()
         self._captures.clear()
+        self._drift = None
 
     def session_points(self, channel: str) -> dict[str, float]:
         """Counts captured in this session for ``channel``, by pair."""
@@ -454,13 +494,23 @@ class CalibrationRoutine:
             channel = next((c for c in self.bar_channels if c not in self._completed), None)
             if channel is None:
                 return None
+            if self.settings.approaches == 2 and self._drift is None and self.references \
+                    and not self._completed and not self._points:
+                ref = self.references[0]
+                return Step('drift', ref, self._resting[ref])
         if channel in self._needs_zero and not pair:
             return Step('thermal_zero', channel, self._resting[channel])
         done = self._points.get(channel, {})
+        ways = ('short', 'long') if self.settings.approaches == 2 else ('',)
+
+        def missing(p: str) -> str | None:
+            have = done[p].captures if p in done else {}
+            return next((w for w in ways if w not in have), None)
+
         if pair:
-            return Step('calibrate', channel, pair)
-        remaining = [p for p in self._pairs_of(channel) if p not in done]
-        return Step('calibrate', channel, remaining[0]) if remaining else None
+            return Step('calibrate', channel, pair, missing(pair) or ways[0])
+        remaining = [p for p in self._pairs_of(channel) if missing(p) is not None]
+        return Step('calibrate', channel, remaining[0], missing(remaining[0]) or '') if remaining else None
 
     def _next_re_reference(self, bar: str, pair: str) -> Step | None:
         if bar:
@@ -568,20 +618,40 @@ class CalibrationRoutine:
             return self._re_reference(step, q, window, when, bar, pair, mode)
         if step.kind == 'thermal_zero':
             return self._thermal_zero(step, q, when, ambient_c, bar, pair, mode)
+        n = int(window.counts.shape[0])
+        res = self.device.encoder_resolution_m
+        if step.kind == 'drift':
+            if step.channel not in self._resting or step.pair != self._resting[step.channel]:
+                return self._refuse(step, f'the drift reading is taken with a reference bar on its '
+                                    'resting pair', bar, pair, mode)
+            self._drift = CaptureStats(step.channel, step.pair, '', q, (std_m / res) ** 2,
+                                       n, _seconds(when), 'drift')
+            nxt = self.next_step(bar, '', mode)
+            return CaptureResult(True, f'read {step.channel} on {step.pair} before the measuring '
+                                 f'bars: {q:.1f} counts (the routine\'s temperature drift is '
+                                 'its change until the thermal zero).'
+                                 + (f' Next: {nxt.describe(self.device)}.' if nxt else ''),
+                                 step, next_step=nxt)
         why = self._plausible(step.channel, step.pair, q)
         if why:
             return self._refuse(step, why, bar, pair, mode)
         points = self._points.setdefault(step.channel, {})
-        points[step.pair] = _Point(q, std_m, int(window.counts.shape[0]))
+        point = points.setdefault(step.pair, _Point({}))
+        point.captures[step.approach] = (q, std_m, n, _seconds(when))
+        self._last_approach[step.channel] = step.approach
         self._order.setdefault(step.channel, [])
         if step.pair in self._order[step.channel]:
             self._order[step.channel].remove(step.pair)
         self._order[step.channel].append(step.pair)
         d = self.device.pair(step.pair)
-        head = (f'captured {step.channel} on {step.pair} ({d.distance_m / M_PER_MM:.4f} mm): '
+        ways = 2 if self.settings.approaches == 2 else 1
+        full = sum(len(v.captures) >= ways for v in points.values())
+        head = (f'captured {step.channel} on {step.pair}'
+                + (f' from {step.approach}' if step.approach else '')
+                + f' ({d.distance_m / M_PER_MM:.4f} mm): '
                 f'{q:.1f} counts, noise {std_m / M_PER_UM:.3f} µm over {window.duration_s:.2f} s '
-                f'({len(points)} of {len(self.pair_names)} points)')
-        if len(points) < len(self.pair_names):
+                f'({full} of {len(self.pair_names)} points)')
+        if full < len(self.pair_names):
             nxt = self.next_step(bar, '', mode)
             tail = f' Next: {nxt.describe(self.device)}.' if nxt else ''
             return CaptureResult(True, head + '.' + tail, step, next_step=nxt)
@@ -612,16 +682,19 @@ class CalibrationRoutine:
         # what the session's captures measured about their own points (read noise, from the
         # dither of the still readings): msg_docs/frames.md
         res = self.device.encoder_resolution_m
-        self._captures += [CaptureStats(channel, p, '', v.count, (v.std_m / res) ** 2 * v.samples
-                                        / max(v.samples - 1, 1), v.samples)
-                           for p, v in points.items() if v.samples > 1]
+        self._captures += [CaptureStats(channel, p, way, c[0], (c[1] / res) ** 2 * c[2]
+                                        / max(c[2] - 1, 1), c[2], c[3])
+                           for p, v in points.items() for way, c in v.captures.items() if c[2] > 1]
+        drift = [self._drift] if self._drift is not None else []
         cal = replace(cal, uncertainty=capture_uncertainty(
-            self.device, self._captures, {c: b.cdf() for c, b in cal.bars.items()}))
+            self.device, self._captures + drift, {c: b.cdf() for c, b in cal.bars.items()}))
         last_pair = self._order[channel][-1]
         zero_text = ''
         if channel in self._resting:
             if last_pair == self._resting[channel]:
-                cal = self._with_zero(cal, channel, points[last_pair].count, when, ambient_c)
+                # the bar stays as it was seated last: its zero is that capture's reading
+                last = points[last_pair].captures[self._last_approach.get(channel, '')]
+                cal = self._with_zero(cal, channel, last[0], when, ambient_c)
                 self._needs_zero.discard(channel)
                 zero_text = (f' It rests on {last_pair}: thermal zero set there (Eq. 11), '
                              f'{cal.thermal_zero_m[channel] / M_PER_UM:+.3f} µm.')

@@ -9,27 +9,32 @@ d / s). The sources, their formulas and where their numbers come from are docume
 h_j(d) the hat functions of Eq. (10) — weights 1 - u and u of the two calibration points around
 d):
 
-================================  =================================================  ===========
-source                            variance                                            shared
-================================  =================================================  ===========
-``quantisation``                  Delta^2 / 12                                        no
-``read_noise``                    sigma_n,i^2 (from the stream, else calibration)     no
-``reference_bar``                 Delta^2/12 + sigma_n,ref^2 + u_zero^2 (Eq. 13:      all bars
-                                  every bar minus the same eps)
-``calibration_points``            sum_j h_j(d_i)^2 u_ij^2                             no
-``reference_distances``           sum_j h_j(d_i) h_j(d_k) u_dr,j^2 (Table 2, CMM)      yes
-``interpolation``                 V_i(d_i): variance of e - L, e a smooth random      no
-                                  scale error fitted to the points, L its Eq. (10)
-                                  interpolant (zero at the points)
-``thermal_approximation``         a a^T, a_i = (d_i - d_ref) alpha_scale dT           yes
-                                  (the Eq. 12 term Eq. 13 drops)
-``thermal_mismatch``              (f eps_i)^2 (bars' thermal behaviour, section 4.1)  no
-``hysteresis``                    h_i^2 (friction, measured by the two-sided          no
-                                  calibration; off when the model compensates it)
-``fitted_terms``                  sum_k c_k c_k^T, c_k one sigma of the fitted        yes
-                                  correction along a principal direction
-``residual``                      what ``mmd analyze`` left, per bar (6 x 6)          yes
-================================  =================================================  ===========
+=========================  ==========================================================  ========
+source                     contribution to Sigma_d                                     shared
+=========================  ==========================================================  ========
+``quantisation``           Delta^2 / 12                                                no
+``read_noise``             sigma_n,i^2 (from the stream, else the calibration)         no
+``reference_bar``          Delta^2/12 + sigma_n,ref^2 + u_zero^2 - 2 C(eps) (Eq. 13:   all bars
+                           every bar minus the same eps)
+``calibration_points``     u_p^2 ((1 - u)^2 + u^2)                                     no
+``calibration_drift``      known error (1 - u) beta_j + u beta_j+1 (the routine's      yes
+                           temperature drift, measured by the reference bar)
+``reference_distances``    sum_j h_j(d_i) h_j(d_k) u_dr,j^2 (Table 2, CMM)              yes
+``plate_expansion``        known error -alpha_refplate (T_cal - 20 °C) d_i             yes
+``interpolation``          V_i(d_i): variance of e - L, e a smooth random scale       no
+                           error fitted to the points, L its Eq. (10) interpolant
+``thermal_approximation``  known error -alpha_scale (d_i - d_ref) dT (the Eq. 12       yes
+                           term Eq. 13 drops)
+``thermal_mismatch``       (f eps_i)^2 (bars' thermal behaviour, section 4.1)          no
+``hysteresis``             known error -h_i s_i(t) (friction, measured by the          yes
+                           two-sided calibration; off when the model compensates it)
+``fitted_terms``           sum_k c_k c_k^T, c_k one sigma of the fitted correction     yes
+                           along a principal direction
+``residual``               what ``mmd analyze`` left, per bar (6 x 6)                  yes
+=========================  ==========================================================  ========
+
+The known errors (their size and sign follow from what the device measured, but the paper's
+compensation does not correct them) are added up into one vector b, which enters as b b^T.
 
 The quantisation of an *averaged* reading (a calibration point, the thermal zero) is not
 Delta^2 / 12 / N: with read noise small against a count the average keeps a bias that depends on
@@ -198,16 +203,6 @@ class InterpolationError:
             out[:, b] = (1.0 + (1 - u) ** 2 + u ** 2 - 2 * (1 - u) * rho(x[:, b] - x0)
                          - 2 * u * rho(x1 - x[:, b]) + 2 * u * (1 - u) * rho(x1 - x0))
         return np.maximum(out, 0.0) * self.sigma_m ** 2
-
-    def segment_variance(self, from_start_m: FloatArray, to_end_m: FloatArray,
-                         segment_m: FloatArray, u: FloatArray) -> FloatArray:
-        """V of samples given their distances to the ends of their segment [m] and their
-        fraction u in it, any shape [m^2] (what :meth:`variance` computes, for callers that
-        have the segments already)."""
-        rho = lambda r: _matern52(r, self.length_m)  # noqa: E731
-        v = (1.0 + (1 - u) ** 2 + u ** 2 - 2 * (1 - u) * rho(from_start_m) - 2 * u * rho(to_end_m)
-             + 2 * u * (1 - u) * rho(segment_m))
-        return np.maximum(v, 0.0) * self.sigma_m ** 2
 
     def as_dict(self) -> dict[str, Any]:
         return {'sigma_um': round(self.sigma_m * 1e6, 6), 'length_mm': round(self.length_m * 1e3, 3),
