@@ -30,20 +30,23 @@ from numpy.typing import NDArray
 from mmd_ros.core.calibration import Calibration
 from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.errors import CalibrationError
-from mmd_ros.core.model import HysteresisTerm, Model
+from mmd_ros.core.model import Model
 from mmd_ros.core.thermal import CMM_TEMP_C
 from mmd_ros.core.uncertainty import (
     InterpolationError, NoiseEstimator, capture_var, fit_interpolation_error,
     quantisation_cross_weights,
 )
 
-__all__ = ['DIRECTION_TRAVEL_M', 'LengthBudget', 'Observed', 'SOURCES']
+__all__ = ['DIRECTION_TRAVEL_M', 'FRICTION_TURNOVER_M', 'LengthBudget', 'Observed', 'SOURCES']
 
 FloatArray = NDArray[np.float64]
 
 #: Half-width of the play operator that tells a bar's motion direction for the hysteresis
 #: source: it flips after 2 um of reverse travel [m].
 DIRECTION_TRAVEL_M = 1e-6
+#: Travel after a reversal by which a bar's friction state has turned over (an assumption:
+#: rolling guides turn within a few um; the calibration does not measure it) [m].
+FRICTION_TURNOVER_M = 20e-6
 
 
 @dataclass
@@ -74,8 +77,9 @@ class Observed:
     """What the budget learned from N samples (:meth:`LengthBudget.observe`).
 
     read_noise_m : (N, 6 + k) — read noise in force per column (measuring bars, reference bars)
-    directions : (N, 6) — each bar's motion direction, +1 lengthening, -1 shortening, 0 before
-        its first move (the friction state's sign)
+    directions : (N, 6) — each bar's friction state as far as its motion tells: its direction
+        (+1 lengthening, -1 shortening, 0 before its first move) times how far the state has
+        turned since the last reversal, min(1, travel / FRICTION_TURNOVER_M)
     """
 
     read_noise_m: FloatArray
@@ -83,6 +87,50 @@ class Observed:
 
     def __getitem__(self, index: Any) -> Observed:
         return Observed(self.read_noise_m[index], self.directions[index])
+
+
+class _Friction:
+    """Each bar's direction (a play operator of half-width ``w``) and the travel since its last
+    reversal, carried from call to call."""
+
+    def __init__(self, w: float, turnover: float) -> None:
+        self.w, self.turnover = float(w), float(turnover)
+        self.reset()
+
+    def reset(self) -> None:
+        self._state: list[tuple[float, float, float]] | None = None   # play, direction, flip at
+
+    def __call__(self, x: FloatArray) -> FloatArray:
+        n = x.shape[0]
+        out = np.zeros((n, 6))
+        if n == 0:
+            return out
+        if self._state is None:
+            self._state = [(math.nan, 0.0, math.nan)] * 6
+        w, turn = self.w, self.turnover
+        for bar in range(6):  # a sequential recurrence: plain floats beat numpy rows here
+            p, d, f = self._state[bar]
+            col = x[:, bar].tolist()
+            res = [0.0] * n
+            for k, v in enumerate(col):
+                if v != v:      # NaN: out of range, the state stays
+                    res[k] = d * min(1.0, abs(p - f) / turn) if d else 0.0
+                    continue
+                if p != p:
+                    p = f = v
+                if p < v - w:
+                    p = v - w
+                    if d != 1.0:
+                        d, f = 1.0, p
+                elif p > v + w:
+                    p = v + w
+                    if d != -1.0:
+                        d, f = -1.0, p
+                if d:
+                    res[k] = d * min(1.0, abs(p - f) / turn)
+            out[:, bar] = res
+            self._state[bar] = (p, d, f)
+        return out
 
 #: The budget's sources, in the order reports list them.
 SOURCES = ('quantisation', 'read_noise', 'reference_bar', 'calibration_points',
@@ -211,7 +259,7 @@ class LengthBudget:
         compensated = any(t.type_name == 'hysteresis' for t in model.terms)
         h = np.array([figures.hysteresis_m.get(m, 0.0) for m in measuring])
         self.hysteresis_m = np.zeros(6) if compensated else np.abs(h)
-        self._direction = HysteresisTerm(np.ones(6), DIRECTION_TRAVEL_M)
+        self._direction = _Friction(DIRECTION_TRAVEL_M, FRICTION_TURNOVER_M)
 
         # -- what a fit replaced, and how much of the rest it kept
         self.replaced = set(fit.replaces) if fit is not None else set()
@@ -261,7 +309,7 @@ class LengthBudget:
         eps = np.asarray(reference_error_m, dtype=np.float64).reshape(n, -1)
         k = self.noise.columns - 6
         est = self.noise.feed(np.column_stack([cdf_lengths_m, eps[:, :k]]) if k else cdf_lengths_m)
-        directions = (self._direction.directions(np.asarray(cdf_lengths_m, dtype=np.float64))
+        directions = (self._direction(np.asarray(cdf_lengths_m, dtype=np.float64))
                       if self._has_hysteresis else np.zeros((n, 6)))
         return Observed(self._resolve(est), directions)
 
