@@ -286,13 +286,16 @@ def test_mmd_process_json_reports_the_coverage(tmp_path, capsys):
                                    effects='ideal', reference='pose6'), log, progress=False)
     capsys.readouterr()
     assert main(['process', str(log), '--json']) == 0
-    report = json.loads(capsys.readouterr().out)['uncertainty_coverage']
+    summary = json.loads(capsys.readouterr().out)
+    report = summary['uncertainty_coverage']
     assert report['components'] == ['x', 'y', 'z', 'roll', 'pitch', 'yaw']
     assert not report['offset_removed']                          # the twin's reference is absolute
     assert report['per_component'][3]['reference_sigma'] == pytest.approx(0.1)  # 0.1 arcsec
     for row in report['per_component']:
         assert 0.5 < row['ratio'] < 3.0 and math.isfinite(row['observed_sigma'])
     assert 0.8 < report['ellipsoid_coverage'] <= 1.0
+    budget = json.loads(json.dumps(summary['uncertainty_budget']))
+    assert budget['calibration_point_nm'] > 0 and any('reference plate' in n for n in budget['notes'])
 
 
 def test_the_streaming_sum_is_the_sum_of_the_sources(realistic):

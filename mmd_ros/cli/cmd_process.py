@@ -59,6 +59,8 @@ def run_command(args: argparse.Namespace) -> int:
     if 'uncertainty_coverage' in summary:
         from mmd_ros.core.accuracy import format_coverage
         print(format_coverage(summary['uncertainty_coverage']))
+        for note in summary.get('uncertainty_budget', {}).get('notes', []):
+            print(f'  not in the budget: {note}')
     if 'length_error' in summary:
         from mmd_ros.core.accuracy import ComponentStats
         print(format_stats([ComponentStats(**s) for s in summary['length_error']],

@@ -45,6 +45,7 @@ class ProcessedRun:
     reference_error_m: NDArray[np.float64]
     temp_change_c: NDArray[np.float64]
     covariance: NDArray[np.float64] | None
+    budget: dict[str, Any] | None = None  # the uncertainty budget's numbers and notes
 
 
 def process_run(run: RunLog, model: Model, *, calibration_path: str | None = None,
@@ -74,7 +75,8 @@ def process_run(run: RunLog, model: Model, *, calibration_path: str | None = Non
         cat(lambda p: p.compensated.out_of_range), cat(lambda p: p.iterations),
         cat(lambda p: p.residual_m), cat(lambda p: p.compensated.thermal.reference_error_m),
         cat(lambda p: p.compensated.thermal.temp_change_c),
-        cat(lambda p: p.covariance) if with_covariance else None)
+        cat(lambda p: p.covariance) if with_covariance else None,
+        pipeline.budget.summary() if with_covariance else None)
 
 
 def write_processed(path: Path, run: RunLog, model: Model, result: ProcessedRun,
@@ -161,6 +163,8 @@ def summarize(run: RunLog, result: ProcessedRun, *, absolute_reference: bool | N
                               reference_sigma=ref_sigma)
             if report is not None:
                 summary['uncertainty_coverage'] = report
+    if result.budget is not None:
+        summary['uncertainty_budget'] = result.budget
     if run.reference_lengths is not None:
         stats = error_stats(length_error(result.lengths_m, run.reference_lengths), result.valid,
                             kind='lengths')
