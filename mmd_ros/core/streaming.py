@@ -226,10 +226,11 @@ class KinematicsOut:
         if isinstance(unc, float):
             sigma_d = np.broadcast_to(unc * unc * np.eye(6), (jinv.shape[0], 6, 6))
         else:
+            observed = unc.observe()
             sigma_d = unc.budget.covariance(
                 unc.lengths_m[v], unc.reference_error_m[v], unc.temp_change_c[v],
                 unc.bar_error_m[v], None if unc.fit_columns_m is None else unc.fit_columns_m[v],
-                unc.observed[v])
+                observed[v])
         return pose_covariance(jinv, sigma_d, self.plate_scale[v])
 
     def status_values(self) -> FloatArray:
@@ -268,9 +269,12 @@ class _KinStats:
     period_t0: float = field(default_factory=time.monotonic)
 
 
-@dataclass(frozen=True)
+@dataclass
 class _CovarianceInputs:
-    """What the budget needs of N samples (see :meth:`LengthBudget.covariance`)."""
+    """What the budget needs of N samples (see :meth:`LengthBudget.covariance`). The budget
+    observes them (read noise, motion directions) once, in the order of the transfers: when
+    their covariance is first asked for, or at the latest before the next transfer is solved,
+    so that the poses go out first."""
 
     budget: LengthBudget
     lengths_m: FloatArray
@@ -278,7 +282,13 @@ class _CovarianceInputs:
     temp_change_c: FloatArray
     bar_error_m: FloatArray
     fit_columns_m: FloatArray | None
-    observed: Observed
+    observed: Observed | None = None
+
+    def observe(self) -> Observed:
+        if self.observed is None:
+            self.observed = self.budget.observe(self.lengths_m + self.bar_error_m,
+                                                self.reference_error_m)
+        return self.observed
 
 
 class Kinematics:
@@ -299,6 +309,7 @@ class Kinematics:
                                             and uncertainty else None)
         self.with_covariance = with_covariance
         self.stats = _KinStats()
+        self._last: _CovarianceInputs | None = None
 
     def solve(self, lengths_m: FloatArray, plate_scale: FloatArray,
               reference_error_m: FloatArray | None = None, temp_change_c: FloatArray | None = None,
@@ -315,6 +326,10 @@ class Kinematics:
         fit_columns_m : (N, 6, r) the fitted terms' perturbations, or None (their mean is used)
         """
         plate_scale = np.asarray(plate_scale, dtype=np.float64)
+        if self._last is not None:      # the previous transfer, if its covariance was not asked for
+            if self._last.budget is self.budget:
+                self._last.observe()
+            self._last = None
         poses, converged, iterations, residual, jac = _solve(self.fk, lengths_m, plate_scale)
         in_range = np.isfinite(lengths_m).all(axis=1)
         valid = converged & in_range
@@ -349,6 +364,5 @@ class Kinematics:
                 dt = np.zeros(n) if temp_change_c is None else np.asarray(temp_change_c, dtype=np.float64)
                 if bar_error_m is None:
                     bar_error_m = b.bar_error(lengths_m, eps)
-                observed = b.observe(lengths_m + bar_error_m, eps)
-                unc = _CovarianceInputs(b, lengths_m, eps, dt, bar_error_m, fit_columns_m, observed)
+                unc = self._last = _CovarianceInputs(b, lengths_m, eps, dt, bar_error_m, fit_columns_m)
         return KinematicsOut(poses, valid, converged, iterations, residual, jac, plate_scale, unc)
