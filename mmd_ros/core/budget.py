@@ -275,6 +275,7 @@ class LengthBudget:
         self._cross_key: tuple[float, ...] | None = None
         self._tab: dict[str, FloatArray] | None = None
         self._fast_parts: dict[str, Any] | None = None
+        self._resolved: tuple[FloatArray, FloatArray] | None = None
         self._cross_w: FloatArray = np.zeros((0, 0))
 
     def reset(self) -> None:
@@ -306,9 +307,12 @@ class LengthBudget:
         returns : what :meth:`covariance` needs of these samples
         """
         n = cdf_lengths_m.shape[0]
-        eps = np.asarray(reference_error_m, dtype=np.float64).reshape(n, -1)
         k = self.noise.columns - 6
-        est = self.noise.feed(np.column_stack([cdf_lengths_m, eps[:, :k]]) if k else cdf_lengths_m)
+        values = np.empty((n, 6 + k))
+        values[:, :6] = cdf_lengths_m
+        if k:
+            values[:, 6:] = np.asarray(reference_error_m, dtype=np.float64).reshape(n, -1)[:, :k]
+        est = self.noise.feed(values)
         directions = (self._direction(np.asarray(cdf_lengths_m, dtype=np.float64))
                       if self._has_hysteresis else np.zeros((n, 6)))
         return Observed(self._resolve(est), directions)
@@ -316,6 +320,11 @@ class LengthBudget:
     def _resolve(self, estimate: FloatArray) -> FloatArray:
         if self.fixed_noise_m is not None:
             return np.full(estimate.shape, self.fixed_noise_m)
+        if estimate.strides[0] == 0:     # one estimate for every sample (a stream's transfer)
+            row = estimate[0]
+            if self._resolved is None or self._resolved[0] is not row:
+                self._resolved = (row, np.where(np.isfinite(row), row, self.calibration_noise_m or 0.0))
+            return np.broadcast_to(self._resolved[1], estimate.shape)
         return np.where(np.isfinite(estimate), estimate, self.calibration_noise_m or 0.0)
 
     def read_noise_m(self) -> FloatArray:

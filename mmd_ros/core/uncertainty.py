@@ -296,7 +296,8 @@ class NoiseEstimator:
         self.reset()
 
     def reset(self) -> None:
-        self._buffer = np.zeros((0, self.columns))
+        self._buffer = np.zeros((self.window, self.columns))   # the window being filled
+        self._fill = 0
         self.sum_var = np.zeros(self.columns)
         self.windows = np.zeros(self.columns, dtype=np.int64)
         self._now: FloatArray | None = None
@@ -328,12 +329,13 @@ class NoiseEstimator:
             call gives)
         """
         v = np.asarray(values_m, dtype=np.float64).reshape(-1, self.columns)
-        offset = self._buffer.shape[0]
+        offset = self._fill
         w = self.window
         if offset + v.shape[0] < w:   # the common case of a stream: no window completes
-            self._buffer = np.concatenate([self._buffer, v]) if offset else v.copy()
+            self._buffer[offset:offset + v.shape[0]] = v
+            self._fill = offset + v.shape[0]
             return np.broadcast_to(self.sigma_m(), v.shape)
-        buf = np.concatenate([self._buffer, v]) if offset else v
+        buf = np.concatenate([self._buffer[:offset], v]) if offset else v
         full = buf.shape[0] // w
         out = np.broadcast_to(self.sigma_m(), v.shape).copy()
         if full:
@@ -355,7 +357,9 @@ class NoiseEstimator:
             self.sum_var = cum_var[-1].copy()
             self.windows = cum_n[-1].copy()
             self._now = None
-        self._buffer = buf[full * w:].copy()
+        rest = buf[full * w:]
+        self._buffer[:rest.shape[0]] = rest
+        self._fill = rest.shape[0]
         return out
 
 
