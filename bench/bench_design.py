@@ -16,7 +16,7 @@ import numpy as np
 from mmd_ros.core.device import find_config, load_device
 from mmd_ros.core.units import M_PER_UM
 from mmd_ros.design.error_budget import (
-    PAPER_EQ9_UM, PAPER_POSITIONS_M, PARTS, ErrorBudget, planned_runs, run_study)
+    PAPER_EQ9_UM, PAPER_POSITIONS_M, PARTS, ErrorBudget, eq9_summary, planned_runs, run_study)
 from mmd_ros.design.workspace import WorkspaceLimits, run_workspace_study
 
 
@@ -38,7 +38,8 @@ def main() -> None:
         print(f'error-budget default study, {method:6s}: {timings[method]:6.1f} s for {runs} runs '
               f'of N = 10,000 ({runs * 10_000 / timings[method]:,.0f} samples/s)')
     newton = fits['newton']
-    print('Eq. (9) fitted (newton): ' + ', '.join(f'{c:.3f}' for c in newton.coefficients_um)
+    eq9 = eq9_summary(newton)
+    print('Eq. (9) fitted (newton): ' + ', '.join(eq9['eq9_text'])
           + '   paper: ' + ', '.join(f'{c:.2f}' for c in PAPER_EQ9_UM))
     print(f'surface RMS fitted vs paper: {newton.rms_um(PAPER_EQ9_UM):.4f} µm')
 
@@ -54,7 +55,8 @@ def main() -> None:
         'error_budget_runs': runs,
         'error_budget_samples_per_run': 10_000,
         'under_a_minute': timings['newton'] < 60.0,
-        'eq9_fitted': [round(float(c), 4) for c in newton.coefficients_um],
+        'eq9_fitted': eq9['eq9_fitted'],
+        'eq9_standard_error': eq9['eq9_standard_error'],
         'eq9_rms_vs_paper_um': round(newton.rms_um(PAPER_EQ9_UM), 4),
         'workspace_default_s': t_ws,
         'workspace_statements_hold': [s['holds'] for s in ws.summary()['statements']],

@@ -17,6 +17,7 @@ from mmd_ros.core.units import M_PER_MM, M_PER_UM
 from mmd_ros.design import (
     PAPER_EQ9_UM, PAPER_POSITIONS_M, READINGS, DesignError, ErrorBudget, TopEdgeCylinder, Workspace,
     WorkspaceLimits, fit_eq9, orientation_set, sample_unit_errors, tolerance_frontier)
+from mmd_ros.design.error_budget import format_with_se, round_to_se, se_decimals
 from mmd_ros.design.workspace import _segment_distance
 
 TOP = np.r_[PAPER_POSITIONS_M[0], 0.0, 0.0, 0.0]       # (100, 0, 323) mm, Fig. 3
@@ -192,6 +193,31 @@ def test_fig4_design_bounds_keep_2_um_on_the_top_edge(geometry):
     assert 1.5 < max(a.rotation_rad for a in top) / math.radians(1 / 3600) < 3.0
 
 
+def test_eq9_standard_errors_match_the_spread_over_independent_seeds(geometry):
+    # 40 independent Monte Carlo studies (N = 400 per run, 5 x 5 grid, first-order model):
+    # the jackknife standard error each reports must match the scatter of the coefficients
+    # between them. A wrong SE (e.g. batch means not divided by sqrt(G)) is off by 4x.
+    eps = np.linspace(0.0, 1.0, 5) * M_PER_UM
+    coef, se = [], []
+    for seed in range(40):
+        sf = ErrorBudget(geometry, samples=400, seed=1000 + seed, method='linear').surface(TOP, eps, eps)
+        coef.append(sf.coefficients_um)
+        se.append(sf.coefficients_se_um)
+    coef, se = np.array(coef), np.array(se)
+    ratio = coef.std(axis=0, ddof=1) / np.sqrt(np.mean(se ** 2, axis=0))
+    assert np.all((ratio > 0.7) & (ratio < 1.4)), ratio
+    z = (coef - coef.mean(axis=0)) / se
+    assert 0.75 < np.sum(z ** 2) / (6 * 39) < 1.3
+
+
+def test_values_are_rounded_to_their_standard_error():
+    assert format_with_se(1.66712, 0.0083) == '1.667 ± 0.008'
+    assert format_with_se(1.66712, 0.014) == '1.667 ± 0.014'
+    assert format_with_se(-1.2079, 0.041) == '-1.21 ± 0.04'
+    assert round_to_se(0.10634, 0.0031) == (0.106, 0.003)
+    assert se_decimals(0.25) == 2 and se_decimals(4.0) == 0
+
+
 # -- workspace statements ----------------------------------------------------------------------
 def test_workspace_statements(device, geometry):
     limits = WorkspaceLimits.from_device(device)
@@ -210,6 +236,93 @@ def test_workspace_statements(device, geometry):
     assert not twelve.sphere_inside((0, 0, 0.3), 0.025, directions=100)
     nine = base.with_orientations(orientation_set(math.radians(9)))
     assert nine.sphere_inside((0, 0, 0.3), 0.025, directions=100)
+
+
+# Table 1, design joints: a_i (upper) and b_i (lower), x and y [mm]; z = 0 on both plates.
+_UPPER_XY = np.array([[98.4808, -17.3648], [98.4808, 17.3648], [-34.2020, 93.9693],
+                      [-64.2788, 76.6044], [-64.2788, -76.6044], [-34.2020, -93.9693]])
+_LOWER_XY = np.array([[89.9903, -107.2462], [89.9903, 107.2462], [47.8828, 131.5570],
+                      [-137.8731, 24.3107], [-137.8731, -24.3107], [47.8828, -131.5570]])
+
+
+def _hand_extreme(axis: int, sign: float, *, d_max=376.0, d_min=250.0, tilt_deg=90.0) -> float:
+    """The extreme of x (axis 0) or y (1) over the zero-rotation workspace [mm], by plain
+    arithmetic on Table 1. At zero rotation a bar's leg is t + a_i - b_i and its tilt is the
+    same angle at both plates. Fix the other horizontal coordinate u and the height z: bar i
+    then bounds the coordinate w along the axis through its leg component l = w + a_i - b_i by
+    |l| <= sqrt(d_max^2 - p^2 - z^2) (bar length) and |l| <= sqrt((z tan tilt)^2 - p^2) (tilt),
+    p the leg's other horizontal component. The extreme over all bars at (u, z) is the
+    tightest of them, kept where the shortest bar is still >= d_min; then (u, z) is scanned on a
+    1 mm grid and refined twice (0.01 mm, 0.1 µm) around the best."""
+    other = 1 - axis
+    a_w, b_w = _UPPER_XY[:, axis], _LOWER_XY[:, axis]
+    a_u, b_u = _UPPER_XY[:, other], _LOWER_XY[:, other]
+    tan = math.tan(math.radians(tilt_deg)) if tilt_deg < 90 else math.inf
+
+    def extreme_at(u, z):
+        p = u[..., None] + a_u - b_u
+        q = np.broadcast_to(z[..., None], p.shape)
+        room = d_max ** 2 - p ** 2 - q ** 2
+        reach = np.where(room >= 0, np.sqrt(np.abs(room)), -np.inf)
+        if tan < math.inf:
+            cone = (q * tan) ** 2 - p ** 2
+            reach = np.minimum(reach, np.where(cone >= 0, np.sqrt(np.abs(cone)), -np.inf))
+        hi = np.min(b_w - a_w + reach, axis=-1)
+        lo = np.max(b_w - a_w - reach, axis=-1)
+        w = hi if sign > 0 else lo
+        shortest = np.min((w[..., None] + a_w - b_w) ** 2 + p ** 2 + q ** 2, axis=-1)
+        ok = (hi >= lo) & (shortest >= d_min ** 2)
+        return np.where(ok, sign * w, -np.inf)
+
+    best = (0.0, 250.0)
+    for half, step in ((250.0, 1.0), (2.0, 0.01), (0.02, 1e-4)):
+        u = np.arange(best[0] - half, best[0] + half + step / 2, step)
+        z = np.arange(best[1] - half, best[1] + half + step / 2, step)
+        uu, zz = np.meshgrid(u, z, indexing='ij')
+        values = extreme_at(uu, zz)
+        k = np.unravel_index(np.argmax(values), values.shape)
+        best, value = (uu[k], zz[k]), values[k]
+    return sign * float(value)
+
+
+@pytest.mark.parametrize('tilt_deg', [90.0, 38.58])
+def test_xy_extremes_are_exact_and_their_binding_constraints_found_by_easing_each(device, geometry,
+                                                                                tilt_deg):
+    # Separation 0: the hand computation has no bar bodies. tilt 90°: no tilt limit at all.
+    base = WorkspaceLimits.from_device(device)
+    limits = WorkspaceLimits(base.bar_range_m, math.radians(tilt_deg), math.radians(90.0), 0.0)
+    extents = {e.axis: e for e in Workspace(geometry, limits).extents(step_m=6 * M_PER_MM)}
+    for axis, name in ((0, 'x'), (1, 'y')):
+        e = extents[name]
+        for sign, got, binding in ((-1, e.low_m, e.low_binding), (1, e.high_m, e.high_binding)):
+            expected = _hand_extreme(axis, sign, tilt_deg=tilt_deg)
+            # refined to 0.01 mm along the axis (main stopped up to 2 mm short)
+            assert got / M_PER_MM == pytest.approx(expected, abs=0.015), (name, sign)
+            # which constraints bind, by easing each alone in the hand computation too
+            eased_long = _hand_extreme(axis, sign, tilt_deg=tilt_deg, d_max=377.0)
+            eased_tilt = _hand_extreme(axis, sign, tilt_deg=min(tilt_deg + 0.5, 90.0))
+            eased_short = _hand_extreme(axis, sign, tilt_deg=tilt_deg, d_min=249.0)
+            hand = {'bar_long': eased_long, 'upper_tilt': eased_tilt, 'bar_short': eased_short}
+            by_hand = {n for n, v in hand.items() if sign * (v - expected) > 0.05}
+            assert set(binding) == by_hand, (name, sign, binding, hand)
+    if tilt_deg == 90.0:
+        # the bar range alone: 506.66 x 438.78 mm (main: 504.5 x 435.8)
+        assert extents['x'].range_m / M_PER_MM == pytest.approx(506.66, abs=0.02)
+        assert extents['y'].range_m / M_PER_MM == pytest.approx(438.78, abs=0.02)
+    else:
+        # at both x extremes the longest bar and the upper tilt limit bind together
+        assert extents['x'].high_binding == ('bar_long', 'upper_tilt')
+
+
+def test_the_cylinder_does_not_grow_when_a_tilt_limit_is_eased(device, geometry):
+    limits = WorkspaceLimits.from_device(device)
+    height = {}
+    for name, lim in (('as is', limits), ('upper tilt +5°', limits.relaxed('upper_tilt', math.radians(5))),
+                      ('longest bar +1 mm', limits.relaxed('bar_long'))):
+        ws = Workspace(geometry, lim)
+        height[name] = ws.tallest_cylinder(0.200, ws.disc_profile(), binding=False).height_m / M_PER_MM
+    assert height['upper tilt +5°'] == pytest.approx(height['as is'], abs=0.02)
+    assert height['longest bar +1 mm'] > height['as is'] + 0.5
 
 
 def test_most_violated_marks_inside_and_outside(device, geometry):
@@ -235,6 +348,11 @@ def test_error_budget_command_prints_json(capsys):
     assert args.func(args) == 0
     out = json.loads(capsys.readouterr().out)
     assert out['reading'] == 'onesided-max' and len(out['fig3']['eq9_fitted']) == 6
+    # every coefficient comes with its standard error and is rounded to it
+    for value, se, text in zip(out['fig3']['eq9_fitted'], out['fig3']['eq9_standard_error'],
+                               out['fig3']['eq9_text']):
+        assert 0 < se < 1 and text == format_with_se(value, se)
+        assert value == round(value, se_decimals(se))
     assert out['fig3']['eq9_paper'] == PAPER_EQ9_UM.tolist()
     assert 0.3 < out['tolerance']['at_design_ratio']['eps_joint_um'] < 0.6
 
@@ -253,6 +371,17 @@ def test_workspace_command_writes_figures(tmp_path, capsys):
     out = json.loads(capsys.readouterr().out)
     verdicts = [s['holds'] for s in out['statements']]
     assert verdicts == [False, False, True, False, False]      # x, y, z, cylinder, sphere
+    # what binds, by easing each constraint alone: at the x extremes the upper tilt limit
+    # (0.5° more moves them about 2.6 mm) and the longest bar (1 mm more, about 0.6 mm)
+    x = out['levels'][0]['ranges']['x']
+    assert x['high_binding'] == ['bar_long', 'upper_tilt'] == x['low_binding']
+    assert x['high_gain_mm']['upper_tilt'] > 1.0 and x['high_gain_mm']['bar_long'] > 0.3
+    assert abs(x['high_gain_mm']['lower_tilt']) < 0.01 and abs(x['high_gain_mm']['separation']) < 0.01
+    assert out['statements'][0]['binding'] == ['bar_long', 'upper_tilt']
+    # the Ø200 mm cylinder is bounded by the bar range at both ends, not by a tilt limit
+    assert out['statements'][3]['tallest_binding'] == ['bar_short', 'bar_long']
+    assert out['statements'][4]['binding'] == ['upper_tilt']          # the sphere at ±12°
+    assert out['binding_test']['relaxation']['upper_tilt'] == 0.5
     assert out['statements'][-1]['largest_rotation_range_deg'] == pytest.approx(10.1, abs=0.3)
     assert len(out['figures']) == 4
     assert all((tmp_path / f.split('/')[-1]).stat().st_size > 1000 for f in out['figures'])

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -128,3 +129,22 @@ def test_mmd_iso230_on_a_simulated_linear_axis(tmp_path, capsys):
     assert 'R+' in text and 'reference' in text
     assert (out / 'iso230.md').is_file() and (out / 'iso230_reference.png').is_file()
     assert main(['iso230-2', str(log), '--axis', 'q']) == 2
+    capsys.readouterr()
+    # progress on stderr, as the other subcommands; --quiet silences it and keeps the report
+    assert main(['iso230-2', str(log)]) == 0
+    assert 'processing' in capsys.readouterr().err
+    assert main(['iso230-2', str(log), '--quiet']) == 0
+    captured = capsys.readouterr()
+    assert captured.err == '' and 'R+' in captured.out
+
+
+def test_s_is_taken_about_the_directional_mean_in_the_code_and_the_doc():
+    # ISO 230-2: s_i↑ = sqrt(sum_j (x_ij↑ - x̄_i↑)² / (n - 1)), about the mean of its own
+    # direction. Here x̄_i↑ = 3, x̄_i↓ = -3, x̄_i = 0: about x̄_i it would be sqrt(46/4).
+    up, down = [[2.0, 3.0, 4.0, 3.0, 3.0]], [[-3.0, -3.0, -2.0, -4.0, -3.0]]
+    r = evaluate([0.0], np.array(up) * UM, np.array(down) * UM)
+    assert r.s_up[0] / UM == pytest.approx(math.sqrt(2 / 4))
+    assert r.s_down[0] / UM == pytest.approx(math.sqrt(2 / 4))
+    doc = (Path(__file__).resolve().parents[1] / 'msg_docs' / 'analysis.md').read_text(encoding='utf-8')
+    row = next(line for line in doc.splitlines() if line.startswith('| s_i↑, s_i↓ |'))
+    assert '(x_ij↑ − x̄_i↑)²' in row and '(x_ij − x̄_i)²' not in row

@@ -4,6 +4,7 @@ reference instrument and their difference (``mmd iso230-2``, the demo)."""
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -26,10 +27,18 @@ INSTRUMENTS = ('mmd', 'reference', 'error')
 
 
 class Iso230Report:
-    """Results of one log: per instrument (and per model) an :class:`IsoResult`."""
+    """Results of one log or table: per instrument (and per model) an :class:`IsoResult`.
 
-    def __init__(self, log: str, axis: str, results: dict[str, IsoResult], models: dict[str, str]) -> None:
+    models : label -> description of each result compared with the reference (the MMD under
+        each model, or the instruments of a table); their rows get the "− reference figures"
+        rows of Tables 3–4
+    source : what the results were read from ('mcap', or 'csv (... layout)')
+    """
+
+    def __init__(self, log: str, axis: str, results: dict[str, IsoResult], models: dict[str, str],
+                 source: str = 'mcap') -> None:
         self.log, self.axis, self.results, self.models = log, axis, results, models
+        self.source = source
 
     @property
     def unit(self) -> str:
@@ -50,13 +59,16 @@ class Iso230Report:
         return rows
 
     def as_dict(self) -> dict[str, Any]:
-        return {'log': self.log, 'axis': self.axis, 'unit': self.unit, 'models': self.models,
+        return {'log': self.log, 'source': self.source, 'axis': self.axis, 'unit': self.unit,
+                'models': self.models,
                 'results': {k: v.as_dict() for k, v in self.results.items()},
                 'table': [{'row': n, **{k: (None if not math.isfinite(v) else v) for k, v in f.items()}}
                           for n, f in self.rows()]}
 
     def markdown(self, figures: dict[str, str] | None = None) -> str:
-        lines = [f'# ISO 230-2 evaluation of axis {self.axis}', '', f'Log: `{self.log}`', '']
+        what = 'Log' if self.source == 'mcap' else 'Table'
+        tail = '' if self.source == 'mcap' else f' ({self.source})'
+        lines = [f'# ISO 230-2 evaluation of axis {self.axis}', '', f'{what}: `{self.log}`{tail}', '']
         for tag, text in self.models.items():
             lines.append(f'- {tag}: {text}')
         lines += ['', '## Axis figures (the paper\'s Tables 3–4)', '',
@@ -74,11 +86,13 @@ class Iso230Report:
 
 def iso230_of_run(run: RunLog, axis: str | None = None, models: dict[str, Model] | None = None, *,
                   instruments: tuple[str, ...] = INSTRUMENTS, targets: np.ndarray | None = None,
-                  min_dwell_s: float = 0.15, calibration_path: str | None = None) -> Iso230Report:
+                  min_dwell_s: float = 0.15, calibration_path: str | None = None,
+                  progress: Callable[[float], None] | None = None) -> Iso230Report:
     """ISO 230-2 of one axis of a run, for the MMD under each model and the reference.
 
     models : label -> model (default: the log's, else CDF + thermal) — e.g. before and after
     targets : target positions [m or rad]; default the log's ``iso_targets``, else clustered
+    progress : called with the fraction (0..1) of the MMD processing done
     """
     meta = run.metadata.get('iso_targets') or {}
     axis = axis or meta.get('axis')
@@ -95,8 +109,11 @@ def iso230_of_run(run: RunLog, axis: str | None = None, models: dict[str, Model]
         ref = run.reference_pose[:, k]
     models = models or {'MMD': run.model or Model()}
     signals: dict[str, np.ndarray] = {}
-    for label, model in models.items():
-        proc = run_pipeline(run.device, calibration, model, run.times_s, run.counts)
+    total = max(1, len(models) * run.times_s.size)
+    for number, (label, model) in enumerate(models.items()):
+        done = number * run.times_s.size
+        tick = None if progress is None else (lambda n, done=done: progress((done + n) / total))
+        proc = run_pipeline(run.device, calibration, model, run.times_s, run.counts, progress=tick)
         pose = np.where(proc.valid, proc.poses[:, k], np.nan)
         if 'mmd' in instruments:
             signals[label] = pose

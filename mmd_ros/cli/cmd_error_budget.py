@@ -20,8 +20,8 @@ from mmd_ros.cli.device_args import add_device_arguments, device_geometry
 from mmd_ros.core.progress import Progress
 from mmd_ros.core.units import M_PER_MM, M_PER_UM
 from mmd_ros.design.error_budget import (
-    DEFAULT_READING, METHODS, PAPER_EQ9_UM, PAPER_POSITIONS_M, PARTS, READINGS, ErrorBudget,
-    TopEdgeCylinder, planned_runs, run_study)
+    DEFAULT_READING, JACKKNIFE_GROUPS, METHODS, PAPER_EQ9_UM, PAPER_POSITIONS_M, PARTS, READINGS,
+    ErrorBudget, TopEdgeCylinder, eq9_summary, planned_runs, run_study)
 from mmd_ros.design.errors import DesignError
 
 __all__ = ['register', 'run']
@@ -134,7 +134,7 @@ def run(args: argparse.Namespace) -> int:
     summary.update(study.summary())
     if comparison:
         summary['readings'] = {
-            reading: {'eq9_fitted': np.round(sf.coefficients_um, 4).tolist(),
+            reading: {**eq9_summary(sf),
                       'rms_fit_vs_paper_um': round(sf.rms_um(PAPER_EQ9_UM), 4),
                       'rms_points_vs_paper_um': round(sf.rms_um(PAPER_EQ9_UM, 'points'), 4)}
             for reading, sf in comparison}
@@ -152,6 +152,12 @@ def run(args: argparse.Namespace) -> int:
 
 def _fmt(values: Any, width: int = 8, digits: int = 3) -> str:
     return ''.join(f'{v:{width}.{digits}f}' for v in values)
+
+
+def _eq9_cells(f: dict[str, Any]) -> str:
+    """The fitted Eq. (9) coefficients, each as value ± standard error when known."""
+    cells = f.get('eq9_text') or [f'{v:.4f}' for v in f['eq9_fitted']]
+    return ''.join(f'{c:>16s}' for c in cells)
 
 
 def _print_report(s: dict[str, Any]) -> None:
@@ -182,9 +188,13 @@ def _print_report(s: dict[str, Any]) -> None:
         out(f"\nFig. 3 at ({', '.join(f'{v:g}' for v in f['position_mm'])}) mm: Eq. (9) fitted "
             f"over eps_j, eps_d in {f['eps_um'][0]:g}..{f['eps_um'][-1]:g} µm "
             f"({len(f['eps_um'])} x {len(f['eps_um'])} grid)\n")
-        out('  term     ' + ''.join(f'{t:>9s}' for t in _EQ9_TERMS) + '\n')
-        out('  fitted   ' + _fmt(f['eq9_fitted'], 9) + '\n')
-        out('  paper    ' + _fmt(f['eq9_paper'], 9) + '\n')
+        out('  term     ' + ''.join(f'{t:>16s}' for t in _EQ9_TERMS) + '\n')
+        out('  fitted   ' + _eq9_cells(f) + '\n')
+        out('  paper    ' + ''.join(f'{v:16.2f}' for v in f['eq9_paper']) + '\n')
+        if f.get('eq9_standard_error') is not None:
+            out(f"  ± is the Monte Carlo standard error (jackknife over {JACKKNIFE_GROUPS} groups "
+                "of each run's samples); fitted − paper in standard errors: "
+                + ', '.join(f'{v:+.1f}' for v in f['eq9_paper_deviation_se']) + '\n')
         out(f"  surface RMS, fitted vs paper Eq. (9): {f['rms_fit_vs_paper_um']:.4f} µm; "
             f"Monte Carlo points vs paper: {f['rms_points_vs_paper_um']:.4f} µm "
             f"(max {f['max_abs_points_vs_paper_um']:.3f}); points vs own fit: "
@@ -220,9 +230,9 @@ def _print_report(s: dict[str, Any]) -> None:
                 f"{p['eps_dist_um']:10.3f}  {p['binding']}\n")
     if 'readings' in s:
         out('\nEq. (9) under each perturbation reading (Fig. 3 grid at the first position):\n')
-        out('  reading        ' + ''.join(f'{t:>9s}' for t in _EQ9_TERMS)
+        out('  reading        ' + ''.join(f'{t:>16s}' for t in _EQ9_TERMS)
             + '   RMS vs paper [µm]\n')
         for reading, f in s['readings'].items():
-            out(f"  {reading:14s} {_fmt(f['eq9_fitted'], 9)}   {f['rms_fit_vs_paper_um']:.4f}\n")
+            out(f"  {reading:14s} {_eq9_cells(f)}   {f['rms_fit_vs_paper_um']:.4f}\n")
     if 'figures' in s:
         out('\nFigures: ' + ', '.join(s['figures']) + '\n')

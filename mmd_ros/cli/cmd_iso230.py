@@ -1,4 +1,5 @@
-"""``mmd iso230-2 LOG.mcap``: ISO 230-2 evaluation of a linear or rotary axis from a log."""
+"""``mmd iso230-2 LOG.mcap|TABLE.csv``: ISO 230-2 evaluation of a linear or rotary axis from a
+log, or from a table of laser or rotary-calibrator readings (told apart by content)."""
 
 from __future__ import annotations
 
@@ -9,14 +10,19 @@ from pathlib import Path
 
 from mmd_ros.analysis.errors import AnalysisError
 from mmd_ros.analysis.iso230 import figure_table, target_table
-from mmd_ros.analysis.iso230_report import INSTRUMENTS, iso230_of_run, parse_targets
+from mmd_ros.analysis.iso230_csv import iso230_of_csv, source_kind
+from mmd_ros.analysis.iso230_report import INSTRUMENTS, Iso230Report, iso230_of_run, parse_targets
 from mmd_ros.core.model import Model, load_model
+from mmd_ros.core.progress import Progress
 from mmd_ros.logs.layout import read_run
 
 __all__ = ['register']
 
+#: Options that only mean something for a log of raw counts (argparse dests).
+MCAP_ONLY = ('model', 'after', 'calibration', 'instrument')
 
-def run_command(args: argparse.Namespace) -> int:
+
+def _report_of_log(args: argparse.Namespace) -> Iso230Report:
     run = read_run(args.log)
     if run.problem:
         print(f'warning: {run.problem}', file=sys.stderr)
@@ -28,9 +34,24 @@ def run_command(args: argparse.Namespace) -> int:
     if not axis:
         raise AnalysisError(f'{args.log} does not say which axis was tested; pass --axis')
     instruments = tuple(args.instrument) if args.instrument else INSTRUMENTS
+    progress = Progress('processing', 1.0, enabled=not (args.quiet or args.json))
     report = iso230_of_run(run, axis, models, instruments=instruments,
                            targets=parse_targets(args.targets, axis), min_dwell_s=args.min_dwell,
-                           calibration_path=args.calibration)
+                           calibration_path=args.calibration, progress=progress.update)
+    progress.close()
+    return report
+
+
+def run_command(args: argparse.Namespace) -> int:
+    if source_kind(args.log) == 'csv':
+        given = [f'--{o}' for o in MCAP_ONLY if getattr(args, o)]
+        if given:
+            raise AnalysisError(f'{" and ".join(given)} apply to an MCAP log; {args.log} is a table '
+                                'of readings')
+        report = iso230_of_csv(args.log, axis=args.axis, targets=args.targets,
+                               min_dwell_s=args.min_dwell)
+    else:
+        report = _report_of_log(args)
     figures: dict[str, str] = {}
     if args.out:
         out = Path(args.out)
@@ -46,7 +67,8 @@ def run_command(args: argparse.Namespace) -> int:
         json.dump(report.as_dict(), sys.stdout, indent=2)
         sys.stdout.write('\n')
         return 0
-    print(f'ISO 230-2, axis {report.axis}, log {args.log}')
+    print(f'ISO 230-2, axis {report.axis}, {"log" if report.source == "mcap" else report.source} '
+          f'{args.log}')
     for tag, text in report.models.items():
         print(f'  {tag}: {text}')
     print(figure_table(report.rows(), report.unit))
@@ -61,16 +83,21 @@ def run_command(args: argparse.Namespace) -> int:
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
-        'iso230-2', help='ISO 230-2 evaluation of a linear or rotary axis run',
+        'iso230-2', help='ISO 230-2 evaluation of a linear or rotary axis run (log or CSV)',
         description='Evaluate an ISO 230-2 positioning run (targets found from the dwells, or '
         'given) as the paper did in sections 5.2–5.3: per target the mean unidirectional '
         'deviations, reversal and standard uncertainties; for the axis A, A↑, A↓, B, B̄, E, E↑, '
         'E↓, M, R, R↑, R↓. Evaluates the MMD (under one or two models), the reference '
-        'instrument and their difference, in the layout of Tables 3–4.',
-        epilog='See msg_docs/analysis.md for the definitions and assumptions.')
-    p.add_argument('log', help='MCAP log of the run (raw counts, and the reference if any)')
+        'instrument and their difference, in the layout of Tables 3–4. A CSV table of laser or '
+        'rotary-calibrator readings is evaluated the same way: one row per approach (target, '
+        'direction, deviation [, run, instrument]), one row per target (target, +1 … +n, '
+        '-1 … -n), or a time series (time, position…).',
+        epilog='See msg_docs/analysis.md for the definitions, the table layouts and units.')
+    p.add_argument('log', help='MCAP log of the run (raw counts, and the reference if any), or '
+                   'a CSV table of readings')
     p.add_argument('--axis', help='axis moved: x, y, z, phi (A), theta (B), psi (C); default '
-                   'from the log\'s iso_targets metadata')
+                   'from the log\'s iso_targets metadata; for a table default x (linear, mm '
+                   'and µm), required for a rotary one')
     p.add_argument('--model', help='model file for the MMD (default: the log\'s, else CDF + thermal)')
     p.add_argument('--after', help='a second model file (e.g. from mmd analyze): adds the MMD '
                    '"after" rows, as Table 4\'s before/after error compensation')
@@ -79,10 +106,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help='what to evaluate (repeatable): mmd, reference, error (MMD - reference at '
                    'every sample); default all three')
     p.add_argument('--targets', help='target positions, comma separated, in mm or degrees; '
-                   'default the log\'s, else clustered from the dwells')
+                   'default the log\'s, else clustered from the dwells (a time-series table: '
+                   'in its position unit)')
     p.add_argument('--min-dwell', type=float, default=0.15, dest='min_dwell',
                    help='shortest stationary stretch taken as a dwell at a target [s] (default 0.15)')
     p.add_argument('--out', help='folder for iso230.md, iso230.json and the plots')
     p.add_argument('--json', action='store_true', help='print the numbers as JSON on stdout')
     p.add_argument('--verbose', action='store_true', help='also print the per-target table')
+    p.add_argument('--quiet', action='store_true', help='no progress on stderr')
     p.set_defaults(func=run_command)

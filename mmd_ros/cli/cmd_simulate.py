@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 
 from mmd_ros.twin import SCENARIOS
+from mmd_ros.twin.effects import PRESETS
 from mmd_ros.twin.recording import SimulationSpec, simulate_to_log
 
 __all__ = ['register']
@@ -45,15 +46,18 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help='what the machine does (default: iso_linear, an ISO 230-2 x-axis run)')
     p.add_argument('--param', action='append', default=[], metavar='NAME=VALUE',
                    help='scenario parameter, e.g. axis=y, n_cycles=5, dwell_s=1.0 (repeatable)')
-    p.add_argument('--effects', default='realistic', choices=['ideal', 'realistic'],
-                   help='physical effects preset (default: realistic)')
+    p.add_argument('--effects', default='realistic', choices=PRESETS,
+                   help='physical effects preset (default: realistic): none (no error source '
+                   'at all, room held at 20 °C), ideal (only what the default model '
+                   'compensates), realistic (everything on)')
     p.add_argument('--effect', action='append', default=[], metavar='NAME=VALUE',
                    help='change one effect parameter, e.g. hysteresis_m=0.5e-6 (repeatable)')
     p.add_argument('--seed', type=int, default=1, help='random seed (default: 1)')
     p.add_argument('--device', default='mmd_prototype.yaml', help='device description file')
-    p.add_argument('--ambient', default='section_4_1',
+    p.add_argument('--ambient', default=None,
                    help='room temperature: section_4_1 (the 20 h test), constant:T in °C, or a '
-                   'profile .yaml (see msg_docs/simulation.md)')
+                   'profile .yaml (see msg_docs/simulation.md); default constant:20 with '
+                   '--effects none, else section_4_1')
     p.add_argument('--calibrate-at', type=float, default=0.0, dest='calibrate_at',
                    help='time of the calibration on the twin\'s clock [s] (default: 0)')
     p.add_argument('--start', type=float, default=600.0,

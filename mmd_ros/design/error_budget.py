@@ -38,10 +38,11 @@ from mmd_ros.core.units import M_PER_MM, M_PER_UM, arcsec, mm, um
 from mmd_ros.design.errors import DesignError
 
 __all__ = [
-    'Accuracy', 'DEFAULT_READING', 'ErrorBudget', 'FrontierPoint', 'METHODS',
-    'PAPER_DESIGN_POINT_M', 'PAPER_EQ9_UM', 'PAPER_POSITIONS_M', 'PARTS', 'PoseErrors',
-    'READINGS', 'Study', 'Surface', 'TopEdgeCylinder', 'eq9_design_matrix', 'fit_eq9',
-    'planned_runs', 'run_study', 'sample_unit_errors', 'tolerance_frontier',
+    'Accuracy', 'DEFAULT_READING', 'ErrorBudget', 'FrontierPoint', 'JACKKNIFE_GROUPS',
+    'METHODS', 'PAPER_DESIGN_POINT_M', 'PAPER_EQ9_UM', 'PAPER_POSITIONS_M', 'PARTS',
+    'PoseErrors', 'READINGS', 'Study', 'Surface', 'TopEdgeCylinder', 'eq9_design_matrix',
+    'eq9_summary', 'fit_eq9', 'format_with_se', 'planned_runs', 'round_to_se', 'run_study',
+    'sample_unit_errors', 'se_decimals', 'tolerance_frontier',
 ]
 
 FloatArray = NDArray[np.float64]
@@ -115,12 +116,20 @@ class PoseErrors:
     rotation_rad: FloatArray
 
 
+#: Groups of a Monte Carlo run for the delete-a-group jackknife of the standard errors.
+JACKKNIFE_GROUPS = 20
+
+
 @dataclass(frozen=True)
 class Accuracy:
     """Statistics of one Monte Carlo run (section 2.2: accuracy = mean + 2 std).
 
     pose : ndarray, shape (6,) — setting pose [m, rad]
     eps_joint_m, eps_dist_m : bounds ||eps_j||_inf, ||eps_d||_inf [m]
+    position_groups : ndarray, shape (G, 3) — count, sum [m] and sum of squares [m²] of the
+        position errors in each of G consecutive groups of the N samples (the draws are
+        independent, so the groups are too); None when N < 4. The jackknife of
+        :meth:`position_leave_one_out_m` and :attr:`Surface.coefficients_se_um` uses them.
     """
 
     pose: FloatArray
@@ -131,6 +140,7 @@ class Accuracy:
     position_std_m: float
     rotation_mean_rad: float
     rotation_std_rad: float
+    position_groups: FloatArray | None = field(default=None, repr=False, compare=False)
 
     @property
     def position_m(self) -> float:
@@ -142,13 +152,31 @@ class Accuracy:
         """Rotation accuracy, mean + 2 std [rad]."""
         return self.rotation_mean_rad + 2.0 * self.rotation_std_rad
 
+    def position_leave_one_out_m(self) -> FloatArray:
+        """Position accuracy (mean + 2 std) of the run with each group left out in turn,
+        shape (G,) [m] (the jackknife replicates)."""
+        if self.position_groups is None:
+            raise DesignError(f'a run of {self.samples} samples is too short to estimate its '
+                              'Monte Carlo standard error (need at least 4)')
+        g = self.position_groups
+        n, total, squares = g.sum(axis=0)
+        count = n - g[:, 0]
+        mean = (total - g[:, 1]) / count
+        var = np.maximum((squares - g[:, 2]) / count - mean * mean, 0.0)
+        return mean + 2.0 * np.sqrt(var)
+
     @classmethod
     def of(cls, pose: FloatArray, eps_joint_m: float, eps_dist_m: float,
            errors: PoseErrors) -> Accuracy:
         pos, rot = errors.position_m, errors.rotation_rad
+        groups = None
+        count = min(JACKKNIFE_GROUPS, pos.size // 2)
+        if count >= 2:
+            parts = np.array_split(pos, count)
+            groups = np.array([[p.size, p.sum(), p @ p] for p in parts])
         return cls(np.array(pose, dtype=np.float64), float(eps_joint_m), float(eps_dist_m),
                    int(pos.size), float(np.mean(pos)), float(np.std(pos)),
-                   float(np.mean(rot)), float(np.std(rot)))
+                   float(np.mean(rot)), float(np.std(rot)), groups)
 
 
 class ErrorBudget:
@@ -322,6 +350,9 @@ class Surface:
     eps_joint_m : ndarray, shape (J,) [m];  eps_dist_m : ndarray, shape (D,) [m]
     position_m, rotation_rad : ndarray, shape (J, D) — mean + 2 std [m], [rad]
     coefficients_um : ndarray, shape (6,) — fitted Eq. (9) in the paper's units (µm)
+    coefficients_se_um : ndarray, shape (6,) — their Monte Carlo standard errors, by the
+        delete-a-group jackknife: the fit repeated with group g of every run's samples left
+        out (g = 1..G), SE = sqrt((G - 1)/G sum_g (c_g - mean c)^2); None for runs too short
     """
 
     pose: FloatArray
@@ -331,6 +362,7 @@ class Surface:
     rotation_rad: FloatArray
     coefficients_um: FloatArray
     grid: list[list[Accuracy]] = field(repr=False, compare=False)
+    coefficients_se_um: FloatArray | None = None
 
     @classmethod
     def from_grid(cls, pose: FloatArray, ej: FloatArray, ed: FloatArray,
@@ -339,7 +371,18 @@ class Surface:
         rot = np.array([[a.rotation_rad for a in row] for row in grid])
         ej_um, ed_um = np.meshgrid(ej / M_PER_UM, ed / M_PER_UM, indexing='ij')
         coef = fit_eq9(ej_um, ed_um, pos / M_PER_UM)
-        return cls(pose, ej, ed, pos, rot, coef, grid)
+        runs = [a for row in grid for a in row]
+        se = None
+        if all(a.position_groups is not None for a in runs) and \
+                len({len(a.position_groups) for a in runs}) == 1:   # type: ignore[arg-type]
+            # replicates (G, J*D): the whole grid with group g left out of every run
+            loo = np.stack([a.position_leave_one_out_m() for a in runs], axis=1) / M_PER_UM
+            design = eq9_design_matrix(ej_um, ed_um)
+            reps, *_ = np.linalg.lstsq(design, loo.T, rcond=None)          # (6, G)
+            g = loo.shape[0]
+            se = np.sqrt((g - 1) / g * np.sum((reps - reps.mean(axis=1, keepdims=True)) ** 2,
+                                              axis=1))
+        return cls(pose, ej, ed, pos, rot, coef, grid, se)
 
     def evaluate_um(self, coefficients_um: ArrayLike) -> FloatArray:
         """An Eq. (9) surface on this grid, shape (J, D) [µm]."""
@@ -542,7 +585,7 @@ class Study:
                 'eps_um': _r(um(sf.eps_joint_m), 4),
                 'position_um': _r(um(sf.position_m), 4),
                 'rotation_arcsec': _r(arcsec(sf.rotation_rad), 4),
-                'eq9_fitted': _r(sf.coefficients_um, 4),
+                **eq9_summary(sf),
                 'eq9_paper': PAPER_EQ9_UM.tolist(),
                 'rms_fit_vs_paper_um': _r(sf.rms_um(PAPER_EQ9_UM), 4),
                 'rms_points_vs_paper_um': _r(sf.rms_um(PAPER_EQ9_UM, against='points'), 4),
@@ -585,6 +628,22 @@ class Study:
                 },
             }
         return out
+
+
+def eq9_summary(surface: Surface) -> dict[str, object]:
+    """The fitted Eq. (9) for a report: each coefficient rounded to its Monte Carlo standard
+    error (``eq9_fitted``), the standard errors (``eq9_standard_error``), both as text
+    (``eq9_text``: "1.667 ± 0.008") and each coefficient's distance from the paper's in standard
+    errors (``eq9_paper_deviation_se``). Without standard errors (runs too short) the
+    coefficients are given to 4 decimals."""
+    coef, se = surface.coefficients_um, surface.coefficients_se_um
+    if se is None:
+        return {'eq9_fitted': _r(coef, 4), 'eq9_standard_error': None}
+    pairs = [round_to_se(c, e) for c, e in zip(coef, se)]
+    return {'eq9_fitted': [p[0] for p in pairs],
+            'eq9_standard_error': [p[1] for p in pairs],
+            'eq9_text': [format_with_se(c, e) for c, e in zip(coef, se)],
+            'eq9_paper_deviation_se': _r((coef - PAPER_EQ9_UM) / np.where(se > 0, se, np.nan), 2)}
 
 
 def planned_runs(parts: Sequence[str], n_poses: int, eps_values_m: ArrayLike,
@@ -652,6 +711,32 @@ def run_study(budget: ErrorBudget, poses: ArrayLike, *, parts: Sequence[str] = P
         out['ratio_check'] = budget.positions(worst_set, ratio.eps_joint_m, ratio.eps_dist_m)
     return Study(budget.reading, budget.method, budget.samples, p, nonzero, eps, design_point_m,
                  target_position_m, target_rotation_rad, **out)  # type: ignore[arg-type]
+
+
+def se_decimals(se: float) -> int:
+    """Decimal places a value with standard error ``se`` is stated to: the SE's first
+    significant digit, or its second when the first is 1 or 2 (0.008 -> 3, 0.014 -> 3,
+    0.04 -> 2; decided on the SE rounded to two digits, so 0.0296 -> 0.03 -> 2). A value
+    rounded so gives the same answer again. Non-finite or zero SE: 6 places."""
+    if not (math.isfinite(se) and se > 0):
+        return 6
+    exponent = math.floor(math.log10(se))
+    two = round(se / 10.0 ** (exponent - 1))          # the SE's two leading digits, 10..100
+    if two >= 100:
+        exponent, two = exponent + 1, 10
+    return max(0, -exponent + (1 if two < 30 else 0))
+
+
+def round_to_se(value: float, se: float) -> tuple[float, float]:
+    """``value`` and ``se`` rounded to the digits :func:`se_decimals` allows."""
+    k = se_decimals(se)
+    return round(float(value), k), round(float(se), k)
+
+
+def format_with_se(value: float, se: float) -> str:
+    """``1.667 ± 0.008``: a value with its standard error, rounded to it."""
+    k = se_decimals(se)
+    return f'{value:.{k}f} ± {se:.{k}f}'
 
 
 def _r(value: object, digits: int) -> object:

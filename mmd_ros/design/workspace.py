@@ -20,10 +20,11 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.optimize import minimize
 
 from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.kinematics import Geometry
@@ -32,10 +33,11 @@ from mmd_ros.core.units import M_PER_MM, mm
 from mmd_ros.design.errors import DesignError
 
 __all__ = [
-    'Boundary', 'CONSTRAINTS', 'Cylinder', 'DEFAULT_END_CLEARANCE_M', 'DiscProfile', 'Extent',
-    'Level', 'PAPER_CYLINDER_M', 'PAPER_RANGES_M', 'PAPER_ROTATION_LEVELS_DEG',
-    'PAPER_SPHERE_M', 'Section', 'Workspace', 'WorkspaceLimits', 'WorkspaceStudy',
-    'fibonacci_sphere', 'largest_rotation_range', 'orientation_set', 'run_workspace_study',
+    'BINDING_THRESHOLD_M', 'Boundary', 'CONSTRAINTS', 'Cylinder', 'DEFAULT_END_CLEARANCE_M',
+    'DiscProfile', 'Extent', 'Level', 'PAPER_CYLINDER_M', 'PAPER_RANGES_M',
+    'PAPER_ROTATION_LEVELS_DEG', 'PAPER_SPHERE_M', 'RELAXATION', 'Section', 'Workspace',
+    'WorkspaceLimits', 'WorkspaceStudy', 'fibonacci_sphere', 'largest_rotation_range',
+    'orientation_set', 'run_workspace_study',
 ]
 
 FloatArray = NDArray[np.float64]
@@ -53,6 +55,19 @@ PAPER_ROTATION_LEVELS_DEG = (0.0, 3.0, 6.0, 9.0, 12.0)
 DEFAULT_END_CLEARANCE_M = 30.0 * M_PER_MM
 
 _PAIRS = np.array(list(itertools.combinations(range(6), 2)))
+
+#: How far :meth:`WorkspaceLimits.relaxed` eases each constraint to test whether it binds
+#: [m or rad]: a result that improves when one constraint alone is eased this much is bound by
+#: it (a binding constraint moves an extreme by about this much; one that does not bind, by
+#: nothing at all).
+RELAXATION = {'bar_short': 1.0 * M_PER_MM, 'bar_long': 1.0 * M_PER_MM,
+              'upper_tilt': math.radians(0.5), 'lower_tilt': math.radians(0.5),
+              'separation': 1.0 * M_PER_MM}
+
+#: Smallest improvement under a relaxation that counts as "the constraint binds" [m]: well
+#: above the solvers' tolerances (1e-5 mm for the extremes, 0.02 mm for the marches) and well
+#: below what a binding constraint gives for the relaxations above (tenths of a millimetre).
+BINDING_THRESHOLD_M = 0.05 * M_PER_MM
 
 
 @dataclass(frozen=True)
@@ -89,6 +104,24 @@ class WorkspaceLimits:
                     end_clearance_m: float = DEFAULT_END_CLEARANCE_M) -> WorkspaceLimits:
         return cls(device.bar_range_m, device.upper_tilt_rad, device.lower_tilt_rad,
                    device.min_bar_separation_m, end_clearance_m)
+
+    def relaxed(self, constraint: str, amount: float | None = None) -> WorkspaceLimits:
+        """These limits with one constraint eased by ``amount`` (default :data:`RELAXATION`,
+        in m or rad): the shortest bar shorter, the longest longer, a tilt limit larger (at most
+        90°), the separation smaller (at least 0)."""
+        if constraint not in CONSTRAINTS:
+            raise DesignError(f'unknown constraint {constraint!r}; use one of {CONSTRAINTS}')
+        step = RELAXATION[constraint] if amount is None else amount
+        lo, hi = self.bar_range_m
+        if constraint == 'bar_short':
+            return replace(self, bar_range_m=(max(lo - step, 2.0 * self.end_clearance_m + 1e-6), hi))
+        if constraint == 'bar_long':
+            return replace(self, bar_range_m=(lo, hi + step))
+        if constraint == 'upper_tilt':
+            return replace(self, upper_tilt_rad=min(self.upper_tilt_rad + step, math.pi / 2))
+        if constraint == 'lower_tilt':
+            return replace(self, lower_tilt_rad=min(self.lower_tilt_rad + step, math.pi / 2))
+        return replace(self, min_separation_m=max(self.min_separation_m - step, 0.0))
 
 
 def orientation_set(max_angle_rad: float, points_per_axis: int = 3, mode: str = 'cube'
@@ -186,7 +219,10 @@ class Extent:
 
     low_m, high_m : the extreme coordinates found [m]
     low_point_m, high_point_m : ndarray, shape (3,) — where [m]
-    low_binding, high_binding : constraints violated just beyond each extreme
+    low_binding, high_binding : the constraints that bind each extreme: easing one of them
+        alone (:data:`RELAXATION`) moves the extreme outward
+    low_gain_m, high_gain_m : per constraint, how far the extreme moves when it alone is
+        eased [m]
     """
 
     axis: str
@@ -196,6 +232,8 @@ class Extent:
     high_point_m: FloatArray
     low_binding: tuple[str, ...]
     high_binding: tuple[str, ...]
+    low_gain_m: dict[str, float] = field(default_factory=dict)
+    high_gain_m: dict[str, float] = field(default_factory=dict)
 
     @property
     def range_m(self) -> float:
@@ -318,6 +356,98 @@ class Workspace:
                                 [s[:, j] for s in start], [v[:, j] for v in direction])
         return np.min(sep, axis=1)
 
+    def constraint_values(self, position: ArrayLike) -> FloatArray:
+        """Every constraint at one position, for every orientation of the set and every bar or
+        pair of bars, >= 0 where satisfied: the smooth pieces an optimiser works with.
+
+        position : array_like, shape (3,) [m]
+        returns : ndarray, shape (M * 39,) — for the M orientations: d_i - d_min and
+            d_max - d_i [mm] (6 each), 1000 (cos tilt - cos limit) upper and lower (6 each),
+            pair separations - limit [mm] (15)
+        """
+        t = np.asarray(position, dtype=np.float64).reshape(3)
+        rot = self._rotations
+        legs = t + np.einsum('mij,kj->mki', rot, self.geometry.upper) - self.geometry.lower
+        d = np.sqrt(np.einsum('mki,mki->mk', legs, legs))                       # (M, 6)
+        u = legs / d[..., None]
+        cos_upper = np.einsum('mki,mi->mk', u, rot[:, :, 2])
+        lim = self.limits
+        c = lim.end_clearance_m
+        start = self.geometry.lower + c * u
+        along = (d - 2.0 * c)[..., None] * u
+        i, j = _PAIRS[:, 0], _PAIRS[:, 1]
+        sep = _segment_distance([start[:, i, k] for k in range(3)], [along[:, i, k] for k in range(3)],
+                                [start[:, j, k] for k in range(3)], [along[:, j, k] for k in range(3)])
+        lo, hi = lim.bar_range_m
+        return np.concatenate([((d - lo) / M_PER_MM).ravel(), ((hi - d) / M_PER_MM).ravel(),
+                               (1e3 * (cos_upper - self._cos_upper)).ravel(),
+                               (1e3 * (u[..., 2] - self._cos_lower)).ravel(),
+                               ((sep - lim.min_separation_m) / M_PER_MM).ravel()])
+
+    def _optimum(self, axis: int, sign: float, start: FloatArray) -> FloatArray:
+        """The local maximum of sign * t[axis] subject to every constraint, by SLSQP from an
+        inside point (coordinates in mm; converged to 1e-10 of the objective). Returns the
+        optimiser's point [m], which may lie outside by rounding (constraints met to 1e-6 mm);
+        ``start`` itself when the optimiser ends anywhere else."""
+        x0 = np.asarray(start, dtype=np.float64) / M_PER_MM
+        grad = np.zeros(3)
+        grad[axis] = -sign
+
+        res = minimize(lambda x: -sign * x[axis], x0, jac=lambda x: grad, method='SLSQP',
+                       constraints=[{'type': 'ineq',
+                                     'fun': lambda x: self.constraint_values(x * M_PER_MM)}],
+                       options={'ftol': 1e-10, 'maxiter': 300})
+        point = res.x * M_PER_MM
+        if (not np.all(np.isfinite(point)) or sign * (point[axis] - start[axis]) < 0
+                or float(np.min(self.constraint_values(point))) < -1e-6):
+            return np.asarray(start, dtype=np.float64)
+        return point
+
+    def extreme(self, axis: int, sign: float, start: ArrayLike,
+                tol_m: float = 0.01 * M_PER_MM) -> tuple[float, FloatArray] | None:
+        """The extreme of the workspace along ``sign`` * axis reached from an inside point:
+        SLSQP on :meth:`constraint_values` to the local maximum, then the inside point
+        nearest to it on the segment back to ``start``, found by bisection to ``tol_m`` (an
+        extreme can be a cusp, where the workspace does not continue along the axis).
+
+        returns : the coordinate [m] and the point (3,) [m] — inside, and within ``tol_m`` of
+            the optimiser's answer — or None when the optimiser got nowhere beyond ``start``
+        """
+        begin = np.asarray(start, dtype=np.float64)
+        point = self._optimum(axis, sign, begin)
+        if self.inside(point[None])[0]:
+            return float(point[axis]), point
+        lo, hi = 0.0, 1.0                      # fractions of the way from begin to point
+        step = point - begin
+        length = float(np.linalg.norm(step))
+        if length == 0.0:
+            return None
+        while (hi - lo) * length > tol_m:
+            mid = 0.5 * (lo + hi)
+            if self.inside((begin + mid * step)[None])[0]:
+                lo = mid
+            else:
+                hi = mid
+        end = begin + lo * step
+        return float(end[axis]), end
+
+    def binding_of_extreme(self, axis: int, sign: float, point: ArrayLike, *,
+                           threshold_m: float = BINDING_THRESHOLD_M
+                           ) -> tuple[tuple[str, ...], dict[str, float]]:
+        """Which constraints bind an extreme: each is eased alone (:meth:`WorkspaceLimits.relaxed`)
+        and the extreme sought again from ``point``; those under which it moves outward by more
+        than ``threshold_m`` bind.
+
+        returns : the binding constraints and, per constraint, how far the extreme moved [m]
+        """
+        p = np.asarray(point, dtype=np.float64)
+        base = float(self._optimum(axis, sign, p)[axis])
+        gains = {}
+        for name in CONSTRAINTS:
+            eased = self.with_limits(self.limits.relaxed(name))
+            gains[name] = sign * (float(eased._optimum(axis, sign, p)[axis]) - base)
+        return tuple(n for n in CONSTRAINTS if gains[n] > threshold_m), gains
+
     def _satisfied(self, t: FloatArray, rot: FloatArray) -> BoolArray:
         """All constraints at one orientation, the separation only where the rest hold."""
         lim = self.limits
@@ -402,12 +532,14 @@ class Workspace:
         inside = self.inside(pts.reshape(-1, 3)).reshape(uu.shape)
         return Section(plane, float(level_m), u, v, inside)
 
-    def extents(self, step_m: float = 4.0 * M_PER_MM, tol_m: float = 0.05 * M_PER_MM,
+    def extents(self, step_m: float = 4.0 * M_PER_MM, tol_m: float = 0.01 * M_PER_MM,
                 progress: Callable[[float], None] | None = None) -> list[Extent]:
         """Ranges in x, y and z of the whole workspace.
 
-        A 3-D grid of ``step_m`` finds the extreme points; each is refined by a finer grid of
-        the plane around it and bisection along the axis to ``tol_m``.
+        A 3-D grid of ``step_m`` finds the inside points; from the outermost ones each extreme
+        is refined (:meth:`extreme`: SLSQP on the constraints, then a boundary point to
+        ``tol_m`` along the axis) and its binding constraints found by easing each alone
+        (:meth:`binding_of_extreme`).
         """
         box = self.bounding_box()
         axes = [_grid(box[0, k], box[1, k], step_m) for k in range(3)]
@@ -429,35 +561,27 @@ class Workspace:
         for k, name in enumerate('xyz'):
             ends = []
             for sign in (-1.0, 1.0):
-                ends.append(self._refine_extreme(pts, k, sign, step_m, tol_m))
-            (lo_val, lo_pt, lo_bind), (hi_val, hi_pt, hi_bind) = ends
-            out.append(Extent(name, lo_val, hi_val, lo_pt, hi_pt, lo_bind, hi_bind))
+                value, point = self._refine_extreme(pts, k, sign, step_m, tol_m)
+                binding, gains = self.binding_of_extreme(k, sign, point)
+                ends.append((value, point, binding, gains))
+            (lo_val, lo_pt, lo_bind, lo_gain), (hi_val, hi_pt, hi_bind, hi_gain) = ends
+            out.append(Extent(name, lo_val, hi_val, lo_pt, hi_pt, lo_bind, hi_bind,
+                              lo_gain, hi_gain))
         return out
 
     def _refine_extreme(self, pts: FloatArray, axis: int, sign: float, step_m: float,
-                        tol_m: float) -> tuple[float, FloatArray, tuple[str, ...]]:
-        """Refine the extreme of the inside grid points ``pts`` along ``sign`` * axis: march
-        outward from the grid points of the two outermost layers, then from a grid of half the
-        step around the five best end points; bisection to ``tol_m``."""
+                        tol_m: float, starts: int = 3) -> tuple[float, FloatArray]:
+        """The extreme along ``sign`` * axis from the inside grid points ``pts``: :meth:`extreme`
+        from the ``starts`` outermost ones (and a plain march along the axis from each, should
+        the optimiser find nothing); the best of them."""
+        key = sign * pts[:, axis]
+        best = pts[np.argsort(-key)[:starts]]
+        found = [r for r in (self.extreme(axis, sign, p, tol_m) for p in best) if r is not None]
         direction = np.zeros(3)
         direction[axis] = sign
-        key = sign * pts[:, axis]
-        starts = pts[key >= key.max() - 1.5 * step_m]
-        ends = self._march_from(starts, direction, step_m, tol_m)
-        best = ends[np.argsort(-sign * ends[:, axis])[:5]]
-        others = [a for a in range(3) if a != axis]
-        offsets = np.arange(-2, 3) * (step_m / 4)
-        oa, ob = np.meshgrid(offsets, offsets, indexing='ij')
-        fine = np.repeat(best, oa.size, axis=0)
-        fine[:, others[0]] += np.tile(oa.ravel(), len(best))
-        fine[:, others[1]] += np.tile(ob.ravel(), len(best))
-        fine -= direction * step_m          # step back inside before marching again
-        fine = fine[self.inside(fine)]
-        if len(fine):
-            ends = np.vstack([ends, self._march_from(fine, direction, step_m, tol_m)])
-        point = ends[np.argmax(sign * ends[:, axis])]
-        beyond = point + 2 * tol_m * direction
-        return float(point[axis]), point, self.violated(beyond)
+        marched = self._march_from(best, direction, step_m, tol_m)
+        found += [(float(p[axis]), p) for p in marched]
+        return max(found, key=lambda r: sign * r[0])
 
     def _march_from(self, starts: FloatArray, direction: FloatArray, step_m: float,
                     tol_m: float) -> FloatArray:
@@ -561,9 +685,10 @@ class Workspace:
         return DiscProfile(axis_xy_m, z[sl], radius[sl], binding[sl])
 
     def tallest_cylinder(self, diameter_m: float, profile: DiscProfile,
-                         tol_m: float = 0.01 * M_PER_MM) -> Cylinder:
+                         tol_m: float = 0.01 * M_PER_MM, *, binding: bool = True) -> Cylinder:
         """The tallest cylinder of ``diameter_m`` about the profile's axis: the longest run of
-        heights where the disc fits, its ends refined by bisection."""
+        heights where the disc fits, its ends refined by bisection. With ``binding``, the
+        constraints that stop it growing (:meth:`_cylinder_end_binding`)."""
         ok = profile.radius_m >= diameter_m / 2
         runs = _runs(ok)
         axis = profile.axis_xy_m
@@ -582,16 +707,30 @@ class Workspace:
         z_high = float(profile.z_m[last])
         if last < profile.z_m.size - 1:
             z_high = _bisect(fits, float(profile.z_m[last + 1]), z_high, tol_m)
-        below = self.disc_radius([z_low - 2 * tol_m], axis)[1][0]
-        above = self.disc_radius([z_high + 2 * tol_m], axis)[1][0]
         return Cylinder(axis, diameter_m, z_high - z_low, z_low, z_high,
-                        tuple(dict.fromkeys(below + above)))
+                        self._cylinder_end_binding(diameter_m, axis, z_low, z_high)
+                        if binding else ())
+
+    def _cylinder_end_binding(self, diameter_m: float, axis: tuple[float, float], z_low: float,
+                              z_high: float) -> tuple[str, ...]:
+        """The constraints that stop a cylinder of ``diameter_m`` from growing past its ends:
+        eased alone, the disc fits :data:`BINDING_THRESHOLD_M` beyond the bottom or the top."""
+        out = []
+        for name in CONSTRAINTS:
+            eased = self.with_limits(self.limits.relaxed(name))
+            radii = eased.disc_radius([z_low - BINDING_THRESHOLD_M, z_high + BINDING_THRESHOLD_M],
+                                      axis)[0]
+            if np.any(radii >= diameter_m / 2):
+                out.append(name)
+        return tuple(out)
 
     def widest_cylinder(self, height_m: float, profile: DiscProfile,
-                        tol_m: float = 0.01 * M_PER_MM) -> Cylinder:
+                        tol_m: float = 0.01 * M_PER_MM, *, binding: bool = True) -> Cylinder:
         """The widest cylinder of ``height_m`` about the profile's axis. On the profile grid
         the best bottom height is found; then, for a disc radius that rises and falls with
-        height, the bottom is refined to where the discs at bottom and top are equal."""
+        height, the bottom is refined to where the discs at bottom and top are equal. With
+        ``binding``, the constraints that stop it growing: each eased alone widens it by more
+        than twice :data:`BINDING_THRESHOLD_M`."""
         z, r = profile.z_m, profile.radius_m
         axis = profile.axis_xy_m
         dz = float(z[1] - z[0]) if z.size > 1 else 1.0
@@ -621,10 +760,26 @@ class Workspace:
         z0 = max(candidates, key=width)
         r_low, r_high = radius(z0), radius(z0 + height_m)
         inner = float(np.min(r[(z > z0) & (z < z0 + height_m)], initial=np.inf))
-        narrow = z0 if r_low <= r_high else z0 + height_m
         diameter = 2 * min(r_low, r_high, inner)
-        return Cylinder(axis, diameter, height_m, z0, z0 + height_m,
-                        self.disc_radius([narrow], axis)[1][0])
+        if not binding:
+            return Cylinder(axis, diameter, height_m, z0, z0 + height_m, ())
+        # Binding by easing each constraint alone: the widest cylinder again, on the profile
+        # of a window a few steps around this one, against the same computation unchanged.
+        window = _grid(z0 - 2 * dz, z0 + height_m + 2 * dz, dz)
+
+        def widest_near(ws: Workspace) -> float:
+            radii, binds = ws.disc_radius(window, axis, directions=60)
+            keep = radii > 0
+            if keep.sum() < 2:
+                return 0.0
+            local = DiscProfile(axis, window[keep], radii[keep], [b for b, k in zip(binds, keep) if k])
+            return ws.widest_cylinder(height_m, local, tol_m, binding=False).diameter_m
+
+        base = widest_near(self)
+        names = tuple(n for n in CONSTRAINTS
+                      if widest_near(self.with_limits(self.limits.relaxed(n))) - base
+                      > 2 * BINDING_THRESHOLD_M)
+        return Cylinder(axis, diameter, height_m, z0, z0 + height_m, names)
 
     def sphere_inside(self, centre_m: ArrayLike, radius_m: float, *, directions: int = 400,
                       shells: int = 5) -> bool:
@@ -639,6 +794,35 @@ class Workspace:
     def with_orientations(self, orientations: ArrayLike) -> Workspace:
         """The same device and limits for another set of orientations."""
         return Workspace(self.geometry, self.limits, orientations)
+
+    def with_limits(self, limits: WorkspaceLimits) -> Workspace:
+        """The same device and orientations under other limits."""
+        return Workspace(self.geometry, limits, self.orientations)
+
+    def sphere_binding(self, sphere: Boundary, *, margin_m: float = 3.0 * M_PER_MM
+                       ) -> tuple[str, ...]:
+        """The constraints that stop the largest sphere about ``sphere.centre_m`` growing: each
+        eased alone, the distances to the boundary are sought again along the directions
+        within ``margin_m`` of the nearest (the others are farther whatever is eased), and the
+        constraint binds if the smallest grows by more than :data:`BINDING_THRESHOLD_M`."""
+        dist = sphere.distance_m
+        r = float(dist.min())
+        if r <= 0:
+            return sphere.binding[sphere.nearest]
+        near = dist < r + margin_m
+        far = float(dist[~near].min()) if np.any(~near) else np.inf
+        dirs = sphere.directions[near]
+        # an eased workspace holds the original one: march on from just inside its boundary
+        back = np.maximum(dist[near] - 2 * BINDING_THRESHOLD_M, 0.0)
+        starts = sphere.centre_m + back[:, None] * dirs
+        out = []
+        for name in CONSTRAINTS:
+            eased = self.with_limits(self.limits.relaxed(name))
+            more, _ = eased._march(starts, dirs, max_m=margin_m + 4 * BINDING_THRESHOLD_M,
+                                   step_m=BINDING_THRESHOLD_M, tol_m=0.02 * M_PER_MM)
+            if min(float(np.min(back + more)), far) - r > BINDING_THRESHOLD_M:
+                out.append(name)
+        return tuple(out)
 
 
 def _runs(flags: BoolArray) -> list[tuple[int, int]]:
@@ -686,7 +870,8 @@ PAPER_SPHERE_M = ((0.0, 0.0, 0.300), 0.050)
 
 @dataclass(frozen=True)
 class Level:
-    """The workspace for one rotation range: sections, ranges, largest sphere at the centre."""
+    """The workspace for one rotation range: sections, ranges, largest sphere at the centre and
+    the constraints that bind it (:meth:`Workspace.sphere_binding`)."""
 
     range_deg: float
     orientations: int
@@ -694,6 +879,7 @@ class Level:
     xy: Section
     extents: list[Extent] | None
     sphere: Boundary
+    sphere_binding: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -717,6 +903,15 @@ class WorkspaceStudy:
         """Results and the verdict on each statement, in mm and degrees."""
         lim = self.limits
         out: dict[str, object] = {
+            'binding_test': {'relaxation': {n: (_mm(v, 3) if n in ('bar_short', 'bar_long', 'separation')
+                                                else round(math.degrees(v), 3))
+                                            for n, v in RELAXATION.items()},
+                             'relaxation_units': 'mm for bar_short, bar_long, separation; '
+                                                 'degrees for the tilts',
+                             'threshold_mm': _mm(BINDING_THRESHOLD_M, 3),
+                             'meaning': 'a constraint binds a result when easing it alone by its '
+                                        'relaxation improves the result by more than the '
+                                        'threshold (twice it for a diameter)'},
             'limits': {'bar_range_mm': [_mm(v, 3) for v in lim.bar_range_m],
                        'upper_tilt_deg': round(math.degrees(lim.upper_tilt_rad), 3),
                        'lower_tilt_deg': round(math.degrees(lim.lower_tilt_rad), 3),
@@ -738,12 +933,14 @@ class WorkspaceStudy:
                                             'high_mm': _mm(e.high_m, 2),
                                             'range_mm': _mm(e.range_m, 2),
                                             'low_binding': list(e.low_binding),
-                                            'high_binding': list(e.high_binding)}
+                                            'high_binding': list(e.high_binding),
+                                            'low_gain_mm': {n: _mm(v, 3) for n, v in e.low_gain_m.items()},
+                                            'high_gain_mm': {n: _mm(v, 3) for n, v in e.high_gain_m.items()}}
                                    for e in lv.extents}
             k = lv.sphere.nearest
             entry['sphere'] = {'centre_mm': [_mm(v, 3) for v in lv.sphere.centre_m],
                                'largest_diameter_mm': _mm(2 * lv.sphere.distance_m[k], 2),
-                               'binding': list(lv.sphere.binding[k])}
+                               'binding': list(lv.sphere_binding)}
             levels.append(entry)
         out['levels'] = levels
         zero = self.levels[0]
@@ -775,7 +972,7 @@ class WorkspaceStudy:
                          f'±{self.sphere_level_deg:g}°',
             'holds': bool(2 * top.sphere.distance_m[k] >= self.sphere_diameter_m - 1e-9),
             'largest_diameter_mm': _mm(2 * top.sphere.distance_m[k], 2),
-            'binding': list(top.sphere.binding[k]),
+            'binding': list(top.sphere_binding),
             'largest_rotation_range_deg': round(self.sphere_range_deg, 2)})
         out['statements'] = statements
         return out
@@ -846,7 +1043,8 @@ def run_workspace_study(geometry: Geometry, limits: WorkspaceLimits, *,
         tick()
         sph = ws.largest_sphere(centre, sphere_directions)
         tick()
-        out_levels.append(Level(level, len(ws.orientations), xz, xy, extents, sph))
+        out_levels.append(Level(level, len(ws.orientations), xz, xy, extents, sph,
+                                ws.sphere_binding(sph)))
     profile = base.disc_profile()
     tick()
     tallest = base.tallest_cylinder(cylinder_m[0], profile)

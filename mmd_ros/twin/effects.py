@@ -2,9 +2,11 @@
 
 :meth:`Effects.ideal` keeps only what the compensation model of the paper accounts for
 (quantisation, a small read noise, unknown count offsets, identical bars following the room
-with one time constant, plates expanding in step with them); :meth:`Effects.realistic`
-switches everything on at plausible sizes. Where each effect enters the reading is described
-in :mod:`mmd_ros.twin.physics`.
+with one time constant, plates expanding in step with them); :meth:`Effects.none` takes the
+read noise and the count offsets away as well, and with a room held at 20 °C (the ambient
+:data:`PRESET_AMBIENT` gives it) nothing is left but the quantisation to one count;
+:meth:`Effects.realistic` switches everything on at plausible sizes. Where each effect enters
+the reading is described in :mod:`mmd_ros.twin.physics`.
 """
 
 from __future__ import annotations
@@ -17,7 +19,15 @@ from typing import Any
 from mmd_ros.twin.codec import assign, from_plain, to_plain
 from mmd_ros.twin.errors import TwinError
 
-__all__ = ['Bump', 'Effects']
+__all__ = ['Bump', 'Effects', 'PRESETS', 'PRESET_AMBIENT']
+
+#: Names of the effect presets (:meth:`Effects.preset`), in the order the CLI lists them.
+PRESETS = ('none', 'ideal', 'realistic')
+
+#: The room temperature each preset runs in unless another is asked for (``--ambient``):
+#: ``none`` holds the room at the CMM's 20 °C, so that the bars and plates keep their 20 °C
+#: lengths; the others follow the 20 h profile of section 4.1.
+PRESET_AMBIENT = {'none': 'constant:20', 'ideal': 'section_4_1', 'realistic': 'section_4_1'}
 
 
 @dataclass(frozen=True)
@@ -120,6 +130,15 @@ class Effects:
         return cls()
 
     @classmethod
+    def none(cls) -> Effects:
+        """No error source at all: no read noise, no count offsets (a count is the scale
+        position since the readhead's index, 50 nm each); the bars and plates are the ideal
+        set's, so in a room at 20 °C (:data:`PRESET_AMBIENT`) they keep their calibrated
+        lengths and the counts are the true lengths quantised to one count. In another room
+        they still expand with the device's CTEs, as the default model expects."""
+        return cls(read_noise_m=0.0, count_offsets=False)
+
+    @classmethod
     def realistic(cls) -> Effects:
         """Every effect on at a plausible size, sized on the paper where it reports one: the
         effective rod CTE of 3.5 ppm/°C gives the up to 6 µm thermal error of section 4.1 over
@@ -143,8 +162,8 @@ class Effects:
 
     @classmethod
     def preset(cls, name: str) -> Effects:
-        """``'ideal'`` or ``'realistic'``."""
-        presets = {'ideal': cls.ideal, 'realistic': cls.realistic}
+        """``'none'``, ``'ideal'`` or ``'realistic'`` (:data:`PRESETS`)."""
+        presets = {'none': cls.none, 'ideal': cls.ideal, 'realistic': cls.realistic}
         if name not in presets:
             raise TwinError(f'unknown effects preset {name!r}; choose one of {sorted(presets)}')
         return presets[name]()

@@ -21,7 +21,7 @@ from mmd_ros.logs.layout import (
     TOPIC_RAW, TOPIC_REF_LENGTHS, TOPIC_REF_POSE,
 )
 from mmd_ros.logs.writer import LogWriter
-from mmd_ros.twin.effects import Effects
+from mmd_ros.twin.effects import PRESET_AMBIENT, Effects
 from mmd_ros.twin.errors import TwinError
 from mmd_ros.twin.scenarios import make_scenario
 from mmd_ros.twin.thermal import AmbientProfile
@@ -45,12 +45,19 @@ class SimulationSpec:
     effect_params: tuple[str, ...] = ()
     seed: int = 1
     device: str = 'mmd_prototype.yaml'
-    ambient: str = 'section_4_1'
+    ambient: str | None = None          # None: the preset's room (PRESET_AMBIENT)
     calibrate_at_s: float = 0.0
     start_s: float = 600.0
     reference: str | None = None
     sample_rate_hz: float | None = None
     epoch_s: int = EPOCH_S
+
+    def __post_init__(self) -> None:
+        if self.ambient is None:
+            if self.effects not in PRESET_AMBIENT:
+                raise TwinError(f'unknown effects preset {self.effects!r}; choose one of '
+                                f'{sorted(PRESET_AMBIENT)}')
+            self.ambient = PRESET_AMBIENT[self.effects]
 
 
 def ambient_profile(spec: str) -> AmbientProfile:
