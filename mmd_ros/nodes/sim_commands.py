@@ -70,7 +70,8 @@ def run_command(words: list[str], source: TwinSource, terminal: SimTerminal) -> 
             raise SimCommandError('usage: move <bar> [seconds] [amplitude_um]')
     elif cmd == 'place':
         if len(args) not in (2, 3):
-            raise SimCommandError('usage: place <bar> <pair> [short|long]')
+            raise SimCommandError(f'place takes 2 arguments, <bar> <pair>, and optionally short or '
+                                  f'long; got {args}')
     elif len(args) != need[cmd]:
         raise SimCommandError(f'{cmd} takes {need[cmd]} argument(s), got {args}')
     try:
