@@ -210,6 +210,7 @@ class Analysis:
     per_bar_after: list[ComponentError] | None = None
     seconds: float = 0.0
     not_applicable: dict[str, str] = field(default_factory=dict)
+    log_problem: dict[str, Any] | None = None  # what was lost reading the log (LogProblem.as_dict)
 
     @property
     def changed(self) -> bool:
@@ -244,6 +245,7 @@ class Analysis:
             'conclusion': self.conclusion,
             'seconds': self.seconds,
             'options': {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.options.__dict__.items()},
+            'log_problem': self.log_problem,
         }
 
 
@@ -772,7 +774,8 @@ def _analyze(run: RunLog, model: Model | None, calibration: Calibration | None,
                     res_after, steps, found, not_claimed, stats_before, stats_after, stats_pred,
                     structure_before, structure_after, at_floor, validated and bool(found), extended,
                     conclusion, features, contributions, per_bar_before, per_bar_after,
-                    time.perf_counter() - started, not_applicable)
+                    time.perf_counter() - started, not_applicable,
+                    run.problem.as_dict() if run.problem else None)
 
 
 def _ascii(value: Any) -> Any:

@@ -33,12 +33,14 @@ class Iso230Report:
         each model, or the instruments of a table); their rows get the "− reference figures"
         rows of Tables 3–4
     source : what the results were read from ('mcap', or 'csv (... layout)')
+    log_problem : what was lost reading the log (``LogProblem.as_dict``), or None
     """
 
     def __init__(self, log: str, axis: str, results: dict[str, IsoResult], models: dict[str, str],
-                 source: str = 'mcap') -> None:
+                 source: str = 'mcap', log_problem: dict[str, Any] | None = None) -> None:
         self.log, self.axis, self.results, self.models = log, axis, results, models
         self.source = source
+        self.log_problem = log_problem
 
     @property
     def unit(self) -> str:
@@ -59,7 +61,8 @@ class Iso230Report:
         return rows
 
     def as_dict(self) -> dict[str, Any]:
-        return {'log': self.log, 'source': self.source, 'axis': self.axis, 'unit': self.unit,
+        return {'log': self.log, 'source': self.source, 'log_problem': self.log_problem,
+                'axis': self.axis, 'unit': self.unit,
                 'models': self.models,
                 'results': {k: v.as_dict() for k, v in self.results.items()},
                 'table': [{'row': n, **{k: (None if not math.isfinite(v) else v) for k, v in f.items()}}
@@ -69,6 +72,8 @@ class Iso230Report:
         what = 'Log' if self.source == 'mcap' else 'Table'
         tail = '' if self.source == 'mcap' else f' ({self.source})'
         lines = [f'# ISO 230-2 evaluation of axis {self.axis}', '', f'{what}: `{self.log}`{tail}', '']
+        if self.log_problem:
+            lines += [f'**The log was not read whole:** {self.log_problem["message"]}', '']
         for tag, text in self.models.items():
             lines.append(f'- {tag}: {text}')
         lines += ['', '## Axis figures (the paper\'s Tables 3–4)', '',
@@ -128,7 +133,8 @@ def iso230_of_run(run: RunLog, axis: str | None = None, models: dict[str, Model]
     results = evaluate_run(run.times_s, AXIS_NAMES[k], signals, detect, targets, min_dwell_s=min_dwell_s)
     texts = {label: f'{len(m.terms)} term(s): {", ".join(t.type_name for t in m.terms) or "CDF + thermal only"}'
              for label, m in models.items()}
-    return Iso230Report(str(run.path), AXIS_NAMES[k], results, texts)
+    return Iso230Report(str(run.path), AXIS_NAMES[k], results, texts,
+                        log_problem=run.problem.as_dict() if run.problem else None)
 
 
 def parse_targets(text: str | None, axis: str) -> np.ndarray | None:
@@ -138,5 +144,7 @@ def parse_targets(text: str | None, axis: str) -> np.ndarray | None:
     try:
         values = np.array([float(v) for v in text.split(',') if v.strip()])
     except ValueError:
-        raise AnalysisError(f'--targets must be numbers separated by commas, got {text!r}') from None
+        values = np.array([np.nan])
+    if values.size == 0 or not np.all(np.isfinite(values)):
+        raise AnalysisError(f'--targets must be finite numbers separated by commas, got {text!r}')
     return np.radians(values) if axis_index(axis) >= 3 else values * M_PER_MM

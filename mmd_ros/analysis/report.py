@@ -3,12 +3,12 @@ and ``model.yaml`` when the model was extended. Units of the report: µm and arc
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
-from typing import Any
 
 from mmd_ros.analysis.identify import Analysis, ComponentError, Found
+from mmd_ros.core import jsonio
+from mmd_ros.core.jsonio import finite_json  # noqa: F401  (re-exported for older callers)
 
 __all__ = ['finite_json', 'format_summary', 'write_report']
 
@@ -79,31 +79,11 @@ def write_report(a: Analysis, out_dir: str | Path, *, figures: bool = True) -> d
     data = a.as_dict()
     data['model_file'] = str(written['model']) if 'model' in written else None
     data['figures'] = figs
-    (out / 'analysis.json').write_text(json.dumps(finite_json(data), indent=2, default=_json_default),
-                                       encoding='utf-8')
+    (out / 'analysis.json').write_text(jsonio.dumps(data), encoding='utf-8')
     written['json'] = out / 'analysis.json'
     (out / 'report.md').write_text(_markdown(a, figs, written.get('model')), encoding='utf-8')
     written['report'] = out / 'report.md'
     return written
-
-
-def finite_json(value: Any) -> Any:
-    """NaN and infinities as null (valid JSON)."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {k: finite_json(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [finite_json(v) for v in value]
-    return value
-
-
-def _json_default(value: Any) -> Any:
-    if hasattr(value, 'tolist'):
-        return value.tolist()
-    if isinstance(value, tuple):
-        return list(value)
-    return str(value)
 
 
 def _markdown(a: Analysis, figs: dict[str, str], model_path: Path | None) -> str:
@@ -113,6 +93,8 @@ def _markdown(a: Analysis, figs: dict[str, str], model_path: Path | None) -> str
           + (' (a constant offset per component removed: the instrument is zeroed)' if o.datum else '') + '  ',
           f'Samples: {a.times_s.size} over {a.times_s[-1]:.1f} s; {a.split.train_idx.size} for fitting, '
           f'{a.split.test_idx.size} held out ({a.split.n_blocks} time blocks, one of each pair held out)', '']
+    if a.log_problem:
+        L += [f'**The log was not read whole:** {a.log_problem["message"]}', '']
     L += ['## Conclusion', '', a.conclusion, '']
     if model_path is not None:
         L += [f'Extended model: `{model_path.name}` (`mmd process --model {model_path.name}`, or the '

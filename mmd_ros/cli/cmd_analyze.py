@@ -4,20 +4,29 @@ extended model → error before and after)."""
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 
 from mmd_ros.analysis.effects import CATALOGUE
 from mmd_ros.analysis.errors import AnalysisError
 from mmd_ros.analysis.identify import AnalysisOptions, analyze
-from mmd_ros.analysis.report import finite_json, format_summary, write_report
+from mmd_ros.analysis.report import format_summary, write_report
+from mmd_ros.cli.log_args import add_segment_argument
+from mmd_ros.core import jsonio, validate
 from mmd_ros.core.calibration import load_calibration
 from mmd_ros.core.model import Model, load_model
 from mmd_ros.core.units import M_PER_UM
 from mmd_ros.logs.layout import read_run
+from mmd_ros.logs.outputs import check_output_folder
 
 __all__ = ['register']
+
+#: What ``--out`` receives (checked against the inputs before anything is read).
+OUTPUT_FILES = ('report.md', 'analysis.json', 'model.yaml', '*.png')
+#: Bounds of the options (argparse prints them with the error).
+MAX_BLOCKS = 10_000
+MAX_SAMPLES = 10_000_000
+MAX_PERIOD_UM = 10_000.0
 
 
 def _names(text: str | None) -> list[str] | None:
@@ -33,20 +42,19 @@ def _names(text: str | None) -> list[str] | None:
 def run_command(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     quiet = args.json or args.quiet
+    check_output_folder('--out', args.out, [args.log, args.model, args.calibration], OUTPUT_FILES)
 
     def say(text: str) -> None:
         if not quiet:
             print(f'[{time.perf_counter() - started:6.1f} s] {text}', file=sys.stderr, flush=True)
 
     say(f'reading {args.log}')
-    run = read_run(args.log)
+    run = read_run(args.log, segment=args.segment)
     if run.problem:
         print(f'warning: {run.problem}', file=sys.stderr)
     model = load_model(args.model) if args.model else (run.model or Model())
     calibration = load_calibration(args.calibration) if args.calibration else None
-    periods = None
-    if args.cyclic_period_um:
-        periods = tuple(float(v) * M_PER_UM for v in args.cyclic_period_um.split(','))
+    periods = tuple(v * M_PER_UM for v in args.cyclic_period_um) if args.cyclic_period_um else None
     options = AnalysisOptions(
         effects=_names(args.effects), exclude=tuple(_names(args.exclude) or ()),
         n_blocks=args.blocks, max_samples=args.max_samples, min_gain=args.min_gain,
@@ -60,9 +68,7 @@ def run_command(args: argparse.Namespace) -> int:
     if args.json:
         data = result.as_dict()
         data['model_file'] = str(written['model']) if 'model' in written else None
-        json.dump(finite_json(data), sys.stdout, indent=2,
-                  default=lambda v: v.tolist() if hasattr(v, 'tolist') else str(v))
-        sys.stdout.write('\n')
+        jsonio.dump(data, sys.stdout)
         return 0
     print(format_summary(result))
     if written:
@@ -87,20 +93,26 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument('--json', action='store_true', help='print the numbers as JSON on stdout')
     p.add_argument('--effects', help='comma-separated effects to test (default: the whole catalogue)')
     p.add_argument('--exclude', help='comma-separated effects not to test')
-    p.add_argument('--blocks', type=int, default=40, help='time blocks of the split (default 40)')
-    p.add_argument('--max-samples', type=int, default=2500, dest='max_samples',
-                   help='samples per part used for fitting (default 2500)')
-    p.add_argument('--min-gain', type=float, default=0.05, dest='min_gain',
-                   help='smallest relative fall of the held-out RMS for an effect (default 0.05)')
-    p.add_argument('--max-effects', type=int, default=4, dest='max_effects',
-                   help='most effects added (default 4)')
+    p.add_argument('--blocks', type=validate.arg_number(low=2, high=MAX_BLOCKS, integer=True),
+                   default=40, help='time blocks of the split (default 40)')
+    p.add_argument('--max-samples', type=validate.arg_number(low=10, high=MAX_SAMPLES, integer=True),
+                   default=2500, dest='max_samples', help='samples per part used for fitting (default 2500)')
+    p.add_argument('--min-gain', type=validate.arg_number(low=0.0, high=1.0, high_open=True),
+                   default=0.05, dest='min_gain',
+                   help='smallest relative fall of the held-out RMS for an effect, in [0, 1) '
+                   '(default 0.05)')
+    p.add_argument('--max-effects', type=validate.arg_number(low=0, high=len(CATALOGUE), integer=True),
+                   default=4, dest='max_effects', help='most effects added (default 4)')
     p.add_argument('--cyclic-period-um', dest='cyclic_period_um',
+                   type=validate.arg_numbers(low=0.0, low_open=True, high=MAX_PERIOD_UM),
                    help='signal period(s) of the scales in µm, comma separated (default: tries '
                    '2, 4, 8, 10, 16, 20, 40)')
     p.add_argument('--absolute-reference', action='store_true', dest='absolute_reference',
                    help='the reference pose is absolute in {L} (default: zeroed, an offset per '
                    'component is removed)')
-    p.add_argument('--seed', type=int, default=0, help='draws the held-out blocks (default 0)')
+    p.add_argument('--seed', type=validate.arg_number(low=0, integer=True), default=0,
+                   help='draws the held-out blocks (default 0)')
+    add_segment_argument(p)
     p.add_argument('--no-figures', action='store_true', dest='no_figures', help='skip the PNG figures')
     p.add_argument('--quiet', action='store_true', help='no progress on stderr')
     p.set_defaults(func=run_command)

@@ -8,7 +8,6 @@ device description. See ``msg_docs/design_tools.md``.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 from pathlib import Path
@@ -17,14 +16,23 @@ from typing import Any
 import numpy as np
 
 from mmd_ros.cli.device_args import add_device_arguments, device_geometry
+from mmd_ros.core import jsonio, validate
+from mmd_ros.core.device import find_config
 from mmd_ros.core.progress import Progress
 from mmd_ros.core.units import M_PER_MM, M_PER_UM
 from mmd_ros.design.error_budget import (
     DEFAULT_READING, JACKKNIFE_GROUPS, METHODS, PAPER_EQ9_UM, PAPER_POSITIONS_M, PARTS, READINGS,
     ErrorBudget, TopEdgeCylinder, eq9_summary, planned_runs, run_study)
 from mmd_ros.design.errors import DesignError
+from mmd_ros.logs.outputs import check_output_folder
 
 __all__ = ['register', 'run']
+
+#: Bounds of the options: Monte Carlo samples per run, tolerance bounds [µm], grid values per axis.
+MAX_SAMPLES = 1_000_000
+MAX_EPS_UM = 100.0
+MAX_GRID = 100
+FINITE = validate.arg_number()
 
 _EQ9_TERMS = ('1', 'e_j', 'e_d', 'e_j^2', 'e_j e_d', 'e_d^2')
 
@@ -40,28 +48,32 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     'errors, and the largest tolerances that keep a target accuracy.',
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     add_device_arguments(p, 'nominal joint set of the device description')
-    p.add_argument('--pose', action='append', nargs='+', type=float, metavar='V',
+    p.add_argument('--pose', action='append', nargs='+', type=FINITE, metavar='V',
                    help='setting pose X Y Z [PHI THETA PSI] in mm and degrees; repeat for '
                         'several; default the five positions of Fig. 2 at zero rotation. '
                         'Fig. 3 is computed at the first one')
-    p.add_argument('--samples', '-n', type=int, default=10_000, help='N per Monte Carlo run')
-    p.add_argument('--seed', type=int, default=0, help='random seed')
+    p.add_argument('--samples', '-n', type=validate.arg_number(low=2, high=MAX_SAMPLES, integer=True),
+                   default=10_000, help='N per Monte Carlo run')
+    p.add_argument('--seed', type=validate.arg_number(low=0, integer=True), default=0, help='random seed')
     p.add_argument('--perturbation', choices=sorted(READINGS), default=DEFAULT_READING,
                    help='how errors up to a bound are drawn: ' + '; '.join(
                        f'{k}: {v}' for k, v in READINGS.items()))
     p.add_argument('--method', choices=METHODS, default='newton',
                    help='newton: full forward kinematics per sample; linear: first-order model')
-    p.add_argument('--eps-max-um', type=float, default=1.0,
+    p.add_argument('--eps-max-um', type=validate.arg_number(low=0.0, low_open=True, high=MAX_EPS_UM),
+                   default=1.0,
                    help='largest bound of Fig. 2 and of the Fig. 3 grid [µm]')
-    p.add_argument('--eps-step-um', type=float, default=0.1, help='grid step of the bounds [µm]')
-    p.add_argument('--design-point', nargs=2, type=float, default=(0.4, 0.8),
+    p.add_argument('--eps-step-um', type=validate.arg_number(low=0.0, low_open=True, high=MAX_EPS_UM),
+                   default=0.1, help='grid step of the bounds [µm]')
+    p.add_argument('--design-point', nargs=2, type=validate.arg_number(low=0.0, high=MAX_EPS_UM),
+                   default=(0.4, 0.8),
                    metavar=('EPS_J', 'EPS_D'), help='bounds of Fig. 4 and the design ratio [µm]')
-    p.add_argument('--cylinder', nargs=3, type=float, default=(100.0, 248.0, 323.0),
+    p.add_argument('--cylinder', nargs=3, type=FINITE, default=(100.0, 248.0, 323.0),
                    metavar=('RADIUS', 'Z_LOW', 'Z_HIGH'),
                    help='cylindrical workspace of Fig. 4 [mm]')
-    p.add_argument('--target-um', type=float, default=2.0,
+    p.add_argument('--target-um', type=validate.arg_number(low=0.0, low_open=True), default=2.0,
                    help='position accuracy the tolerances must keep [µm]')
-    p.add_argument('--target-arcsec', type=float, default=None,
+    p.add_argument('--target-arcsec', type=validate.arg_number(low=0.0, low_open=True), default=None,
                    help='also keep this rotation accuracy [arc-seconds]')
     p.add_argument('--parts', default=','.join(PARTS),
                    help=f'comma-separated parts to run, of {",".join(PARTS)}')
@@ -90,16 +102,17 @@ def _grid(eps_max_um: float, step_um: float) -> np.ndarray:
     if not (eps_max_um > 0 and step_um > 0 and step_um <= eps_max_um):
         raise DesignError('need 0 < --eps-step-um <= --eps-max-um')
     count = int(round(eps_max_um / step_um))
+    if count > MAX_GRID:
+        raise DesignError(f'--eps-max-um / --eps-step-um gives {count} grid steps; at most {MAX_GRID}')
     return np.linspace(0.0, count * step_um, count + 1) * M_PER_UM
 
 
 def run(args: argparse.Namespace) -> int:
+    check_output_folder('--out', args.out, [find_config(args.device)], ('*.png',))
     parts = [s.strip() for s in args.parts.split(',') if s.strip()]
     unknown = set(parts) - set(PARTS)
     if unknown:
         raise DesignError(f'--parts: unknown {sorted(unknown)}; use some of {list(PARTS)}')
-    if args.samples < 2:
-        raise DesignError(f'--samples must be >= 2, got {args.samples}')
     device, geometry = device_geometry(args)
     poses = _poses(args.pose)
     eps = _grid(args.eps_max_um, args.eps_step_um)
@@ -143,8 +156,7 @@ def run(args: argparse.Namespace) -> int:
         args.out.mkdir(parents=True, exist_ok=True)
         summary['figures'] = [str(f) for f in plots.error_budget_figures(study, args.out)]
     if args.json:
-        json.dump(summary, sys.stdout, indent=1)
-        sys.stdout.write('\n')
+        jsonio.dump(summary, sys.stdout, indent=1)
     else:
         _print_report(summary)
     return 0

@@ -4,7 +4,6 @@ log, or from a table of laser or rotary-calibrator readings (told apart by conte
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -12,18 +11,25 @@ from mmd_ros.analysis.errors import AnalysisError
 from mmd_ros.analysis.iso230 import figure_table, target_table
 from mmd_ros.analysis.iso230_csv import iso230_of_csv, source_kind
 from mmd_ros.analysis.iso230_report import INSTRUMENTS, Iso230Report, iso230_of_run, parse_targets
+from mmd_ros.cli.log_args import add_segment_argument
+from mmd_ros.core import jsonio, validate
 from mmd_ros.core.model import Model, load_model
 from mmd_ros.core.progress import Progress
 from mmd_ros.logs.layout import read_run
+from mmd_ros.logs.outputs import check_output_folder
 
 __all__ = ['register']
 
 #: Options that only mean something for a log of raw counts (argparse dests).
-MCAP_ONLY = ('model', 'after', 'calibration', 'instrument')
+MCAP_ONLY = ('model', 'after', 'calibration', 'instrument', 'segment')
+#: What ``--out`` receives (checked against the inputs before anything is read).
+OUTPUT_FILES = ('iso230.md', 'iso230.json', 'iso230_*.png')
+#: Longest dwell asked for [s].
+MAX_DWELL_S = 3600.0
 
 
 def _report_of_log(args: argparse.Namespace) -> Iso230Report:
-    run = read_run(args.log)
+    run = read_run(args.log, segment=args.segment)
     if run.problem:
         print(f'warning: {run.problem}', file=sys.stderr)
     models: dict[str, Model] = {}
@@ -43,6 +49,8 @@ def _report_of_log(args: argparse.Namespace) -> Iso230Report:
 
 
 def run_command(args: argparse.Namespace) -> int:
+    check_output_folder('--out', args.out, [args.log, args.model, args.after, args.calibration],
+                        OUTPUT_FILES)
     if source_kind(args.log) == 'csv':
         given = [f'--{o}' for o in MCAP_ONLY if getattr(args, o)]
         if given:
@@ -62,10 +70,9 @@ def run_command(args: argparse.Namespace) -> int:
             iso230_figure(r, out / fname)
             figures[name] = fname
         (out / 'iso230.md').write_text(report.markdown(figures), encoding='utf-8')
-        (out / 'iso230.json').write_text(json.dumps(report.as_dict(), indent=2), encoding='utf-8')
+        (out / 'iso230.json').write_text(jsonio.dumps(report.as_dict()), encoding='utf-8')
     if args.json:
-        json.dump(report.as_dict(), sys.stdout, indent=2)
-        sys.stdout.write('\n')
+        jsonio.dump(report.as_dict(), sys.stdout)
         return 0
     print(f'ISO 230-2, axis {report.axis}, {"log" if report.source == "mcap" else report.source} '
           f'{args.log}')
@@ -108,10 +115,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument('--targets', help='target positions, comma separated, in mm or degrees; '
                    'default the log\'s, else clustered from the dwells (a time-series table: '
                    'in its position unit)')
-    p.add_argument('--min-dwell', type=float, default=0.15, dest='min_dwell',
+    p.add_argument('--min-dwell', type=validate.arg_number(low=0.0, low_open=True, high=MAX_DWELL_S),
+                   default=0.15, dest='min_dwell',
                    help='shortest stationary stretch taken as a dwell at a target [s] (default 0.15)')
     p.add_argument('--out', help='folder for iso230.md, iso230.json and the plots')
     p.add_argument('--json', action='store_true', help='print the numbers as JSON on stdout')
     p.add_argument('--verbose', action='store_true', help='also print the per-target table')
     p.add_argument('--quiet', action='store_true', help='no progress on stderr')
+    add_segment_argument(p)
     p.set_defaults(func=run_command)

@@ -3,16 +3,18 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
 
+from mmd_ros.cli.log_args import add_segment_argument
+from mmd_ros.core import jsonio
 from mmd_ros.core.accuracy import format_stats
 from mmd_ros.core.calibration import load_calibration
 from mmd_ros.core.model import Model, load_model
 from mmd_ros.core.progress import Progress
 from mmd_ros.logs.layout import read_run
+from mmd_ros.logs.outputs import check_outputs
 from mmd_ros.logs.processing import process_run, summarize, write_csv, write_processed
 
 __all__ = ['register']
@@ -21,9 +23,12 @@ __all__ = ['register']
 def run_command(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     quiet = args.json or args.quiet
+    out = Path(args.out) if args.out else Path(args.log).with_suffix('.processed.mcap')
+    check_outputs([('--out', out), ('--csv', args.csv)], [args.log, args.model, args.calibration],
+                  force=args.force)
     if not quiet:
         print(f'reading {args.log}', file=sys.stderr)
-    run = read_run(args.log)
+    run = read_run(args.log, segment=args.segment)
     if run.problem:
         print(f'warning: {run.problem}', file=sys.stderr)
     model = load_model(args.model) if args.model else (run.model or Model())
@@ -33,7 +38,6 @@ def run_command(args: argparse.Namespace) -> int:
                          with_covariance=args.covariance or run.reference_pose is not None,
                          progress=progress)
     progress.close()
-    out = Path(args.out) if args.out else Path(args.log).with_suffix('.processed.mcap')
     cal = run.calibration if not args.calibration else load_calibration(args.calibration)
     write_processed(out, run, model, result, cal.to_yaml(), with_covariance=args.covariance)
     if args.csv:
@@ -44,8 +48,7 @@ def run_command(args: argparse.Namespace) -> int:
                    samples_per_s=summary['samples'] / elapsed if elapsed > 0 else None,
                    model=model.to_dict())
     if args.json:
-        json.dump(summary, sys.stdout, indent=2)
-        sys.stdout.write('\n')
+        jsonio.dump(summary, sys.stdout)
         return 0
     print(f'{summary["samples"]} samples over {summary["duration_s"]:.1f} s: '
           f'{summary["valid"]} valid poses, {summary["not_converged"]} not converged, '
@@ -86,6 +89,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument('--absolute-reference', action='store_true', dest='absolute_reference',
                    help='the reference pose is absolute in {L} (default: what the log\'s metadata '
                    'says, else zeroed at the start: an offset per component is removed)')
+    add_segment_argument(p)
+    p.add_argument('--force', action='store_true',
+                   help='allow --out/--csv to replace an existing raw log (never the input)')
     p.add_argument('--json', action='store_true', help='print a machine-readable summary on stdout')
     p.add_argument('--quiet', action='store_true', help='no progress on stderr')
     p.set_defaults(func=run_command)

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import argparse
 
+from mmd_ros.core import validate
+
 __all__ = ['register']
 
 
@@ -24,8 +26,6 @@ def ros_arguments(args: argparse.Namespace) -> list[str]:
 
 
 def run_command(args: argparse.Namespace) -> int:
-    if not args.fast and not args.rate > 0:
-        raise SystemExit('mmd replay: error: --rate must be > 0 (or use --fast)')
     from mmd_ros.nodes.replay_node import main as replay_main  # needs rclpy
     return replay_main(ros_arguments(args))
 
@@ -37,10 +37,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                        'sample (and reference/pose) with its recorded stamp, at the original timing '
                        'times --rate or as fast as possible. Needs ROS 2 (rclpy).')
     p.add_argument('log', help='MCAP log (from the recorder, mmd simulate or mmd process input)')
-    p.add_argument('--rate', type=float, default=1.0, help='speed factor (default 1: original timing)')
+    p.add_argument('--rate', type=validate.arg_number(low=0.001, high=1000.0), default=1.0,
+                   help='speed factor, in [0.001, 1000] (default 1: original timing)')
     p.add_argument('--fast', action='store_true', help='as fast as possible')
     p.add_argument('--ns', default='', help='namespace of the device (default /mmd)')
-    p.add_argument('--wait-for-subscribers', type=int, default=1, dest='wait_for_subscribers',
+    p.add_argument('--wait-for-subscribers', type=validate.arg_number(low=0, high=100, integer=True),
+                   default=1, dest='wait_for_subscribers',
                    help='wait for this many raw_counts subscribers first (default 1, up to 30 s)')
     p.add_argument('--no-reference', action='store_true', dest='no_reference',
                    help='do not publish reference/pose')

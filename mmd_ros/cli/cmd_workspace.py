@@ -8,7 +8,6 @@ naming the constraints that bind (each eased alone, the result improves). See ``
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 from pathlib import Path
@@ -17,14 +16,22 @@ from typing import Any
 import numpy as np
 
 from mmd_ros.cli.device_args import add_device_arguments, device_geometry
+from mmd_ros.core import jsonio, validate
+from mmd_ros.core.device import find_config
 from mmd_ros.core.progress import Progress
 from mmd_ros.core.units import M_PER_MM
-from mmd_ros.design.errors import DesignError
 from mmd_ros.design.workspace import (
     DEFAULT_END_CLEARANCE_M, PAPER_ROTATION_LEVELS_DEG, WorkspaceLimits, WorkspaceStudy,
     orientation_set, run_workspace_study)
+from mmd_ros.logs.outputs import check_output_folder
 
 __all__ = ['register', 'run']
+
+#: Bounds of the options: values per angle (the orientations grow as its cube), smallest grid
+#: step of the sections [mm] (the grid grows as its inverse square).
+MAX_ANGLE_SAMPLES = 15
+MIN_STEP_MM = 0.1
+FINITE = validate.arg_number()
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -38,33 +45,36 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     'and names the constraints that bind: those whose easing alone improves the result.',
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     add_device_arguments(p, 'joint set of the device description')
-    p.add_argument('--levels-deg', nargs='+', type=float, default=list(PAPER_ROTATION_LEVELS_DEG),
+    p.add_argument('--levels-deg', nargs='+', type=validate.arg_number(low=0.0, high=90.0),
+                   default=list(PAPER_ROTATION_LEVELS_DEG),
                    help='rotation ranges ±k [deg]; must include 0')
     p.add_argument('--orientations', choices=('cube', 'axes'), default='cube',
                    help='cube: phi, theta, psi within ±k together (the paper); axes: one angle '
                         'at a time')
-    p.add_argument('--angle-samples', type=int, default=3,
+    p.add_argument('--angle-samples', type=validate.arg_number(low=1, high=MAX_ANGLE_SAMPLES, integer=True),
+                   default=3,
                    help='values of each angle in [-k, k] (3: the 27 corners, edge and face '
                         'centres of the cube of angles)')
-    p.add_argument('--bar-range-mm', nargs=2, type=float, default=None, metavar=('MIN', 'MAX'),
+    p.add_argument('--bar-range-mm', nargs=2, type=FINITE, default=None, metavar=('MIN', 'MAX'),
                    help='override the device\'s centre-distance range')
-    p.add_argument('--upper-tilt-deg', type=float, default=None,
+    p.add_argument('--upper-tilt-deg', type=FINITE, default=None,
                    help='override the largest bar angle to the upper plate normal')
-    p.add_argument('--lower-tilt-deg', type=float, default=None,
+    p.add_argument('--lower-tilt-deg', type=FINITE, default=None,
                    help='override the largest bar angle to the lower plate normal')
-    p.add_argument('--min-separation-mm', type=float, default=None,
+    p.add_argument('--min-separation-mm', type=FINITE, default=None,
                    help='override the smallest distance between bar centre lines')
-    p.add_argument('--end-clearance-mm', type=float, default=DEFAULT_END_CLEARANCE_M / M_PER_MM,
+    p.add_argument('--end-clearance-mm', type=FINITE, default=DEFAULT_END_CLEARANCE_M / M_PER_MM,
                    help='length at each bar end (ball and stem) left out of the separation check')
-    p.add_argument('--ranges-mm', nargs=3, type=float, default=(348.0, 348.0, 130.0),
+    p.add_argument('--ranges-mm', nargs=3, type=FINITE, default=(348.0, 348.0, 130.0),
                    metavar=('X', 'Y', 'Z'), help='stated translational ranges to check')
-    p.add_argument('--cylinder-mm', nargs=2, type=float, default=(200.0, 75.0),
+    p.add_argument('--cylinder-mm', nargs=2, type=FINITE, default=(200.0, 75.0),
                    metavar=('DIAMETER', 'HEIGHT'), help='stated inscribed cylinder to check')
-    p.add_argument('--sphere-mm', nargs=4, type=float, default=(0.0, 0.0, 300.0, 50.0),
+    p.add_argument('--sphere-mm', nargs=4, type=FINITE, default=(0.0, 0.0, 300.0, 50.0),
                    metavar=('X', 'Y', 'Z', 'DIAMETER'),
                    help='stated sphere at the largest rotation range to check')
-    p.add_argument('--step-mm', type=float, default=2.0, help='grid step of the sections')
-    p.add_argument('--xy-level-mm', type=float, default=300.0, help='height of the x–y section')
+    p.add_argument('--step-mm', type=validate.arg_number(low=MIN_STEP_MM, high=1000.0), default=2.0,
+                   help=f'grid step of the sections, at least {MIN_STEP_MM:g} mm')
+    p.add_argument('--xy-level-mm', type=FINITE, default=300.0, help='height of the x–y section')
     p.add_argument('--extents', choices=('all', 'zero'), default='all',
                    help='3-D ranges at every rotation range or only at zero rotation')
     p.add_argument('--out', type=Path, default=None, help='write PNG figures into this folder')
@@ -85,8 +95,7 @@ def _limits(args: argparse.Namespace, device: Any) -> WorkspaceLimits:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.step_mm <= 0:
-        raise DesignError(f'--step-mm must be > 0, got {args.step_mm}')
+    check_output_folder('--out', args.out, [find_config(args.device)], ('*.png',))
     device, geometry = device_geometry(args)
     limits = _limits(args, device)
     progress = Progress('workspace', 1.0, enabled=not args.no_progress)
@@ -105,8 +114,7 @@ def run(args: argparse.Namespace) -> int:
         args.out.mkdir(parents=True, exist_ok=True)
         summary['figures'] = [str(f) for f in _figures(study, geometry, args.out)]
     if args.json:
-        json.dump(summary, sys.stdout, indent=1)
-        sys.stdout.write('\n')
+        jsonio.dump(summary, sys.stdout, indent=1)
     else:
         _print_report(summary)
     return 0

@@ -2,7 +2,9 @@
 
 Each subcommand lives in its own module under :mod:`mmd_ros.cli` with
 ``register(subparsers)``, which adds an argparse parser whose ``func(args)`` returns the exit
-status. Errors of the metrology core are printed as one line, without a traceback.
+status. Errors of the metrology core (:class:`~mmd_ros.core.errors.MmdError`) and of the file
+system (``OSError``: a missing file, a full disk) are printed as one line, without a traceback,
+and exit with status 2, as argparse does for a bad option; an interrupt exits with 130.
 """
 
 from __future__ import annotations
@@ -46,7 +48,7 @@ def main(argv: list[str] | None = None) -> int:
     except MmdError as exc:
         print(f'mmd {args.command}: error: {exc}', file=sys.stderr)
         return 2
-    except FileNotFoundError as exc:
+    except OSError as exc:  # a file that cannot be read or written (missing, full disk...)
         print(f'mmd {args.command}: error: {exc}', file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -8,7 +8,6 @@ a backup; a corrupt file is refused with its name.
 
 from __future__ import annotations
 
-import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -18,8 +17,9 @@ import numpy as np
 import yaml
 from numpy.typing import ArrayLike, NDArray
 
+from mmd_ros.core import validate
 from mmd_ros.core.compiled import fast, use_compiled
-from mmd_ros.core.errors import CalibrationError, ConfigError
+from mmd_ros.core.errors import CalibrationError
 from mmd_ros.core.uncertainty import CalibrationUncertainty
 from mmd_ros.core.units import M_PER_MM
 from mmd_ros.core.yamlio import atomic_write_text, parse_yaml, read_yaml
@@ -160,40 +160,41 @@ class Calibration:
 
     @classmethod
     def from_dict(cls, data: Any, source: str = '<calibration>') -> Calibration:
-        def fail(key: str, problem: str) -> ConfigError:
-            return ConfigError(source, key, problem)
-
+        """Validate a calibration mapping (as loaded from YAML); every field is checked and a
+        bad one raises :class:`ConfigError` naming it."""
+        f = validate.Fields(source)
         if not isinstance(data, dict) or data.get('format_version') != 1:
-            raise fail('format_version', 'not a calibration file of format 1')
-        bars_raw = data.get('bars')
+            raise f.fail('format_version', 'not a calibration file of format 1')
+        bars_raw = f.get(data, 'bars')
         if not isinstance(bars_raw, dict) or not bars_raw:
-            raise fail('bars', 'must map channel names to calibration points')
+            raise f.fail('bars', 'must map channel names to calibration points')
         bars = {}
         for name, item in bars_raw.items():
-            try:
-                pairs = tuple(str(p) for p in item['pairs'])
-                counts = tuple(float(c) for c in item['counts'])
-                dist = tuple(float(d) * M_PER_MM for d in item['distances_mm'])
-            except (KeyError, TypeError, ValueError) as exc:
-                raise fail(f'bars.{name}', f'needs pairs, counts and distances_mm lists ({exc})') from None
-            if not (len(pairs) == len(counts) == len(dist)) or not all(map(math.isfinite, counts + dist)):
-                raise fail(f'bars.{name}', 'pairs, counts and distances_mm must be finite and of equal length')
-            bar = BarCalibration(str(name), pairs, counts, dist)
+            path = f'bars.{name}'
+            pairs = f.get(item, 'pairs', path)
+            if not isinstance(pairs, list) or not all(isinstance(p, str) for p in pairs):
+                raise f.fail(f'{path}.pairs', f'must be a list of reference pair names, got {pairs!r}')
+            counts = tuple(f.floats(item, 'counts', path, (-1,)).tolist())
+            dist = tuple(d * M_PER_MM for d in f.floats(item, 'distances_mm', path, (-1,)).tolist())
+            if not (len(pairs) == len(counts) == len(dist)):
+                raise f.fail(path, 'pairs, counts and distances_mm must be of equal length')
+            bar = BarCalibration(str(name), tuple(pairs), counts, dist)
             try:
                 bar.cdf()
             except CalibrationError as exc:
-                raise fail(f'bars.{name}', str(exc)) from None
+                raise f.fail(path, str(exc)) from None
             bars[str(name)] = bar
-        zero = data.get('thermal_zero_um') or {}
+        zero = f.mapping(data, 'thermal_zero_um') if data.get('thermal_zero_um') is not None else {}
         ambient = data.get('ambient_c')
+        quality = data.get('quality') or {}
         return cls(
             device=str(data.get('device', '')),
             bars=bars,
-            thermal_zero_m={str(k): float(v) * 1e-6 for k, v in zero.items()},
-            ambient_c=None if ambient is None else float(ambient),
+            thermal_zero_m={str(k): f.number(zero, k, 'thermal_zero_um') * 1e-6 for k in zero},
+            ambient_c=None if ambient is None else f.number(data, 'ambient_c', low=-100.0, high=200.0),
             created=str(data.get('created', '')),
-            valid=bool(data.get('valid', True)),
-            quality=dict(data.get('quality') or {}),
+            valid=f.boolean(data, 'valid', default=True),
+            quality=dict(f.mapping(data, 'quality') if quality else {}),
             uncertainty=CalibrationUncertainty.from_dict(data.get('uncertainty'), source),
         )
 

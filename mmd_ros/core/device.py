@@ -18,6 +18,7 @@ import numpy as np
 import yaml
 from numpy.typing import NDArray
 
+from mmd_ros.core import validate
 from mmd_ros.core.errors import ConfigError
 from mmd_ros.core.kinematics import Geometry
 from mmd_ros.core.units import M_PER_MM, M_PER_NM, M_PER_UM, PPM
@@ -118,53 +119,13 @@ class DeviceDescription:
 
 
 # -- parsing -----------------------------------------------------------------------------------
-class _Reader:
-    """Typed access to a YAML mapping that names the full key in every error."""
-
-    def __init__(self, source: str) -> None:
-        self.source = source
-
-    def fail(self, key: str, problem: str) -> ConfigError:
-        return ConfigError(self.source, key, problem)
-
-    def get(self, mapping: Any, key: str, path: str) -> Any:
-        if not isinstance(mapping, dict):
-            raise self.fail(path, 'must be a mapping')
-        if key not in mapping:
-            raise self.fail(f'{path}.{key}' if path else key, 'is missing')
-        return mapping[key]
-
-    def number(self, mapping: Any, key: str, path: str, *, low: float | None = None,
-               high: float | None = None, positive: bool = False) -> float:
-        full = f'{path}.{key}' if path else key
-        value = self.get(mapping, key, path)
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            raise self.fail(full, f'must be a finite number, got {value!r}')
-        if positive and value <= 0:
-            raise self.fail(full, f'must be > 0, got {value}')
-        if low is not None and value < low or high is not None and value > high:
-            raise self.fail(full, f'must be in [{low}, {high}], got {value}')
-        return float(value)
-
-    def choice(self, mapping: Any, key: str, path: str, options: tuple[str, ...]) -> str:
-        value = self.get(mapping, key, path)
-        if value not in options:
-            raise self.fail(f'{path}.{key}', f'must be one of {list(options)}, got {value!r}')
-        return value
+class _Reader(validate.Fields):
+    """Typed access to a device description that names the full key in every error."""
 
     def joints(self, mapping: Any, key: str, path: str) -> NDArray[np.float64]:
-        full = f'{path}.{key}'
-        value = self.get(mapping, key, path)
-        try:
-            arr = np.array(value, dtype=np.float64)
-        except (TypeError, ValueError):
-            raise self.fail(full, 'must be six rows of [x, y, z] numbers') from None
-        if arr.shape != (6, 3):
-            raise self.fail(full, f'must be six rows of [x, y, z], got shape {arr.shape}')
-        if not np.all(np.isfinite(arr)):
-            raise self.fail(full, 'contains a non-finite value')
+        arr = self.floats(mapping, key, path, (6, 3), what='six rows of [x, y, z] numbers')
         if np.max(np.abs(arr)) > 2000.0:
-            raise self.fail(full, 'has a coordinate beyond 2 m: is it in mm?')
+            raise self.fail(f'{path}.{key}', 'has a coordinate beyond 2 m: is it in mm?')
         return arr * M_PER_MM
 
 
@@ -221,11 +182,11 @@ def parse_device(data: dict[str, Any], source: str = '<device>') -> DeviceDescri
             raise r.fail(f'joints.{tag}', 'differs from the design joints by more than 1 mm')
 
     bars = r.get(data, 'bars', '')
-    rng = r.get(bars, 'range_mm', 'bars')
-    if not (isinstance(rng, list) and len(rng) == 2 and all(isinstance(v, (int, float)) for v in rng)
-            and 0 < rng[0] < rng[1]):
-        raise r.fail('bars.range_mm', f'must be [shortest, longest] with 0 < shortest < longest, got {rng!r}')
-    bar_range = (rng[0] * M_PER_MM, rng[1] * M_PER_MM)
+    rule = '[shortest, longest] with 0 < shortest < longest'
+    rng = r.floats(bars, 'range_mm', 'bars', (2,), what=rule)
+    if not 0 < rng[0] < rng[1]:
+        raise r.fail('bars.range_mm', f'must be {rule}, got {rng.tolist()!r}')
+    bar_range = (float(rng[0]) * M_PER_MM, float(rng[1]) * M_PER_MM)
 
     plate = r.get(data, 'reference_plate', '')
     use_pairs = r.choice(plate, 'use', 'reference_plate', ('measured', 'design'))
@@ -273,9 +234,7 @@ def parse_device(data: dict[str, Any], source: str = '<device>') -> DeviceDescri
         role = r.choice(item, 'role', path, ROLES)
         bar = pair = None
         if role == 'measuring':
-            bar = r.get(item, 'bar', path)
-            if bar not in range(1, 7):
-                raise r.fail(f'{path}.bar', f'must be a bar number 1..6, got {bar!r}')
+            bar = r.integer(item, 'bar', path, low=1, high=6)
         elif role == 'reference':
             pair = r.get(item, 'pair', path)
             if pair not in names:

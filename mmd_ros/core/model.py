@@ -37,16 +37,27 @@ import numpy as np
 import yaml
 from numpy.typing import NDArray
 
+from mmd_ros.core import validate
 from mmd_ros.core.errors import ConfigError, ModelError
 from mmd_ros.core.units import M_PER_UM
 from mmd_ros.core.yamlio import atomic_write_text, parse_yaml, read_yaml
 
 __all__ = [
     'FIT_REPLACEABLE', 'FitUncertainty', 'HysteresisTerm', 'Model', 'ModelTerm',
-    'ModelUncertainty', 'TERM_TYPES', 'TermContext', 'load_model', 'register_term',
+    'ModelUncertainty', 'TERM_TYPES', 'TermContext', 'load_model', 'register_term', 'six_values',
+    'term_from_dict',
 ]
 
 FloatArray = NDArray[np.float64]
+
+#: Keys of a model file. ``analysis`` is the history ``mmd analyze`` appends (free-form).
+MODEL_KEYS = ('format_version', 'thermal', 'length_sigma_um', 'terms', 'uncertainty', 'analysis')
+THERMAL_KEYS = ('mode', 'plate_expansion')
+THERMAL_MODES = ('auto', 'single', 'interpolate', 'off')
+#: Largest 1-sigma bar-length uncertainty a model may state [µm] (a bar that uncertain measures
+#: nothing), and largest hysteresis play half-width [µm] (the bars' whole range).
+MAX_LENGTH_SIGMA_UM = 1000.0
+MAX_TRAVEL_UM = 1_000_000.0
 
 
 @dataclass
@@ -106,11 +117,14 @@ def register_term(cls: type[ModelTerm]) -> type[ModelTerm]:
 
 
 def six_values(params: dict[str, Any], key: str, source: str) -> FloatArray:
-    """A per-bar parameter: one number for all bars or a list of six."""
-    value = params.get(key)
-    arr = np.array(value, dtype=np.float64) if value is not None else None
-    if arr is None or arr.shape not in ((), (6,)) or not np.all(np.isfinite(arr)):
-        raise ConfigError(source, key, f'must be a number or a list of six numbers, got {value!r}')
+    """A per-bar parameter: one number for all bars or a list of six (finite numbers; a bool or
+    a string is refused)."""
+    what = 'a number or a list of six numbers'
+    if key not in params:
+        raise ConfigError(source, key, f'is missing; must be {what}')
+    arr = validate.floats(params[key], source, key, what=what)
+    if arr.shape not in ((), (6,)):
+        raise ConfigError(source, key, f'must be {what}, got {params[key]!r}')
     return np.broadcast_to(arr, (6,)).copy()
 
 
@@ -166,9 +180,8 @@ class HysteresisTerm(ModelTerm):
     @classmethod
     def from_params(cls, params: dict[str, Any], source: str) -> HysteresisTerm:
         amp = six_values(params, 'amplitude_um', source) * M_PER_UM
-        travel = params.get('travel_um', 5.0)
-        if not isinstance(travel, (int, float)) or travel <= 0:
-            raise ConfigError(source, 'travel_um', f'must be a number > 0, got {travel!r}')
+        travel = validate.number(params.get('travel_um', 5.0), source, 'travel_um', low=0.0,
+                                 low_open=True, high=MAX_TRAVEL_UM)
         return cls(amp, travel * M_PER_UM)
 
     def params(self) -> dict[str, Any]:
@@ -180,18 +193,17 @@ class HysteresisTerm(ModelTerm):
 #: systematic errors derived from the calibration (msg_docs/frames.md).
 FIT_REPLACEABLE = ('calibration_points', 'calibration_drift', 'reference_distances', 'interpolation',
                    'hysteresis')
+#: Keys of a model file's ``uncertainty.fit`` section.
+FIT_KEYS = ('residual_nm2', 'replaces', 'systematic_scale', 'mean_terms_nm2', 'directions', 'from')
 
 
 def _matrix6(value: Any, source: str, key: str) -> FloatArray:
-    try:
-        arr = np.array(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        arr = None
-    if arr is None or arr.shape != (6, 6) or not np.all(np.isfinite(arr)) \
-            or np.max(np.abs(arr - arr.T)) > 1e-9 * max(float(np.max(np.abs(arr))), 1.0) \
-            or np.min(np.linalg.eigvalsh(0.5 * (arr + arr.T))) < -1e-6 * max(float(np.max(np.abs(arr))), 1e-12):
-        raise ConfigError(source, key, 'must be a symmetric positive semi-definite 6 x 6 matrix, '
-                          f'got {value!r}')
+    """A symmetric positive semi-definite 6 x 6 matrix (nested lists)."""
+    what = 'a symmetric positive semi-definite 6 x 6 matrix'
+    arr = validate.floats(value, source, key, (6, 6), what=what)
+    size = max(float(np.max(np.abs(arr))), 1e-12)
+    if np.max(np.abs(arr - arr.T)) > 1e-9 * size or np.min(np.linalg.eigvalsh(0.5 * (arr + arr.T))) < -1e-6 * size:
+        raise ConfigError(source, key, f'must be {what}, got {value!r}')
     return 0.5 * (arr + arr.T)
 
 
@@ -240,27 +252,26 @@ class FitUncertainty:
 
     @classmethod
     def from_dict(cls, data: Any, source: str) -> FitUncertainty:
-        if not isinstance(data, dict):
-            raise ConfigError(source, 'uncertainty.fit', 'must be a mapping')
-        residual = _matrix6(data.get('residual_nm2', np.zeros((6, 6))), source,
-                            'uncertainty.fit.residual_nm2') * 1e-18
-        mean_terms = _matrix6(data.get('mean_terms_nm2', np.zeros((6, 6))), source,
-                              'uncertainty.fit.mean_terms_nm2') * 1e-18
-        replaces = data.get('replaces') or []
+        f = validate.Fields(source)
+        data = validate.mapping(data, source, 'uncertainty.fit')
+        path = 'uncertainty.fit'
+        f.known_keys(data, FIT_KEYS, path)
+        residual = _matrix6(data.get('residual_nm2', np.zeros((6, 6)).tolist()), source,
+                            f'{path}.residual_nm2') * 1e-18
+        mean_terms = _matrix6(data.get('mean_terms_nm2', np.zeros((6, 6)).tolist()), source,
+                              f'{path}.mean_terms_nm2') * 1e-18
+        replaces = f.get(data, 'replaces', path, default=None) or []
         if not isinstance(replaces, list) or any(r not in FIT_REPLACEABLE for r in replaces):
-            raise ConfigError(source, 'uncertainty.fit.replaces',
-                              f'must list some of {list(FIT_REPLACEABLE)}, got {replaces!r}')
-        scale = data.get('systematic_scale', 1.0)
-        if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not 0 <= scale < 1e6:
-            raise ConfigError(source, 'uncertainty.fit.systematic_scale',
-                              f'must be a number >= 0, got {scale!r}')
-        groups = data.get('directions') or []
-        if not isinstance(groups, list):
-            raise ConfigError(source, 'uncertainty.fit.directions', 'must be a list of term lists')
-        directions = [_parse_terms(g, source, f'uncertainty.fit.directions[{k}]')
-                      for k, g in enumerate(groups)]
+            raise ConfigError(source, f'{path}.replaces',
+                              f'must list some of {", ".join(FIT_REPLACEABLE)}, got {replaces!r}')
+        scale = f.number(data, 'systematic_scale', path, default=1.0, low=0.0, high=1e6)
+        groups = f.get(data, 'directions', path, default=None) or []
+        if not isinstance(groups, list) or not all(isinstance(g, list) for g in groups):
+            raise ConfigError(source, f'{path}.directions', 'must be a list of lists of terms')
+        directions = [[term_from_dict(item, source, f'{path}.directions[{k}][{j}]')
+                       for j, item in enumerate(g)] for k, g in enumerate(groups)]
         record = data.get('from') or {}
-        return cls(residual, tuple(replaces), float(scale), directions, mean_terms,
+        return cls(residual, tuple(replaces), scale, directions, mean_terms,
                    dict(record) if isinstance(record, dict) else {})
 
 
@@ -298,38 +309,15 @@ class ModelUncertainty:
     def from_dict(cls, data: Any, source: str) -> ModelUncertainty:
         if data is None:
             return cls()
-        if not isinstance(data, dict):
-            raise ConfigError(source, 'uncertainty', 'must be a mapping')
-        unknown = sorted(set(data) - {'thermal_mismatch_fraction', 'read_noise_nm', 'fit'})
-        if unknown:
-            raise ConfigError(source, f'uncertainty.{unknown[0]}', 'is not a key of the uncertainty '
-                              'section (thermal_mismatch_fraction, read_noise_nm, fit)')
-        frac = data.get('thermal_mismatch_fraction')
-        if frac is not None and (isinstance(frac, bool) or not isinstance(frac, (int, float))
-                                 or not 0 <= frac <= 1):
-            raise ConfigError(source, 'uncertainty.thermal_mismatch_fraction',
-                              f'must be a number in [0, 1], got {frac!r}')
-        noise = data.get('read_noise_nm')
-        if noise is not None and (isinstance(noise, bool) or not isinstance(noise, (int, float))
-                                  or not 0 <= noise <= 1e4):
-            raise ConfigError(source, 'uncertainty.read_noise_nm',
-                              f'must be a number in [0, 10000] nm, got {noise!r}')
+        f = validate.Fields(source)
+        data = validate.mapping(data, source, 'uncertainty')
+        f.known_keys(data, ('thermal_mismatch_fraction', 'read_noise_nm', 'fit'), 'uncertainty')
+        frac = (f.number(data, 'thermal_mismatch_fraction', 'uncertainty', low=0.0, high=1.0)
+                if data.get('thermal_mismatch_fraction') is not None else None)
+        noise = (f.number(data, 'read_noise_nm', 'uncertainty', low=0.0, high=1e4)
+                 if data.get('read_noise_nm') is not None else None)
         fit = FitUncertainty.from_dict(data['fit'], source) if data.get('fit') is not None else None
-        return cls(None if frac is None else float(frac),
-                   None if noise is None else float(noise) * 1e-9, fit)
-
-
-def _parse_terms(raw_terms: Any, source: str, key: str) -> list[ModelTerm]:
-    if not isinstance(raw_terms, list):
-        raise ConfigError(source, key, 'must be a list')
-    terms = []
-    for k, item in enumerate(raw_terms):
-        if not isinstance(item, dict) or item.get('type') not in TERM_TYPES:
-            raise ConfigError(source, f'{key}[{k}].type',
-                              f'must be one of {sorted(TERM_TYPES)}, got {item!r}')
-        params = {name: v for name, v in item.items() if name != 'type'}
-        terms.append(TERM_TYPES[item['type']].from_params(params, f'{source}: {key}[{k}]'))
-    return terms
+        return cls(frac, None if noise is None else noise * 1e-9, fit)
 
 
 @dataclass
@@ -374,32 +362,45 @@ class Model:
 
     @classmethod
     def from_dict(cls, data: Any, source: str = '<model>') -> Model:
+        """Validate a model mapping (as loaded from YAML): every field is checked, unknown keys
+        (a typo such as ``thermall``) are refused, in the terms too."""
+        f = validate.Fields(source)
         if not isinstance(data, dict) or data.get('format_version') != 1:
             raise ConfigError(source, 'format_version', 'not a model file of format 1')
-        thermal = data.get('thermal', {})
-        if not isinstance(thermal, dict):
-            raise ConfigError(source, 'thermal', 'must be a mapping')
-        mode = thermal.get('mode', 'auto')
-        if mode not in ('auto', 'single', 'interpolate', 'off'):
-            raise ConfigError(source, 'thermal.mode',
-                              f'must be auto, single, interpolate or off, got {mode!r}')
-        plate = thermal.get('plate_expansion', True)
-        if not isinstance(plate, bool):
-            raise ConfigError(source, 'thermal.plate_expansion', f'must be true or false, got {plate!r}')
-        sigma = data.get('length_sigma_um')
-        if sigma is not None and (isinstance(sigma, bool) or not isinstance(sigma, (int, float))
-                                  or sigma <= 0):
-            raise ConfigError(source, 'length_sigma_um', f'must be a number > 0, got {sigma!r}')
-        terms = _parse_terms(data.get('terms') or [], source, 'terms')
+        f.known_keys(data, MODEL_KEYS)
+        thermal = f.mapping(data, 'thermal', default={})
+        f.known_keys(thermal, THERMAL_KEYS, 'thermal')
+        mode = f.choice(thermal, 'mode', 'thermal', THERMAL_MODES, default='auto')
+        plate = f.boolean(thermal, 'plate_expansion', 'thermal', default=True)
+        # the fixed bar-length sigma of older files: read (and checked), not used, not written
+        sigma = (f.number(data, 'length_sigma_um', low=0.0, low_open=True, high=MAX_LENGTH_SIGMA_UM)
+                 if 'length_sigma_um' in data else None)
+        raw_terms = f.get(data, 'terms', default=None) or []
+        if not isinstance(raw_terms, list):
+            raise ConfigError(source, 'terms', f'must be a list of terms, got {raw_terms!r}')
+        terms = [term_from_dict(item, source, f'terms[{k}]') for k, item in enumerate(raw_terms)]
         uncertainty = ModelUncertainty.from_dict(data.get('uncertainty'), source)
-        known = {'format_version', 'thermal', 'length_sigma_um', 'terms', 'uncertainty'}
-        extra = {k: v for k, v in data.items() if k not in known}
-        return cls(mode, plate, None if sigma is None else float(sigma) * M_PER_UM, terms, extra,
-                   source, uncertainty)
+        extra = {'analysis': data['analysis']} if 'analysis' in data else {}
+        return cls(mode, plate, None if sigma is None else sigma * M_PER_UM, terms, extra, source,
+                   uncertainty)
 
     @classmethod
     def from_yaml(cls, text: str, source: str = '<model>') -> Model:
         return cls.from_dict(parse_yaml(text, source), source)
+
+
+def term_from_dict(item: Any, source: str, where: str = 'term') -> ModelTerm:
+    """One term of a model file (``where``, e.g. ``terms[2]``, in ``source``): ``type`` and its
+    parameters, none unknown to the term."""
+    if not isinstance(item, dict) or item.get('type') not in TERM_TYPES:
+        given = item.get('type') if isinstance(item, dict) else item
+        raise ConfigError(source, f'{where}.type',
+                          f'must be one of {", ".join(sorted(TERM_TYPES))}, got {given!r}')
+    params = {key: v for key, v in item.items() if key != 'type'}
+    term = TERM_TYPES[item['type']].from_params(params, f'{source}: {where}')
+    # A term writes every parameter it reads (params()), so its keys are the known ones.
+    validate.known_keys(params, ['type', *term.params()], f'{source}: {where}')
+    return term
 
 
 def load_model(path: str | os.PathLike[str] | None) -> Model:

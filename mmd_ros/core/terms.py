@@ -30,13 +30,13 @@ starts again from the state it had before the first call, so the replay gives th
 from __future__ import annotations
 
 import copy
-import math
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.signal import lfilter
 
+from mmd_ros.core import validate
 from mmd_ros.core.errors import ConfigError
 from mmd_ros.core.model import HysteresisTerm, ModelTerm, TermContext, register_term, six_values
 from mmd_ros.core.rotation import rotation_matrix
@@ -60,23 +60,22 @@ MAX_GAP_S = 0.1
 def _number(params: dict[str, Any], key: str, source: str, default: float | None = None, *,
             positive: bool = False) -> float:
     value = params.get(key, default)
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise ConfigError(source, key, f'must be a finite number, got {value!r}')
-    if positive and value <= 0:
-        raise ConfigError(source, key, f'must be > 0, got {value!r}')
-    return float(value)
+    return validate.number(value, source, key, low=0.0 if positive else None, low_open=positive)
 
 
 def _matrix(params: dict[str, Any], key: str, source: str, shape: tuple[int, ...],
             default: Any = None) -> FloatArray:
-    value = params.get(key, default)
-    try:
-        arr = np.array(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        arr = None
-    if arr is None or arr.shape != shape or not np.all(np.isfinite(arr)):
-        raise ConfigError(source, key, f'must be finite numbers of shape {list(shape)}, got {value!r}')
-    return arr
+    return validate.floats(params.get(key, default), source, key, shape)
+
+
+def _knots(params: dict[str, Any], source: str) -> FloatArray:
+    """Six increasing lists of calibration distances [mm], one per bar."""
+    knots = validate.floats(params.get('knots_mm'), source, 'knots_mm', (6, -1),
+                            what='six increasing lists of calibration distances (one per bar)')
+    if knots.shape[1] < 2 or not np.all(np.diff(knots, axis=1) > 0):
+        raise ConfigError(source, 'knots_mm', 'must be six increasing lists of calibration '
+                          f'distances (one per bar), got {params.get("knots_mm")!r}')
+    return knots
 
 
 def _geometry(params: dict[str, Any], source: str) -> tuple[FloatArray, FloatArray]:
@@ -471,17 +470,10 @@ class ScaleNonlinearityTerm(ModelTerm):
 
     @classmethod
     def from_params(cls, params: dict[str, Any], source: str) -> ScaleNonlinearityTerm:
-        knots = np.array(params.get('knots_mm'), dtype=np.float64) if params.get('knots_mm') is not None else None
-        if knots is None or knots.ndim != 2 or knots.shape[0] != 6 or knots.shape[1] < 2 \
-                or not np.all(np.diff(knots, axis=1) > 0):
-            raise ConfigError(source, 'knots_mm', 'must be six increasing lists of calibration '
-                              f'distances (one per bar), got {params.get("knots_mm")!r}')
-        sin = np.array(params.get('sin_um'), dtype=np.float64)
-        cos = np.array(params.get('cos_um'), dtype=np.float64)
-        if sin.ndim != 2 or sin.shape[0] != 6 or cos.shape != sin.shape or not (
-                np.all(np.isfinite(sin)) and np.all(np.isfinite(cos))):
-            raise ConfigError(source, 'sin_um', 'sin_um and cos_um must be six equal-length lists '
-                              'of harmonic amplitudes')
+        knots = _knots(params, source)
+        what = 'six equal-length lists of harmonic amplitudes'
+        sin = validate.floats(params.get('sin_um'), source, 'sin_um', (6, -1), what=what)
+        cos = validate.floats(params.get('cos_um'), source, 'cos_um', sin.shape, what=what)
         return cls(knots * M_PER_MM, sin * M_PER_UM, cos * M_PER_UM)
 
     def params(self) -> dict[str, Any]:
@@ -530,11 +522,7 @@ class CdfOffsetsTerm(ModelTerm):
 
     @classmethod
     def from_params(cls, params: dict[str, Any], source: str) -> CdfOffsetsTerm:
-        knots = np.array(params.get('knots_mm'), dtype=np.float64) if params.get('knots_mm') is not None else None
-        if knots is None or knots.ndim != 2 or knots.shape[0] != 6 or knots.shape[1] < 2 \
-                or not np.all(np.diff(knots, axis=1) > 0):
-            raise ConfigError(source, 'knots_mm', 'must be six increasing lists of calibration '
-                              f'distances (one per bar), got {params.get("knots_mm")!r}')
+        knots = _knots(params, source)
         return cls(knots * M_PER_MM, _matrix(params, 'offsets_um', source, knots.shape) * M_PER_UM)
 
     def params(self) -> dict[str, Any]:
@@ -579,7 +567,8 @@ class CyclicErrorTerm(ModelTerm):
     def from_params(cls, params: dict[str, Any], source: str) -> CyclicErrorTerm:
         channels = params.get('channels')
         if not (isinstance(channels, list) and len(channels) == 6
-                and all(isinstance(c, int) and 0 <= c < 64 for c in channels)):
+                and all(validate.number_problem(c, low=0, high=63, integer=True) is None
+                        for c in channels)):
             raise ConfigError(source, 'channels', f'must list the terminal channels of bars 1..6, got {channels!r}')
         return cls(_number(params, 'period_um', source, positive=True) * M_PER_UM,
                    _number(params, 'resolution_nm', source, positive=True) * M_PER_NM, channels,

@@ -58,7 +58,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import brentq, minimize
 
-from mmd_ros.core.errors import ConfigError
+from mmd_ros.core import validate
 
 __all__ = [
     'CalibrationUncertainty', 'InterpolationError', 'capture_var', 'NoiseEstimator', 'averaged_quantisation_var',
@@ -364,6 +364,10 @@ class NoiseEstimator:
 
 
 # -- the calibration's figures --------------------------------------------------------------------
+#: Keys of a calibration file's ``uncertainty`` section.
+CALIBRATION_UNCERTAINTY_KEYS = (
+    'approaches', 'read_noise_nm', 'capture_samples', 'hysteresis_um', 'seating_repeatability_nm',
+    'seating_dof', 'routine_temp_change_c', 'routine_temp_sigma_c', 'drift_nm')
 @dataclass(frozen=True)
 class CalibrationUncertainty:
     """What the calibration routine measured about its own points (the ``uncertainty`` section
@@ -426,51 +430,31 @@ class CalibrationUncertainty:
     def from_dict(cls, data: Any, source: str) -> CalibrationUncertainty:
         if data is None:
             return cls()
-        if not isinstance(data, dict):
-            raise ConfigError(source, 'uncertainty', 'must be a mapping')
+        f = validate.Fields(source)
+        path = 'uncertainty'
+        data = validate.mapping(data, source, path)
+        f.known_keys(data, CALIBRATION_UNCERTAINTY_KEYS, path)
 
-        def number(key: str, *, low: float = 0.0, high: float = math.inf) -> float | None:
-            value = data.get(key)
-            if value is None:
-                return None
-            if isinstance(value, bool) or not isinstance(value, (int, float)) \
-                    or not math.isfinite(value) or not low <= value <= high:
-                raise ConfigError(source, f'uncertainty.{key}',
-                                  f'must be a number in [{low}, {high}], got {value!r}')
-            return float(value)
+        def number(key: str, high: float, low: float = 0.0) -> float | None:
+            return f.number(data, key, path, low=low, high=high) if data.get(key) is not None else None
 
-        approaches = data.get('approaches', 1)
-        if approaches not in (1, 2):
-            raise ConfigError(source, 'uncertainty.approaches', f'must be 1 or 2, got {approaches!r}')
-        noise = number('read_noise_nm', high=1e6)
-        samples = number('capture_samples', low=1, high=1e9)
-        seating = number('seating_repeatability_nm', high=1e6)
-        dof = number('seating_dof', high=1e9)
-        hyst = data.get('hysteresis_um') or {}
-        if not isinstance(hyst, dict) or not all(
-                isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-                and abs(v) < 1e3 for v in hyst.values()):
-            raise ConfigError(source, 'uncertainty.hysteresis_um',
-                              f'must map bar channels to numbers [µm], got {hyst!r}')
-        temp = data.get('routine_temp_change_c')
-        if temp is not None and (isinstance(temp, bool) or not isinstance(temp, (int, float))
-                                 or not math.isfinite(temp) or abs(temp) > 100):
-            raise ConfigError(source, 'uncertainty.routine_temp_change_c',
-                              f'must be a number in [-100, 100] °C, got {temp!r}')
-        temp_sigma = number('routine_temp_sigma_c', high=100.0)
-        drift = data.get('drift_nm') or {}
-        if not isinstance(drift, dict) or not all(
-                isinstance(v, list) and all(isinstance(x, (int, float)) and not isinstance(x, bool)
-                                            and math.isfinite(x) and abs(x) < 1e6 for x in v)
-                for v in drift.values()):
-            raise ConfigError(source, 'uncertainty.drift_nm',
-                              f'must map bar channels to lists of numbers [nm], got {drift!r}')
-        return cls(None if noise is None else noise * 1e-9,
-                   None if samples is None else int(samples), int(approaches),
-                   {str(k): float(v) * 1e-6 for k, v in hyst.items()},
-                   None if seating is None else seating * 1e-9, int(dof or 0),
-                   None if temp is None else float(temp),
-                   {str(k): [float(x) * 1e-9 for x in v] for k, v in drift.items()}, temp_sigma)
+        approaches = f.choice(data, 'approaches', path, (1, 2), default=1)
+        noise = number('read_noise_nm', 1e6)
+        samples = (validate.integer(data['capture_samples'], source, f'{path}.capture_samples', low=1)
+                   if data.get('capture_samples') is not None else None)
+        seating = number('seating_repeatability_nm', 1e6)
+        dof = (validate.integer(data['seating_dof'], source, f'{path}.seating_dof', low=0)
+               if data.get('seating_dof') is not None else 0)
+        temp = number('routine_temp_change_c', 100.0, -100.0)
+        temp_sigma = number('routine_temp_sigma_c', 100.0)
+        hyst = f.mapping(data, 'hysteresis_um', path, default={}) or {}
+        hysteresis = {str(k): validate.number(v, source, f'{path}.hysteresis_um.{k}', low=-1e3,
+                                              high=1e3) * 1e-6 for k, v in hyst.items()}
+        drift_raw = f.mapping(data, 'drift_nm', path, default={}) or {}
+        drift = {str(k): (validate.floats(v, source, f'{path}.drift_nm.{k}', (-1,)) * 1e-9).tolist()
+                 for k, v in drift_raw.items()}
+        return cls(None if noise is None else noise * 1e-9, samples, int(approaches), hysteresis,
+                   None if seating is None else seating * 1e-9, dof, temp, drift, temp_sigma)
 
 
 def pose_covariance(jinv: FloatArray, length_cov_m2: FloatArray, plate_scale: FloatArray) -> FloatArray:

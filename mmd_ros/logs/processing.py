@@ -21,6 +21,7 @@ from mmd_ros.logs.layout import (
     BAR_NAMES, FRAME_LOWER, TOPIC_BAR_LENGTHS, TOPIC_CALIBRATION, TOPIC_DEVICE, TOPIC_FK_STATUS,
     TOPIC_MODEL, TOPIC_POSE, TOPIC_POSE_COV, TOPIC_THERMAL, RunLog,
 )
+from mmd_ros.logs.outputs import replacing
 from mmd_ros.logs.writer import LogWriter
 
 __all__ = ['ProcessedRun', 'process_run', 'summarize', 'write_csv', 'write_processed']
@@ -82,13 +83,14 @@ def process_run(run: RunLog, model: Model, *, calibration_path: str | None = Non
 def write_processed(path: Path, run: RunLog, model: Model, result: ProcessedRun,
                     calibration_text: str, *, with_covariance: bool = True) -> None:
     """Write bar lengths, poses, thermal state and FK status in the live pipeline's topics (and
-    the poses with their covariance when computed and ``with_covariance``)."""
+    the poses with their covariance when computed and ``with_covariance``), under a temporary
+    name, renamed to ``path`` once complete."""
     stamps = result.stamps_ns
     t0 = int(stamps[0])
     ref_names = [c.name + '_error' for c in run.device.reference_channels][:result.reference_error_m.shape[1]]
     status = np.column_stack([result.converged, result.valid, result.iterations,
                               result.residual_m, np.full(stamps.size, np.nan)]).astype(np.float64)
-    with LogWriter(path) as log:
+    with replacing(path) as tmp, LogWriter(tmp) as log:
         log.write_string(TOPIC_DEVICE, t0, run.device.to_yaml())
         log.write_string(TOPIC_CALIBRATION, t0, calibration_text)
         log.write_string(TOPIC_MODEL, t0, model.to_yaml())
@@ -122,7 +124,7 @@ def write_csv(path: Path, result: ProcessedRun) -> None:
               'residual_m,' + ','.join(f'bar{i}_m' for i in range(1, 7)) + ',temp_change_c')
     data = np.column_stack([result.poses, result.valid, result.converged, result.iterations,
                             result.residual_m, result.lengths_m, result.temp_change_c])
-    with open(path, 'w', encoding='utf-8') as handle:
+    with replacing(path) as tmp, open(tmp, 'w', encoding='utf-8') as handle:
         handle.write(header + '\n')
         for stamp, row in zip(result.stamps_ns.tolist(), data):
             handle.write(f'{stamp},' + ','.join(f'{v:.12g}' for v in row) + '\n')
@@ -147,7 +149,9 @@ def summarize(run: RunLog, result: ProcessedRun, *, absolute_reference: bool | N
         'max_fk_iterations': int(result.iterations.max()) if n else 0,
     }
     if run.problem:
-        summary['log_problem'] = run.problem
+        summary['log_problem'] = run.problem.as_dict()
+    if run.segment[1] > 1:
+        summary['segment'] = {'index': run.segment[0], 'of': run.segment[1]}
     if run.reference_pose is not None:
         errors = pose_error(result.poses, run.reference_pose)
         stats = error_stats(errors, result.valid)

@@ -2,11 +2,22 @@
 
 The reader walks the file's records itself (the MCAP format is a flat sequence of
 ``opcode u8, length u64, content``; chunks hold compressed records of the same form) instead of
-going through an indexed reader: it needs no summary section, so a log cut short by a crash or a
-full disk is read up to its last complete chunk, and it groups payloads per topic without
-building a Python object per message. What was lost is said in :attr:`LogReader.problem`.
-Messages of our fixed layouts decode in one numpy pass (:mod:`mmd_ros.logs.cdr`); others go
-through mcap-ros2-support's generic decoder.
+going through an indexed reader, and groups payloads per topic without building a Python object
+per message. Messages of our fixed layouts decode in one numpy pass (:mod:`mmd_ros.logs.cdr`);
+others go through mcap-ros2-support's generic decoder. Messages come back in the order they
+were written (per topic), which is the order they were recorded.
+
+A damaged file loses only its damaged part:
+
+- a chunk that fails its CRC, does not decompress or holds a malformed record is skipped as a
+  whole, and reading goes on after it: at its end when its header is consistent, else at the
+  next chunk — found from the summary's chunk index when the file has one, by scanning for the
+  next well-formed chunk record when it has not;
+- a log cut by a crash (no summary and footer) is read to its last complete chunk;
+- what was skipped is said in :attr:`LogReader.problem`, a :class:`LogProblem`: its kind, a
+  message, and for each skipped stretch the bytes, the reason, the time span and the messages
+  lost per topic (exactly, from the message indexes, when they survived; else the span between
+  the last message read before and the first after).
 """
 
 from __future__ import annotations
@@ -25,14 +36,25 @@ from numpy.typing import NDArray
 from mmd_ros.logs.cdr import JointStateLayout, PoseLayout, decode_string
 from mmd_ros.logs.errors import LogError, LogFormatError
 
-__all__ = ['JointStates', 'LogReader', 'Topic']
+__all__ = ['JointStates', 'LogProblem', 'LogReader', 'SkippedSpan', 'Topic']
 
 MAGIC = b'\x89MCAP0\r\n'
 OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK = 1, 2, 3, 4, 5, 6
+OP_MESSAGE_INDEX, OP_CHUNK_INDEX = 7, 8
 OP_METADATA, OP_DATA_END = 0x0C, 0x0F
+RECORD_NAMES = {OP_SCHEMA: 'schema', OP_CHANNEL: 'channel', OP_METADATA: 'metadata'}
+#: Opcode, record length, summary start, summary offset start, CRC.
+FOOTER = struct.Struct('<BQQQI')
 #: Longest repeating record pattern, and attempts per chunk, of the fast path.
 MAX_PATTERN = 32
 MAX_PATTERN_TRIES = 3
+#: Largest decompressed chunk accepted [bytes]: writers use 1–100 MiB; a larger size in a
+#: chunk's header is damage, not an allocation to attempt.
+MAX_CHUNK_BYTES = 1 << 30
+COMPRESSIONS = (b'', b'zstd', b'lz4')
+#: What goes wrong when parsing damaged bytes.
+_DAMAGE = (LogError, struct.error, ValueError, IndexError, OverflowError, UnicodeDecodeError,
+           MemoryError)
 
 
 @dataclass
@@ -58,9 +80,105 @@ class JointStates:
         return self.stamps_ns.astype(np.float64) * 1e-9
 
 
+@dataclass(frozen=True)
+class SkippedSpan:
+    """A stretch of a log that could not be read.
+
+    offset, size : where it lies in the file [bytes]
+    reason : what was wrong there
+    start_ns, end_ns : log times of the first and last message lost when ``exact``; else the
+        last message read before the stretch and the first read after it (None: none there)
+    exact : the times (and ``messages``) come from the message index of the lost chunk
+    messages : messages lost per topic, or None when no index survived to say
+    at_end : the stretch is the end of the file (a record cut short by a crash)
+    """
+
+    offset: int
+    size: int
+    reason: str
+    start_ns: int | None = None
+    end_ns: int | None = None
+    exact: bool = False
+    messages: dict[str, int] | None = None
+    at_end: bool = False
+
+    def describe(self, t0_ns: int | None) -> str:
+        """In words, times in seconds from ``t0_ns`` (the log's first message)."""
+
+        def t(ns: int | None) -> str:
+            if ns is None:
+                return '?'
+            return f'{(ns - t0_ns) * 1e-9:.3f} s' if t0_ns is not None else f'{ns} ns'
+
+        where = f'bytes {self.offset}–{self.offset + self.size} ({self.reason})'
+        if self.messages is not None:
+            n = sum(self.messages.values())
+            per = ', '.join(f'{k} {v}' for k, v in sorted(self.messages.items()))
+            lost = f'{n} messages lost ({per})'
+        else:
+            lost = 'messages lost: not known'
+        if self.exact:
+            span = f'stamped {t(self.start_ns)} to {t(self.end_ns)}'
+        elif self.at_end:
+            span = f'after {t(self.start_ns)}'
+        else:
+            span = f'none read between {t(self.start_ns)} and {t(self.end_ns)}'
+        return f'{where}: {lost}, {span}'
+
+    def as_dict(self, t0_ns: int | None = None) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            'offset': self.offset, 'size': self.size, 'reason': self.reason,
+            'start_ns': self.start_ns, 'end_ns': self.end_ns, 'exact': self.exact,
+            'messages': self.messages, 'at_end': self.at_end}
+        if t0_ns is not None:
+            out['start_s'] = None if self.start_ns is None else (self.start_ns - t0_ns) * 1e-9
+            out['end_s'] = None if self.end_ns is None else (self.end_ns - t0_ns) * 1e-9
+        return out
+
+
+@dataclass(frozen=True)
+class LogProblem:
+    """What is wrong with a log that was read anyway.
+
+    kind : 'damaged' (parts were skipped, see ``skipped``) or 'unclean_end' (the recording did
+        not end cleanly: no summary and footer; read to its last complete chunk)
+    message : the whole story in one paragraph (also ``str(problem)``)
+    skipped : the stretches not read, in file order
+    clean_end : the file ends with its summary and footer, as a finished recording does
+    t0_ns : log time of the first message read (times in the message count from it)
+    """
+
+    kind: str
+    message: str
+    skipped: tuple[SkippedSpan, ...] = ()
+    clean_end: bool = True
+    t0_ns: int | None = None
+
+    def __str__(self) -> str:
+        return self.message
+
+    @property
+    def lost_messages(self) -> dict[str, int] | None:
+        """Messages lost per topic, summed over the stretches; None if any count is unknown."""
+        total: dict[str, int] = {}
+        for span in self.skipped:
+            if span.messages is None:
+                return None
+            for k, v in span.messages.items():
+                total[k] = total.get(k, 0) + v
+        return total
+
+    def as_dict(self) -> dict[str, Any]:
+        """For ``--json`` and reports: plain values only."""
+        return {'kind': self.kind, 'message': self.message, 'clean_end': self.clean_end,
+                'lost_messages': self.lost_messages,
+                'skipped': [s.as_dict(self.t0_ns) for s in self.skipped]}
+
+
 @dataclass
 class _Channel:
-    """Messages of one channel, as loose payloads and/or blocks of equal-size rows."""
+    """Messages of one channel, in file order: pieces (stamps, payloads), where payloads are a
+    list of bytes or a block of equal-size rows; loose messages collect until sealed."""
 
     topic: str
     schema_id: int
@@ -68,16 +186,64 @@ class _Channel:
     metadata: dict[str, str]
     log_times: list[int] = field(default_factory=list)
     payloads: list[bytes] = field(default_factory=list)
-    block_times: list[NDArray[np.int64]] = field(default_factory=list)
-    blocks: list[NDArray[np.uint8]] = field(default_factory=list)
+    pieces: list[tuple[NDArray[np.int64], list[bytes] | NDArray[np.uint8]]] = field(default_factory=list)
+
+    def seal(self) -> None:
+        if self.log_times:
+            self.pieces.append((np.array(self.log_times, dtype=np.int64), self.payloads))
+            self.log_times, self.payloads = [], []
 
     @property
     def count(self) -> int:
-        return len(self.payloads) + sum(len(b) for b in self.blocks)
+        return len(self.payloads) + sum(len(t) for t, _ in self.pieces)
+
+
+@dataclass(frozen=True)
+class _ChunkIndex:
+    offset: int
+    length: int
+    start_ns: int
+    end_ns: int
+    message_index_offsets: dict[int, int]
+
+
+@dataclass
+class _Summary:
+    """What a finished log's summary section says (None fields: not present)."""
+
+    chunks: dict[int, _ChunkIndex] = field(default_factory=dict)
+    data_end: int | None = None
+    schemas: dict[int, tuple[str, str, bytes]] = field(default_factory=dict)
+    channels: dict[int, tuple[str, int, str, dict[str, str]]] = field(default_factory=dict)
+
+
+@dataclass
+class _Span:
+    """A stretch being skipped while parsing (becomes a :class:`SkippedSpan`)."""
+
+    offset: int
+    size: int
+    reason: str
+    start_ns: int | None = None
+    end_ns: int | None = None
+    messages: dict[int, int] | None = None  # per channel id
+    at_end: bool = False
+    from_summary: bool = False  # messages and times already taken from the summary's index
+
+    def add_index(self, cid: int, times: NDArray[np.int64]) -> None:
+        if times.size == 0:
+            return
+        self.messages = self.messages or {}
+        self.messages[cid] = self.messages.get(cid, 0) + int(times.size)
+        lo, hi = int(times.min()), int(times.max())
+        self.start_ns = lo if self.start_ns is None else min(self.start_ns, lo)
+        self.end_ns = hi if self.end_ns is None else max(self.end_ns, hi)
 
 
 def _string(buf: Any, off: int) -> tuple[str, int]:
     (n,) = struct.unpack_from('<I', buf, off)
+    if off + 4 + n > len(buf):
+        raise LogError('a string runs past its record')
     return bytes(buf[off + 4:off + 4 + n]).decode('utf-8'), off + 4 + n
 
 
@@ -93,95 +259,323 @@ def _map(buf: Any, off: int) -> tuple[dict[str, str], int]:
     return out, end
 
 
-class LogReader:
-    """All messages of an MCAP log, grouped by topic.
+def _schema_record(buf: Any, start: int) -> tuple[int, tuple[str, str, bytes]]:
+    """A schema record's id and (name, encoding, data)."""
+    (sid,) = struct.unpack_from('<H', buf, start)
+    name, off = _string(buf, start + 2)
+    encoding, off = _string(buf, off)
+    (n,) = struct.unpack_from('<I', buf, off)
+    return sid, (name, encoding, bytes(buf[off + 4:off + 4 + n]))
 
-    truncated : the file ended inside a record, or a chunk was damaged; every message before
-        the damage was kept
-    problem : what was wrong, in words, or None
+
+def _channel_record(buf: Any, start: int) -> tuple[int, tuple[str, int, str, dict[str, str]]]:
+    """A channel record's id and (topic, schema id, message encoding, metadata)."""
+    cid, sid = struct.unpack_from('<HH', buf, start)
+    topic, off = _string(buf, start + 4)
+    encoding, off = _string(buf, off)
+    meta, _ = _map(buf, off)
+    return cid, (topic, sid, encoding, meta)
+
+
+def _index_times(buf: Any, start: int, end: int) -> tuple[int, NDArray[np.int64]]:
+    """A message index record's channel and log times."""
+    cid, n = struct.unpack_from('<HI', buf, start)
+    if n % 16 or start + 6 + n > end:
+        raise LogError('a malformed message index')
+    entries = np.frombuffer(buf, dtype='<u8', count=n // 8, offset=start + 6).reshape(-1, 2)
+    return cid, entries[:, 0].astype(np.int64)
+
+
+class LogReader:
+    """All messages of an MCAP log, grouped by topic, in the order they were written.
+
+    problem : a :class:`LogProblem` when parts were skipped or the recording did not end
+        cleanly, else None
+    truncated : ``problem is not None`` (kept for older callers)
     """
 
     def __init__(self, path: str | os.PathLike[str]) -> None:
         self.path = Path(path)
-        self.truncated = False
-        self.problem: str | None = None
+        self.problem: LogProblem | None = None
         self.profile = ''
         self.metadata: dict[str, dict[str, str]] = {}
         self._schemas: dict[int, tuple[str, str, bytes]] = {}
         self._channels: dict[int, _Channel] = {}
+        self._spans: list[_Span] = []
+        self._read: list[tuple[int, int, int]] = []  # (offset, first, last log time) of chunks read
+        self._summary: _Summary | None = None
         try:
             with open(self.path, 'rb') as handle:
                 size = os.fstat(handle.fileno()).st_size
                 if size < len(MAGIC):
                     raise LogError(f'{self.path} is empty or not an MCAP file')
                 with mmap.mmap(handle.fileno(), 0, access=mmap.ACCESS_READ) as data:
-                    self._parse(data, size)
+                    clean = self._parse(data, size)
         except OSError as exc:
             raise LogError(f'cannot read log {self.path}: {exc.strerror}') from None
+        for ch in self._channels.values():
+            ch.seal()
+        self.problem = self._make_problem(clean)
+
+    @property
+    def truncated(self) -> bool:
+        return self.problem is not None
 
     # -- parsing -------------------------------------------------------------------------------
-    def _damage(self, problem: str) -> None:
-        self.truncated = True
-        self.problem = f'{self.path}: {problem}; kept everything before it'
-
-    def _parse(self, data: Any, size: int) -> None:
+    def _parse(self, data: Any, size: int) -> bool:
+        """Walk the records; returns whether the file ends cleanly (summary and footer)."""
         if data[:8] != MAGIC:
             raise LogError(f'{self.path} is not an MCAP file (bad magic bytes)')
+        footer = self._read_summary(data, size)
+        pending: _Span | None = None  # a skipped chunk whose message indexes may follow
         off = 8
         while off < size:
             if off + 9 > size:
-                self._damage(f'file ends inside a record header at byte {off}')
-                return
+                self._spans.append(_Span(off, size - off, 'the file ends inside a record header',
+                                          at_end=True))
+                break
             op = data[off]
             (length,) = struct.unpack_from('<Q', data, off + 1)
             start, end = off + 9, off + 9 + length
-            if end > size:
-                self._damage(f'file ends inside a record (opcode {op}) at byte {off} of {size}')
-                return
-            if op == OP_FOOTER:
-                return
-            if op == OP_DATA_END:
-                # The summary repeats schemas and channels we already have; nothing new follows.
-                return
+            if op == 0 or end > size:
+                reason = (f'the file ends inside a record (opcode {op})' if end > size
+                          else 'a record with opcode 0 (not MCAP)')
+                if self._summary is not None and off in self._summary.chunks:
+                    reason = 'a chunk whose opcode or length is damaged'
+                    pending = self._skip_chunk(data, off, end, size, reason)
+                    off = None if pending is None else pending.offset + pending.size
+                else:
+                    off, pending = self._skip_to_next(data, off, size, reason), None
+                if off is None:
+                    break
+                continue
+            if op in (OP_FOOTER, OP_DATA_END):
+                break
             if op == OP_CHUNK:
                 try:
-                    self._parse_chunk(data, start, end)
-                except LogError as exc:
-                    self._damage(str(exc))
-                    return
+                    self._parse_chunk(data, off, start, end)
+                    pending = None
+                except _DAMAGE as exc:
+                    reason = str(exc) if isinstance(exc, LogError) else f'a malformed chunk ({exc})'
+                    pending = self._skip_chunk(data, off, end, size, reason)
+                    if pending is None:
+                        break
+                    off = pending.offset + pending.size
+                    continue
+            elif op == OP_MESSAGE_INDEX:
+                if pending is not None and not pending.from_summary:
+                    try:  # the index of the chunk just skipped: what it held
+                        pending.add_index(*_index_times(data, start, end))
+                    except _DAMAGE:
+                        pass
             elif op == OP_HEADER:
-                self.profile, _ = _string(data, start)
+                try:
+                    self.profile, _ = _string(data, start)
+                except _DAMAGE:
+                    pass
             else:
-                self._parse_record(op, data, start, end)
+                try:
+                    self._parse_record(op, data, start, end)
+                except _DAMAGE as exc:
+                    self._spans.append(_Span(off, end - off, f'a damaged {RECORD_NAMES.get(op, "")} '
+                                             f'record ({exc})'))
             off = end
+        return footer
 
-    def _parse_chunk(self, data: Any, start: int, end: int) -> None:
-        uncompressed_size, crc = struct.unpack_from('<QI', data, start + 16)
-        compression, off = _string(data, start + 28)
-        (n,) = struct.unpack_from('<Q', data, off)
-        raw = data[off + 8:off + 8 + n]
+    def _read_summary(self, data: Any, size: int) -> bool:
+        """Read the footer and summary section, if the file has them; returns whether the
+        footer is there (the recording ended cleanly)."""
+        foot = size - len(MAGIC) - FOOTER.size
+        if foot < len(MAGIC) or data[size - len(MAGIC):] != MAGIC:
+            return False
+        op, length, summary_start, _, crc = FOOTER.unpack_from(data, foot)
+        if op != OP_FOOTER or length != FOOTER.size - 9:
+            return False
+        if not summary_start or not len(MAGIC) <= summary_start < foot:
+            return True
+        if crc and zlib.crc32(data[summary_start:foot + FOOTER.size - 4]) != crc:
+            return True  # a damaged summary is not used; the data section is read on its own
+        summary = _Summary()
         try:
-            if compression == '':
+            off = summary_start
+            while off + 9 <= foot:
+                op = data[off]
+                (length,) = struct.unpack_from('<Q', data, off + 1)
+                start, end = off + 9, off + 9 + length
+                if end > foot:
+                    return True
+                if op == OP_SCHEMA:
+                    sid, schema = _schema_record(data, start)
+                    summary.schemas[sid] = schema
+                elif op == OP_CHANNEL:
+                    cid, channel = _channel_record(data, start)
+                    summary.channels[cid] = channel
+                elif op == OP_CHUNK_INDEX:
+                    t0, t1, offset, clen = struct.unpack_from('<QQQQ', data, start)
+                    (n,) = struct.unpack_from('<I', data, start + 32)
+                    offsets = {}
+                    for k in range(n // 10):
+                        cid, moff = struct.unpack_from('<HQ', data, start + 36 + 10 * k)
+                        offsets[cid] = moff
+                    summary.chunks[offset] = _ChunkIndex(offset, clen, t0, t1, offsets)
+                off = end
+        except _DAMAGE:
+            return True
+        if summary_start >= 13 and data[summary_start - 13] == OP_DATA_END:
+            summary.data_end = summary_start - 13
+        self._summary = summary
+        for sid, schema in summary.schemas.items():
+            self._schemas.setdefault(sid, schema)
+        for cid, (topic, sid, encoding, meta) in summary.channels.items():
+            self._channels.setdefault(cid, _Channel(topic, sid, encoding, meta))
+        return True
+
+    def _next_record(self, data: Any, after: int, size: int) -> int | None:
+        """Offset of the next record to read after damage at ``after``: the next chunk (or the
+        end of the data section) from the summary when there is one, else the next
+        well-formed chunk or message index record found by scanning."""
+        if self._summary is not None:
+            later = [o for o in self._summary.chunks if o > after]
+            if later:
+                return min(later)
+            end = self._summary.data_end
+            return end if end is not None and end > after else None
+        pos = after + 1
+        while True:
+            chunk = data.find(b'\x06', pos)
+            index = data.find(b'\x07', pos)
+            hits = [h for h in (chunk, index) if h >= 0]
+            if not hits:
+                return None
+            pos = min(hits)
+            if self._looks_like_record(data, pos, size):
+                return pos
+            pos += 1
+
+    def _looks_like_record(self, data: Any, pos: int, size: int) -> bool:
+        """Whether a well-formed chunk, or message index of a known channel, starts at ``pos``."""
+        if pos + 9 > size:
+            return False
+        op = data[pos]
+        (length,) = struct.unpack_from('<Q', data, pos + 1)
+        end = pos + 9 + length
+        if end > size:
+            return False
+        try:
+            if op == OP_CHUNK:
+                return self._chunk_header(data, pos, end) is not None
+            if op == OP_MESSAGE_INDEX and length >= 6:
+                cid, n = struct.unpack_from('<HI', data, pos + 9)
+                return cid in self._channels and n % 16 == 0 and length == 6 + n
+        except struct.error:
+            return False
+        return False
+
+    @staticmethod
+    def _chunk_header(data: Any, off: int, end: int) -> tuple[int, int, int, bytes, int, int] | None:
+        """(start time, end time, uncompressed size, compression, CRC, offset of the records)
+        of a chunk whose header is consistent with its record length, else None."""
+        start = off + 9
+        if end - start < 40:
+            return None
+        t0, t1, usize, crc, n = struct.unpack_from('<QQQII', data, start)
+        if n > 4:
+            return None
+        compression = bytes(data[start + 32:start + 32 + n])
+        (records,) = struct.unpack_from('<Q', data, start + 32 + n)
+        body = start + 32 + n + 8
+        if compression not in COMPRESSIONS or t0 > t1 or body + records != end:
+            return None
+        return t0, t1, usize, compression, crc, body
+
+    def _skip_chunk(self, data: Any, off: int, end: int, size: int, reason: str) -> _Span | None:
+        """Skip the damaged chunk at ``off``: to its end if its header holds, else to the next
+        record; the span is recorded (and returned, for its message indexes to follow)."""
+        index = self._summary.chunks.get(off) if self._summary is not None else None
+        if index is not None:
+            nxt = off + index.length
+        elif self._chunk_header(data, off, end) is not None:
+            nxt = end
+        else:
+            nxt = self._next_record(data, off, size)
+        span = _Span(off, (size if nxt is None else nxt) - off, reason, at_end=nxt is None)
+        if index is not None:
+            span.start_ns, span.end_ns = index.start_ns, index.end_ns
+            for cid, moff in index.message_index_offsets.items():
+                try:
+                    if data[moff] != OP_MESSAGE_INDEX:
+                        raise LogError('not a message index')
+                    (length,) = struct.unpack_from('<Q', data, moff + 1)
+                    span.add_index(*_index_times(data, moff + 9, moff + 9 + length))
+                except _DAMAGE:
+                    span.messages = None
+                    break
+            span.from_summary = span.messages is not None
+        self._spans.append(span)
+        return None if nxt is None else span
+
+    def _skip_to_next(self, data: Any, off: int, size: int, reason: str) -> int | None:
+        """Damage outside a chunk at ``off``: go on at the next record (recorded as skipped)."""
+        nxt = self._next_record(data, off, size)
+        self._spans.append(_Span(off, (size if nxt is None else nxt) - off, reason, at_end=nxt is None))
+        return nxt
+
+    def _parse_chunk(self, data: Any, off: int, start: int, end: int) -> None:
+        """Every message of the chunk at ``off``, or none (a damaged chunk raises and leaves
+        nothing of itself behind)."""
+        header = self._chunk_header(data, off, end)
+        if header is None:
+            raise LogError('a chunk header is inconsistent (a damaged length or compression field)')
+        _, _, usize, compression, crc, body = header
+        raw = data[body:end]
+        try:
+            if compression == b'':
                 records = bytes(raw)
-            elif compression == 'zstd':
+            elif compression == b'zstd':
                 import zstandard
-                records = zstandard.ZstdDecompressor().decompress(raw, max_output_size=uncompressed_size)
-            elif compression == 'lz4':
-                import lz4.frame
-                records = lz4.frame.decompress(raw)
+                declared = zstandard.frame_content_size(raw)
+                if declared > MAX_CHUNK_BYTES or usize > MAX_CHUNK_BYTES:
+                    raise LogError('a chunk header declares an impossible size')
+                records = zstandard.ZstdDecompressor().decompress(raw, max_output_size=usize)
             else:
-                raise LogError(f'chunk compression {compression!r} is not supported')
+                import lz4.frame
+                if usize > MAX_CHUNK_BYTES:
+                    raise LogError('a chunk header declares an impossible size')
+                records = lz4.frame.LZ4FrameDecompressor().decompress(raw, max_length=usize)
         except LogError:
             raise
-        except Exception as exc:  # a damaged compressed block: keep what came before
+        except Exception as exc:  # noqa: BLE001 - any failure of the decompressor is damage
             raise LogError(f'a chunk does not decompress ({exc})') from None
         if crc and zlib.crc32(records) != crc:
-            raise LogError('a chunk fails its CRC check (the file is corrupt there)')
+            raise LogError('a chunk fails its CRC check')
+        for ch in self._channels.values():
+            ch.seal()
+        before = {cid: len(ch.pieces) for cid, ch in self._channels.items()}
+        try:
+            self._parse_records(records)
+        except _DAMAGE as exc:
+            for cid, ch in self._channels.items():  # leave nothing of a damaged chunk behind
+                del ch.pieces[before.get(cid, 0):]
+                ch.log_times, ch.payloads = [], []
+            raise LogError(f'a chunk holds a malformed record ({exc})') from None
+        lo, hi = None, None
+        for cid, ch in self._channels.items():
+            ch.seal()
+            for times, _ in ch.pieces[before.get(cid, 0):]:
+                if times.size:
+                    lo = int(times.min()) if lo is None else min(lo, int(times.min()))
+                    hi = int(times.max()) if hi is None else max(hi, int(times.max()))
+        if lo is not None:
+            self._read.append((off, lo, hi))
+
+    def _parse_records(self, records: bytes) -> None:
         pos, stop = 0, len(records)
         unpack = struct.unpack_from
         channels = self._channels
         tries = 0  # the fast path is tried on the first few messages only: no quadratic cost
-        while pos + 9 <= stop:
+        while pos < stop:
+            if pos + 9 > stop:
+                raise LogError('a record runs past the end of its chunk')
             if records[pos] == OP_MESSAGE and tries < MAX_PATTERN_TRIES:
                 tries += 1
                 if self._periodic(records, pos):
@@ -189,7 +583,11 @@ class LogReader:
             op = records[pos]
             (length,) = unpack('<Q', records, pos + 1)
             rs, re_ = pos + 9, pos + 9 + length
+            if re_ > stop:
+                raise LogError('a record runs past the end of its chunk')
             if op == OP_MESSAGE:
+                if length < 22:
+                    raise LogError('a message record is too short')
                 cid, _seq, log_time = unpack('<HIQ', records, rs)
                 ch = channels.get(cid)
                 if ch is not None:
@@ -223,25 +621,18 @@ class LogReader:
                 return False
         for off, cid, length in pattern:
             ch = self._channels[cid]
-            ch.block_times.append(rows[:, off + 15:off + 23].copy().view('<u8')[:, 0].astype(np.int64))
-            ch.blocks.append(rows[:, off + 31:off + 9 + length])
+            ch.seal()
+            ch.pieces.append((rows[:, off + 15:off + 23].copy().view('<u8')[:, 0].astype(np.int64),
+                              rows[:, off + 31:off + 9 + length]))
         return True
 
     def _parse_record(self, op: int, buf: Any, start: int, end: int) -> None:
         if op == OP_SCHEMA:
-            (sid,) = struct.unpack_from('<H', buf, start)
-            name, off = _string(buf, start + 2)
-            encoding, off = _string(buf, off)
-            (n,) = struct.unpack_from('<I', buf, off)
-            self._schemas[sid] = (name, encoding, bytes(buf[off + 4:off + 4 + n]))
+            sid, schema = _schema_record(buf, start)
+            self._schemas[sid] = schema
         elif op == OP_CHANNEL:
-            cid, sid = struct.unpack_from('<HH', buf, start)
-            if cid in self._channels:
-                return
-            topic, off = _string(buf, start + 4)
-            encoding, off = _string(buf, off)
-            meta, _ = _map(buf, off)
-            self._channels[cid] = _Channel(topic, sid, encoding, meta)
+            cid, (topic, sid, encoding, meta) = _channel_record(buf, start)
+            self._channels.setdefault(cid, _Channel(topic, sid, encoding, meta))
         elif op == OP_MESSAGE:
             cid, _seq, log_time = struct.unpack_from('<HIQ', buf, start)
             ch = self._channels.get(cid)
@@ -251,6 +642,44 @@ class LogReader:
         elif op == OP_METADATA:
             name, off = _string(buf, start)
             self.metadata[name], _ = _map(buf, off)
+
+    # -- what was lost -------------------------------------------------------------------------
+    def _make_problem(self, clean_end: bool) -> LogProblem | None:
+        if clean_end and not self._spans:
+            return None
+        firsts = [lo for _, lo, _ in self._read]
+        t0 = min(firsts) if firsts else None
+        spans = []
+        for s in self._spans:
+            exact = s.messages is not None
+            start_ns, end_ns = s.start_ns, s.end_ns
+            if not exact:
+                before = [hi for off, _, hi in self._read if off < s.offset]
+                after = [lo for off, lo, _ in self._read if off > s.offset]
+                start_ns = max(before) if before else None
+                end_ns = min(after) if after else None
+            messages = None
+            if s.messages is not None:
+                messages = {}
+                for cid, n in s.messages.items():
+                    topic = self._channels[cid].topic if cid in self._channels else f'channel {cid}'
+                    messages[topic] = messages.get(topic, 0) + n
+            spans.append(SkippedSpan(s.offset, s.size, s.reason, start_ns, end_ns, exact, messages,
+                                     s.at_end))
+        parts = []
+        inner = [s for s in spans if not s.at_end]
+        if inner:
+            parts.append(f'{len(inner)} damaged part{"s" if len(inner) > 1 else ""} skipped, '
+                         'read on after each: ' + '; '.join(s.describe(t0) for s in inner))
+        tail = [s for s in spans if s.at_end]
+        if not clean_end:
+            parts.append('the recording ended uncleanly (no summary and footer: the writer was '
+                         'killed, lost power or ran out of disk space); read to its last complete '
+                         'chunk' + ''.join(f'; {s.describe(t0)}' for s in tail))
+        elif tail:
+            parts.append('; '.join(s.describe(t0) for s in tail))
+        kind = 'damaged' if inner else 'unclean_end' if not clean_end else 'damaged'
+        return LogProblem(kind, f'{self.path}: ' + '; '.join(parts), tuple(spans), clean_end, t0)
 
     # -- access --------------------------------------------------------------------------------
     @property
@@ -266,25 +695,25 @@ class LogReader:
         return out
 
     def _collect(self, topic: str) -> tuple[NDArray[np.int64], list[bytes] | NDArray[np.uint8], str, int]:
-        """Stamps (log times) and payloads of ``topic`` in time order: an (N, size) byte array
-        when every message has the same size, else a list of bytes."""
+        """Stamps (log times) and payloads of ``topic`` in the order written: an (N, size) byte
+        array when every message has the same size, else a list of bytes. (A topic on several
+        channels is merged in log-time order.)"""
         chans = [ch for ch in self._channels.values() if ch.topic == topic]
         if not chans:
             raise LogFormatError(f'{self.path} has no topic {topic}; topics: {sorted(self.topics)}')
-        times = [np.array(ch.log_times, dtype=np.int64) for ch in chans]
-        times += [t for ch in chans for t in ch.block_times]
-        stamps = np.concatenate(times) if times else np.zeros(0, dtype=np.int64)
-        loose = [p for ch in chans for p in ch.payloads]
-        blocks = [b for ch in chans for b in ch.blocks]
-        widths = {b.shape[1] for b in blocks} | {len(p) for p in loose}
+        pieces = [p for ch in chans for p in ch.pieces]
+        stamps = np.concatenate([t for t, _ in pieces]) if pieces else np.zeros(0, dtype=np.int64)
+        widths = {p.shape[1] if isinstance(p, np.ndarray) else len(x) for _, p in pieces
+                  for x in ([b''] if isinstance(p, np.ndarray) else p)}
         payloads: list[bytes] | NDArray[np.uint8]
         if len(widths) == 1 and stamps.size:
             width = widths.pop()
-            parts = [np.frombuffer(b''.join(loose), np.uint8).reshape(-1, width)] if loose else []
-            payloads = np.concatenate(parts + blocks) if len(parts + blocks) > 1 else (parts + blocks)[0]
+            parts = [p if isinstance(p, np.ndarray)
+                     else np.frombuffer(b''.join(p), np.uint8).reshape(-1, width) for _, p in pieces]
+            payloads = np.concatenate(parts) if len(parts) > 1 else parts[0]
         else:
-            payloads = loose + [r.tobytes() for b in blocks for r in b]
-        if np.any(np.diff(stamps) < 0):
+            payloads = [r.tobytes() if isinstance(p, np.ndarray) else r for _, p in pieces for r in p]
+        if len(chans) > 1 and np.any(np.diff(stamps) < 0):
             order = np.argsort(stamps, kind='stable')
             stamps = stamps[order]
             payloads = payloads[order] if isinstance(payloads, np.ndarray) else [payloads[k] for k in order]
@@ -305,15 +734,38 @@ class LogReader:
             return None
         return np.frombuffer(b''.join(payloads), dtype=np.uint8).reshape(len(payloads), size)
 
-    def decode(self, topic: str) -> list[Any]:
-        """Every message of ``topic`` decoded by the generic ROS 2 decoder (slow; small topics)."""
+    def _decoder(self, topic: str) -> Any:
+        """The generic CDR decoder of ``topic``'s schema; a message it cannot decode raises
+        :class:`LogFormatError` naming the topic."""
         from mcap.records import Schema
         from mcap_ros2.decoder import DecoderFactory
-        _, payloads, schema_name, sid = self._collect(topic)
-        name, encoding, data = self._schemas[sid]
-        decoder = DecoderFactory().decoder_for('cdr', Schema(id=sid, name=name, encoding=encoding, data=data))
+        ch = next((ch for ch in self._channels.values() if ch.topic == topic), None)
+        if ch is None:
+            raise LogFormatError(f'{self.path} has no topic {topic}; topics: {sorted(self.topics)}')
+        if ch.schema_id not in self._schemas:
+            raise LogFormatError(f'{self.path}: {topic} refers to schema {ch.schema_id}, which the log lacks')
+        name, encoding, data = self._schemas[ch.schema_id]
+        try:
+            decoder = DecoderFactory().decoder_for('cdr', Schema(id=ch.schema_id, name=name,
+                                                                 encoding=encoding, data=data))
+        except Exception as exc:  # noqa: BLE001 - a malformed schema text in the log
+            raise LogFormatError(f'{self.path}: {topic}: cannot read its schema {name} ({exc})') from None
         if decoder is None:
-            raise LogFormatError(f'{topic}: cannot decode schema {schema_name} ({encoding})')
+            raise LogFormatError(f'{self.path}: {topic}: cannot decode schema {name} ({encoding})')
+
+        def decode(payload: bytes) -> Any:
+            try:
+                return decoder(payload)
+            except Exception as exc:  # noqa: BLE001 - whatever a malformed payload raises
+                raise LogFormatError(f'{self.path}: {topic}: a message does not decode as {name} '
+                                     f'({type(exc).__name__}: {exc})') from None
+
+        return decode
+
+    def decode(self, topic: str) -> list[Any]:
+        """Every message of ``topic`` decoded by the generic ROS 2 decoder (slow; small topics)."""
+        _, payloads, _, _ = self._collect(topic)
+        decoder = self._decoder(topic)
         return [decoder(bytes(p)) for p in payloads]
 
     def joint_states(self, topic: str) -> JointStates:
@@ -363,12 +815,7 @@ class LogReader:
         return np.array(out_stamps, dtype=np.int64), np.array(values), first.header.frame_id
 
     def decode_one(self, topic: str, payload: bytes) -> Any:
-        from mcap.records import Schema
-        from mcap_ros2.decoder import DecoderFactory
-        cid, ch = next((c, ch) for c, ch in self._channels.items() if ch.topic == topic)
-        name, encoding, data = self._schemas[ch.schema_id]
-        decoder = DecoderFactory().decoder_for('cdr', Schema(id=ch.schema_id, name=name, encoding=encoding, data=data))
-        return decoder(payload)
+        return self._decoder(topic)(payload)
 
     def strings(self, topic: str) -> list[tuple[int, str]]:
         """Every std_msgs/msg/String of ``topic``: (stamp [ns], text)."""

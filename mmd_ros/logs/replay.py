@@ -6,6 +6,8 @@ seconds after the replay started; :class:`ReplaySchedule` answers how many sampl
 a given moment and how long to wait for the next one, and :func:`paced_batches` turns that into
 the index ranges a publisher sends, sleeping in between. Republished messages keep their
 recorded stamps, so what the live pipeline computes from them lines up with the log.
+:func:`log_problem_values` says, in diagnostics key/values, what a damaged log lost before the
+replay started (those samples cannot be replayed).
 """
 
 from __future__ import annotations
@@ -18,7 +20,9 @@ from collections.abc import Callable, Iterator
 import numpy as np
 from numpy.typing import ArrayLike
 
-__all__ = ['ReplaySchedule', 'paced_batches']
+from mmd_ros.logs.reader import LogProblem
+
+__all__ = ['ReplaySchedule', 'log_problem_values', 'paced_batches']
 
 
 class ReplaySchedule:
@@ -88,3 +92,26 @@ def paced_batches(schedule: ReplaySchedule, *, max_batch: int = 64,
         b = min(due, k + max_batch)
         yield k, b
         k = b
+
+
+def _seconds(value: float | None) -> str:
+    return '?' if value is None else f'{value:.3f}'
+
+
+def log_problem_values(problem: LogProblem | None, topic: str = '/mmd/raw_counts') -> dict[str, str]:
+    """What reading the log lost, as diagnostics key/values (empty for a whole log): the kind,
+    the stretches skipped, the ``topic`` messages lost (``unknown`` when no index survived),
+    their time spans and the full message."""
+    if problem is None:
+        return {}
+    lost = problem.lost_messages
+    spans = [s.as_dict(problem.t0_ns) for s in problem.skipped]
+    return {
+        'log_problem': problem.kind,
+        'log_clean_end': str(problem.clean_end).lower(),
+        'log_skipped_parts': str(len(spans)),
+        'log_lost_samples': 'unknown' if lost is None else str(lost.get(topic, 0)),
+        'log_lost_spans_s': '; '.join(f'{_seconds(s["start_s"])}..'
+                                      f'{"end" if s["at_end"] else _seconds(s["end_s"])}' for s in spans),
+        'log_problem_detail': problem.message,
+    }

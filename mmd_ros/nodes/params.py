@@ -23,6 +23,7 @@ from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValu
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
+from mmd_ros.core import validate
 from mmd_ros.core.errors import MmdError
 
 __all__ = ['Param', 'ParameterError', 'check', 'declare', 'on_set_checker']
@@ -87,24 +88,25 @@ class Param:
 
 
 def check(param: Param, value: Any) -> str | None:
-    """Why ``value`` is not acceptable for ``param``, or None."""
+    """Why ``value`` is not acceptable for ``param``, or None (the range through
+    :func:`mmd_ros.core.validate.number_problem`, as for files and command-line options)."""
     want = type(param.default)
+    bad = f'parameter {param.name}: must be {param.allowed()}, got {value!r}'
     if want is float and isinstance(value, int) and not isinstance(value, bool):
         value = float(value)
-    if not isinstance(value, want) or (want is int and isinstance(value, bool)):
-        return f'parameter {param.name}: must be {param.allowed()}, got {value!r}'
     if want in (int, float):
-        if want is float and math.isnan(value):
+        if want is float and isinstance(value, float) and math.isnan(value):
             if math.isnan(param.default):
                 return None
             return f'parameter {param.name}: must be {param.allowed()}, got NaN'
-        if param.allow_zero and value == 0:
+        if param.allow_zero and value == 0 and not isinstance(value, bool):
             return None
-        if (param.low is not None and value < param.low) or \
-                (param.high is not None and value > param.high):
-            return f'parameter {param.name}: must be {param.allowed()}, got {value!r}'
+        if validate.number_problem(value, low=param.low, high=param.high, integer=want is int):
+            return bad
+    elif not isinstance(value, want):
+        return bad
     if param.choices is not None and value not in param.choices:
-        return f'parameter {param.name}: must be {param.allowed()}, got {value!r}'
+        return bad
     return None
 
 

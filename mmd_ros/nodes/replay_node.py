@@ -21,10 +21,10 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 
 from mmd_ros.logs.layout import read_run
-from mmd_ros.logs.replay import ReplaySchedule, paced_batches
+from mmd_ros.logs.replay import ReplaySchedule, log_problem_values, paced_batches
 from mmd_ros.nodes.common import COMMON_PARAMS, NAMESPACE, run
 from mmd_ros.nodes.convert import DIAGNOSTIC_ARRAY, JS, STRING, Rows, string_bytes
-from mmd_ros.nodes.diagnostics import ERROR, OK, Diagnostics, Report
+from mmd_ros.nodes.diagnostics import ERROR, OK, WARN, Diagnostics, Report
 from mmd_ros.nodes.outlets import Outlet
 from mmd_ros.nodes.params import Param, ParameterError, declare
 from mmd_ros.nodes.qos import DIAGNOSTICS, LATCHED, data_qos
@@ -57,7 +57,7 @@ class ReplayNode(Node):
         self.cfg = v
         self.run_log = read_run(v['log'])
         if self.run_log.problem:
-            self.get_logger().warn(self.run_log.problem)
+            self.get_logger().warn(str(self.run_log.problem))
         dev = self.run_log.device
         self.rows = Rows(dev.channel_names, [c.name for c in dev.reference_channels])
         qos = data_qos(v['qos'], v['qos_depth'])
@@ -120,9 +120,13 @@ class ReplayNode(Node):
         self.get_logger().info(f'replay done: {self.sent} samples')
 
     def _report(self) -> list:
-        r = Report('replay', ERROR if self.error else OK, self.error or f'{self.state}: {self.run_log.path}')
+        problem = self.run_log.problem
+        r = Report('replay', ERROR if self.error else WARN if problem else OK,
+                   self.error or f'{self.state}: {self.run_log.path}'
+                   + (f' (the log was not read whole: {problem.kind})' if problem else ''))
         r.values.update({'state': self.state, 'log': str(self.run_log.path), 'samples': self.schedule.n,
                          'sent': self.sent, 'rate': self.cfg['rate']})
+        r.values.update(log_problem_values(problem))
         return [r]
 
     def destroy_node(self) -> None:

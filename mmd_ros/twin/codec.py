@@ -10,14 +10,16 @@ a value of the wrong kind is refused with a :class:`TwinError` naming the parame
 from __future__ import annotations
 
 import dataclasses
+import math
 import types
 import typing
 from collections.abc import Iterable
 from typing import Any, TypeVar
 
 import numpy as np
-import yaml
 
+from mmd_ros.core.errors import ConfigError
+from mmd_ros.core.yamlio import parse_yaml
 from mmd_ros.twin.errors import TwinError
 
 __all__ = ['assign', 'from_plain', 'to_plain']
@@ -76,8 +78,10 @@ def assign(obj: T, assignments: Iterable[str]) -> T:
         if not sep or not name:
             raise TwinError(f'{item!r}: expected name=value')
         try:
-            value = yaml.safe_load(text)
-        except yaml.YAMLError:
+            value = parse_yaml(text, name)
+        except ConfigError as exc:
+            if not exc.problem.startswith('is not valid YAML'):
+                raise TwinError(f'{name}: the value {exc.problem}') from None
             value = text
         node = plain
         keys = name.split('.')
@@ -125,8 +129,10 @@ def _coerce(tp: Any, value: Any, path: str) -> Any:
             raise TwinError(f'{path}: expected a number, got {value!r}')
         try:
             number = float(value)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             raise TwinError(f'{path}: expected a number, got {value!r}') from None
+        if not math.isfinite(number):
+            raise TwinError(f'{path}: expected a finite number, got {value!r}')
         if tp is int:
             if not number.is_integer():
                 raise TwinError(f'{path}: expected an integer, got {value!r}')

@@ -20,6 +20,7 @@ from mmd_ros.logs.layout import (
     BAR_NAMES, FRAME_LOWER, REFERENCE_POSE_NAMES, RUN_METADATA, TOPIC_CALIBRATION, TOPIC_DEVICE,
     TOPIC_RAW, TOPIC_REF_LENGTHS, TOPIC_REF_POSE,
 )
+from mmd_ros.logs.outputs import replacing
 from mmd_ros.logs.writer import LogWriter
 from mmd_ros.twin.effects import PRESET_AMBIENT, Effects
 from mmd_ros.twin.errors import TwinError
@@ -27,7 +28,7 @@ from mmd_ros.twin.scenarios import make_scenario
 from mmd_ros.twin.thermal import AmbientProfile
 from mmd_ros.twin.twin import TwinDevice
 
-__all__ = ['EPOCH_S', 'SimulationSpec', 'ambient_profile', 'simulate_to_log']
+__all__ = ['EPOCH_S', 'SimulationSpec', 'ambient_profile', 'simulate_to_log', 'spec_inputs']
 
 #: Default time stamp of the twin's clock zero: 2024-01-01T00:00:00Z [s since the epoch].
 EPOCH_S = 1_704_067_200
@@ -79,9 +80,22 @@ def ambient_profile(spec: str) -> AmbientProfile:
     raise ConfigError('--ambient', spec, 'must be section_4_1, constant:T or a profile .yaml')
 
 
+def spec_inputs(spec: SimulationSpec) -> list[Path]:
+    """The files a simulation reads (its device description, its ambient profile file)."""
+    files = []
+    try:
+        files.append(find_config(spec.device))
+    except FileNotFoundError:
+        pass  # reported when the device is loaded
+    if spec.ambient.endswith(('.yaml', '.yml')):
+        files.append(Path(spec.ambient))
+    return files
+
+
 def simulate_to_log(spec: SimulationSpec, out: Path, *, progress: bool = True
                     ) -> tuple[DeviceDescription, Calibration, dict[str, Any]]:
-    """Calibrate the twin on its reference plate, run the scenario, write the log.
+    """Calibrate the twin on its reference plate, run the scenario, write the log (under a
+    temporary name, renamed to ``out`` once complete: a failed run leaves nothing).
 
     Returns the device, the calibration and a summary of the run.
     """
@@ -98,7 +112,7 @@ def simulate_to_log(spec: SimulationSpec, out: Path, *, progress: bool = True
     total = 0
     bar = None
     first = None
-    with LogWriter(out) as log:
+    with replacing(out) as tmp, LogWriter(tmp) as log:
         for chunk in chunks:
             if first is None:
                 first = chunk

@@ -39,6 +39,13 @@ Pose = tuple[float, float, float, float, float, float]
 
 #: Start pose of the paper's runs: upper plate 300 mm above the lower one, no rotation.
 HOME_POSE: Pose = (0.0, 0.0, 0.3, 0.0, 0.0, 0.0)
+#: Longest run, dwell or lead a scenario may ask for [s]: a week (the paper's longest test, the
+#: thermal soak of section 4.1, lasts 20 h). Bounds what one ``mmd simulate`` can write.
+MAX_DURATION_S = 7 * 24 * 3600.0
+#: Most targets and cycles of an ISO 230-2 run (the standard asks for 5 cycles, and 5 targets
+#: per metre of travel at least).
+MAX_TARGETS = 1000
+MAX_CYCLES = 1000
 #: Workspace margins of random waypoints [m], [rad].
 _MARGIN_M = 1e-3
 _MARGIN_RAD = math.radians(1.0)
@@ -75,12 +82,20 @@ class Scenario:
         return assign(self, assignments)
 
 
+def _check_duration(kind: str, name: str, value: float, *, zero: bool = False) -> None:
+    """A duration of a scenario: finite, > 0 (or >= 0 with ``zero``) and at most a week."""
+    low_ok = value >= 0 if zero else value > 0
+    if not (low_ok and value <= MAX_DURATION_S):
+        raise TwinError(f'{kind}: {name} must be in {"[" if zero else "("}0, {MAX_DURATION_S:g}] s '
+                        f'(at most a week), got {value}')
+
+
 def _check_common(scenario: Any) -> None:
-    if scenario.n_targets < 2 or scenario.n_cycles < 1:
-        raise TwinError(f'{scenario.kind}: needs n_targets >= 2 and n_cycles >= 1, '
-                        f'got {scenario.n_targets} and {scenario.n_cycles}')
-    if scenario.dwell_s < 0 or scenario.lead_s < 0:
-        raise TwinError(f'{scenario.kind}: dwell_s and lead_s must be >= 0')
+    if not (2 <= scenario.n_targets <= MAX_TARGETS and 1 <= scenario.n_cycles <= MAX_CYCLES):
+        raise TwinError(f'{scenario.kind}: needs n_targets in [2, {MAX_TARGETS}] and n_cycles in '
+                        f'[1, {MAX_CYCLES}], got {scenario.n_targets} and {scenario.n_cycles}')
+    _check_duration(scenario.kind, 'dwell_s', scenario.dwell_s, zero=True)
+    _check_duration(scenario.kind, 'lead_s', scenario.lead_s, zero=True)
 
 
 @dataclass(frozen=True)
@@ -187,8 +202,7 @@ class Hold(Scenario):
     pose: Pose = HOME_POSE
 
     def build(self, device: DeviceDescription) -> Trajectory:
-        if not self.duration_s > 0:
-            raise TwinError(f'hold: duration_s must be > 0, got {self.duration_s}')
+        _check_duration(self.kind, 'duration_s', self.duration_s)
         builder = TrajectoryBuilder(self.pose, MotionLimits())
         builder.dwell(self.duration_s)
         return builder.build()
@@ -214,8 +228,7 @@ class RandomMotion(Scenario):
     seed: int = 0
 
     def build(self, device: DeviceDescription) -> Trajectory:
-        if not self.duration_s > 0:
-            raise TwinError(f'random_motion: duration_s must be > 0, got {self.duration_s}')
+        _check_duration(self.kind, 'duration_s', self.duration_s)
         rng = np.random.default_rng(self.seed)
         geo = device.measured_geometry
         centre = np.array(self.centre_pose, dtype=np.float64)
@@ -258,8 +271,7 @@ class ThermalSoak(Scenario):
         if len(self.pairs) != 6 or any(p not in names for p in self.pairs):
             raise TwinError(f'thermal_soak: pairs must name six reference pairs of {names}, '
                             f'got {list(self.pairs)}')
-        if not self.duration_s > 0:
-            raise TwinError(f'thermal_soak: duration_s must be > 0, got {self.duration_s}')
+        _check_duration(self.kind, 'duration_s', self.duration_s)
         return RestingBars(tuple(self.pairs), float(self.duration_s))
 
 

@@ -27,16 +27,18 @@ from numpy.typing import ArrayLike, NDArray
 from mmd_ros.core.calibration import BarCalibration, Calibration
 from mmd_ros.core.calibration_routine import CaptureStats, capture_uncertainty
 from mmd_ros.core.device import DeviceDescription
+from mmd_ros.hardware.protocol import MAX_SAMPLE_RATE_HZ
 from mmd_ros.twin.effects import Effects
 from mmd_ros.twin.errors import TwinError
 from mmd_ros.twin.mechanism import bar_legs, check_workspace, rotation_matrices
 from mmd_ros.twin.physics import RESEATS, BarPhysics, DahlState, dahl
 from mmd_ros.twin.reference import POSE_NOISE, reference_names, reference_values
-from mmd_ros.twin.scenarios import RestingBars, Scenario
+from mmd_ros.twin.scenarios import MAX_DURATION_S, RestingBars, Scenario
 from mmd_ros.twin.thermal import REFERENCE_TEMP_C, AmbientProfile
 from mmd_ros.twin.trajectories import Trajectory
 
-__all__ = ['IsoTargets', 'Placement', 'SimulatedRun', 'TwinDevice']
+__all__ = ['MAX_CLOCK_S', 'MAX_SAMPLES', 'IsoTargets', 'Placement', 'SimulatedRun', 'TwinDevice',
+           'check_clock']
 
 FloatArray = NDArray[np.float64]
 
@@ -45,6 +47,18 @@ BLOCK = 32768
 #: Rate of the workspace check done before a run starts [Hz] (every sample is checked again
 #: while simulating).
 CHECK_RATE_HZ = 100.0
+#: Most samples one run may have: 10^9, about 100 GB of log at the measured ~100 bytes per
+#: sample of raw counts and reference (a week at 1 kHz fits; at 10 kHz, a day).
+MAX_SAMPLES = 1_000_000_000
+#: Largest time on the twin's clock, either side of its zero [s]: a year.
+MAX_CLOCK_S = 365 * 24 * 3600.0
+
+
+def check_clock(t_s: float, what: str) -> None:
+    """A time on the twin's clock: finite and within +-:data:`MAX_CLOCK_S`."""
+    if not -MAX_CLOCK_S <= t_s <= MAX_CLOCK_S:  # False for NaN too
+        raise TwinError(f'{what} must be within +-{MAX_CLOCK_S:g} s of the twin\'s clock zero (a '
+                        f'year), got {t_s}')
 
 
 @dataclass(frozen=True)
@@ -162,6 +176,9 @@ class TwinDevice:
     def __init__(self, device: DeviceDescription, effects: Effects | None = None, seed: int = 0) -> None:
         if not (isinstance(seed, (int, np.integer)) and seed >= 0):
             raise TwinError(f'seed must be a non-negative integer, got {seed!r}')
+        if not 0 < device.sample_rate_hz <= MAX_SAMPLE_RATE_HZ:
+            raise TwinError(f'{device.source}: terminal.sample_rate_hz must be in (0, {MAX_SAMPLE_RATE_HZ}] '
+                            f'Hz (the terminal\'s maximum), got {device.sample_rate_hz:g}')
         self.device = device
         self.effects = Effects.ideal() if effects is None else effects
         self.seed = int(seed)
@@ -316,6 +333,7 @@ class TwinDevice:
         :func:`~mmd_ros.core.calibration_routine.capture_uncertainty`). No time stamp or
         quality figures are invented: ``created`` is empty and ``quality`` is empty.
         """
+        check_clock(at_s, 'the calibration time')
         rate = self.device.sample_rate_hz
         counts: dict[int, dict[str, list[float]]] = {}
         captures, last = [], {}
@@ -414,8 +432,10 @@ class _Plan:
         dev = twin.device
         self.twin, self.scenario, self.ambient, self.start_s = twin, scenario, ambient, float(start_s)
         self.rate = float(sample_rate_hz or dev.sample_rate_hz)
-        if not (self.rate > 0 and math.isfinite(self.rate)):
-            raise TwinError(f'sample_rate_hz must be > 0, got {sample_rate_hz}')
+        if not 0 < self.rate <= MAX_SAMPLE_RATE_HZ:
+            raise TwinError(f'sample_rate_hz must be in (0, {MAX_SAMPLE_RATE_HZ}] Hz (the '
+                            f'terminal\'s maximum), got {sample_rate_hz or dev.sample_rate_hz}')
+        check_clock(start_s, 'start_s')
         self.reference = reference or scenario.default_reference
         self.measuring = dev.measuring_channels
         self.names = reference_names(self.reference, [dev.channel_names[c] for c in self.measuring])
@@ -423,7 +443,14 @@ class _Plan:
         if isinstance(self.motion, RestingBars) and self.reference != 'bar_lengths':
             raise TwinError(f'{scenario.kind}: the bars rest on reference pairs, there is no '
                             f'pose for a {self.reference!r} reference; use bar_lengths')
+        if not 0 <= self.motion.duration_s <= MAX_DURATION_S:
+            raise TwinError(f'{scenario.kind}: the run lasts {self.motion.duration_s:.6g} s; at most '
+                            f'{MAX_DURATION_S:g} s (a week) can be simulated')
         self.n_samples = int(math.floor(self.motion.duration_s * self.rate + 1e-9)) + 1
+        if self.n_samples > MAX_SAMPLES:
+            raise TwinError(f'{scenario.kind}: {self.n_samples:.3g} samples ({self.motion.duration_s:g} s '
+                            f'at {self.rate:g} Hz); at most {MAX_SAMPLES:.0e} can be simulated in one '
+                            'run: lower the sample rate')
         if isinstance(self.motion, Trajectory):
             times = self.motion.check_times(min(self.rate, CHECK_RATE_HZ))
             poses = self.motion.pose(times)
