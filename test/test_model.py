@@ -96,6 +96,24 @@ def test_streamed_samples_give_the_batch_result():
     assert last.covariance is not None and np.allclose(last.covariance, batch.covariance[-1], rtol=1e-6)
 
 
+def test_two_pipelines_of_one_model_keep_their_own_term_state():
+    """Issue 10, section 4: a model whose terms carry state (play operator, previous sample)
+    used by a second pipeline starts that pipeline from a fresh state, whatever the first one
+    processed; and the model object itself is left untouched."""
+    from mmd_ros.core.terms import SamplingSkewTerm
+    twin = TwinDevice(DEVICE, Effects.realistic(), seed=5)
+    room = AmbientProfile.constant(21.0)
+    calibration = twin.calibrate(0.0, room)
+    run = twin.simulate(make_scenario('random_motion', ['duration_s=2']), room, start_s=400.0)
+    model = Model(terms=[HysteresisTerm(np.full(6, 0.5e-6), 2e-6), SamplingSkewTerm(np.full(6, 40e-6))])
+    fresh = Pipeline(DEVICE, calibration, Model.from_dict(model.to_dict())).process(run.times_s, run.counts)
+    first = Pipeline(DEVICE, calibration, model)
+    first.process(run.times_s[::-1].copy(), run.counts[::-1].copy())   # leaves its terms in some state
+    second = Pipeline(DEVICE, calibration, model).process(run.times_s, run.counts)
+    assert np.array_equal(second.compensated.lengths_m, fresh.compensated.lengths_m)
+    assert model.terms[0]._play is None   # the model's own terms never ran
+
+
 def test_node_stages_transfer_by_transfer_give_the_batch_result():
     """What compensation_node, fk_node and pose_node compute, 8 samples per transfer, is what
     ``Pipeline.process`` gives for the whole run, covariance included."""

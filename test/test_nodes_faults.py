@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 import pytest
-from test_nodes_support import Nodes, gaps_from_stamps, needs_ros, params
+from test_nodes_support import Nodes, gaps_from_stamps, needs_ros, params, seen
 
 from mmd_ros.logs.layout import read_run
 from mmd_ros.logs.reader import LogReader
@@ -40,13 +40,6 @@ def check_accuracy(client, since_ns: int, n: int = 1500) -> None:
     assert np.abs(err[:, :3]).max() < 10e-6, np.abs(err[:, :3]).max(axis=0)
     assert np.abs(err[:, 3:]).max() < 15 * ARCSEC, np.abs(err[:, 3:]).max(axis=0) / ARCSEC
 
-
-def seen(client, since: float, suffix: str, text: str, level: int | None = None) -> bool:
-    """A diagnostics status ending in ``suffix`` said ``text`` after ``since`` (monotonic)."""
-    with client._lock:
-        history = list(client.diagnostic_history)
-    return any(t >= since and e['name'].endswith(suffix) and text in e['message']
-               and (level is None or e['level'] == level) for t, e in history)
 
 
 @needs_ros

@@ -4,8 +4,14 @@ encoder_node (simulated terminal streaming the twin), calibration_node, compensa
 fk_node run as executables. The test is the operator: it runs the guided calibration of
 section 3.2 through ``/mmd/calibrate_bar`` (bumping a bar during one capture and using the
 wrong sockets once), mounts the bars, checks the poses against the twin's reference, records
-with recorder_node (closed with SIGINT: a complete MCAP file), and replays the log through the
-compensation and kinematics nodes: the same poses as ``mmd process`` on that log.
+with recorder_node (closed with SIGINT: a complete MCAP file; the twin's reference in it checks the
+live poses), and replays the log through the
+compensation and kinematics nodes as fast as they go: the same poses as ``mmd process`` on that
+log. The test's own subscriber takes the poses from ``pose_batch`` (one message per transfer):
+a Python subscriber of the per-sample ``pose`` falls behind on a loaded machine (see
+``bench/bench_ros.py``), and what is checked here is what the nodes computed and published, as
+their diagnostics count it. Last, bar3's encoder signal is lost for a moment: the separate
+nodes publish no pose for those samples.
 """
 
 from __future__ import annotations
@@ -29,6 +35,13 @@ TRANSITION = 0.2
 DEPTH = 20000
 
 
+def settled(client, suffix: str, key: str, reports: int = 3) -> bool:
+    """The last ``reports`` diagnostics of the status ending in ``suffix`` had one ``key``."""
+    with client._lock:
+        values = [e['values'].get(key) for _, e in client.diagnostic_history if e['name'].endswith(suffix)]
+    return len(values) >= reports and len(set(values[-reports:])) == 1
+
+
 @needs_ros
 def test_calibrate_measure_record_and_replay(tmp_path):
     from mmd_ros.nodes.client import MmdClient, guided_calibration
@@ -45,7 +58,7 @@ def test_calibrate_measure_record_and_replay(tmp_path):
                                                 qos_depth=DEPTH))
         nodes.start('compensation_node', *params(qos_depth=DEPTH))
         nodes.start('fk_node', *params(qos_depth=DEPTH))
-        client = MmdClient(topics=('pose', 'reference'), depth=DEPTH)
+        client = MmdClient(topics=('pose_batch',), depth=DEPTH)
         assert client.wait_for(lambda: client.status(': calibration') is not None
                                and client.status(': terminal') is not None, 60), nodes.dump()
         assert 'no calibration' in client.status(': calibration')['message']
@@ -79,16 +92,27 @@ def test_calibrate_measure_record_and_replay(tmp_path):
         assert client.set_param('encoder_node', 'sim_command', 'mount')[0]
         nodes.start('recorder_node', *params(output=str(log_file), flush_period_s=0.5, qos_depth=DEPTH))
         assert client.wait_for(lambda: (client.status(': recorder') or {}).get('values', {})
-                               .get('state') == 'recording', 30), nodes.dump()
+                               .get('state') == 'recording', 90), nodes.dump()
         since = time.time_ns() + int((TRANSITION + 1.0) * 1e9)
-        assert client.wait_for(lambda: len(client.errors_against_reference(since)) >= 3000, 180), nodes.dump()
-        err = client.errors_against_reference(since)
+        assert client.wait_for(lambda: np.count_nonzero(client.pose_array()[0] > since) >= 3000, 180), \
+            nodes.dump()
+        time.sleep(2.0)  # the recorder may be a little behind the poses
+        assert nodes.signal('recorder_node') == 0, nodes.dump()  # SIGINT: closed cleanly
+        time.sleep(1.0)  # the poses of the last recorded samples
+        live_stamps, live_poses = client.pose_array()
+        # the live poses against the twin's reference instrument, as the log recorded it
+        run = read_run(log_file)
+        ref = {int(t): r for t, r in zip(run.stamps_ns, run.reference_pose) if np.isfinite(r).all()}
+        both = [i for i, t in enumerate(live_stamps) if t > since and int(t) in ref]
+        assert len(both) >= 2500, (len(both), len(live_stamps))
+        err = live_poses[both] - np.array([ref[int(live_stamps[i])] for i in both])
+        err[:, 3:] = (err[:, 3:] + np.pi) % (2 * np.pi) - np.pi
         assert np.abs(err[:, :3]).max() < 10e-6, np.abs(err[:, :3]).max(axis=0)
         assert np.abs(err[:, 3:]).max() < 15 * ARCSEC, np.abs(err[:, 3:]).max(axis=0) / ARCSEC
         assert np.sqrt(np.mean(err[:, :3] ** 2)) < 3e-6
-        live_stamps, live_poses = client.pose_array()
-
-        assert nodes.signal('recorder_node') == 0, nodes.dump()  # SIGINT: closed cleanly
+        live_lost = sum(int(client.status(suffix)['values'][key]) for suffix, key in (
+            ('compensation_node: compensation', 'raw_counts_lost'),
+            ('fk_node: kinematics', 'bar_lengths_lost')))
         from mcap.reader import make_reader
         with open(log_file, 'rb') as f:
             summary = make_reader(f).get_summary()
@@ -101,23 +125,52 @@ def test_calibrate_measure_record_and_replay(tmp_path):
                      '/mmd/calibration', '/mmd/device_description', '/mmd/model', '/diagnostics'):
             assert topics[name].count > 0, name
 
-        # replay the log through the compensation and kinematics nodes
+        # bar3 loses its encoder signal for a moment: the terminal flags the samples in
+        # raw_counts, compensation_node gives them no length, fk_node no pose
+        kin = lambda: client.status('fk_node: kinematics')['values']  # noqa: E731
+        comp = lambda: client.status('compensation_node: compensation')['values']  # noqa: E731
+        flagged = lambda: int(client.status('encoder_node: terminal')['values']['samples_flagged'])  # noqa: E731
+        counted = lambda: int(comp()['samples_without_signal']) + int(comp()['raw_counts_lost'])  # noqa: E731
+        before_flagged, before_counted = flagged(), counted()
+        t_lost = time.monotonic()
+        assert client.set_param('encoder_node', 'sim_command', 'signal_lost bar3', timeout=90)[0]
+        time.sleep(0.5)
+        assert client.set_param('encoder_node', 'sim_command', 'signal_ok bar3', timeout=90)[0]
+        t_ok = time.time_ns()
+        # every flagged sample reached compensation_node and got no length, or was lost on the
+        # way and counted as lost there (a loaded machine)
+        assert client.wait_for(lambda: flagged() - before_flagged > 300 and
+                               counted() - before_counted >= flagged() - before_flagged, 60), \
+            (flagged(), before_flagged, comp())
+        assert client.wait_for(lambda: any(
+            t >= t_lost and e['name'].endswith('compensation_node: compensation')
+            and 'encoder signal lost' in e['message'] for t, e in list(client.diagnostic_history)), 20)
+        # the poses up to well after the signal came back
+        assert client.wait_for(lambda: client.pose_array()[0].max() > t_ok + 500_000_000, 60)
+        stamps_now, _ = client.pose_array()
+        steps = np.diff(np.sort(stamps_now[stamps_now > live_stamps[-1]]))
+        assert steps.max() > 0.3e9  # no pose while the signal was lost
+
+        # replay the log through the compensation and kinematics nodes, as fast as they go
         nodes.signal('encoder_node')
         nodes.signal('calibration_node')
         with client._lock:
             client.poses.clear()
-        run = read_run(log_file)
         processed = process_run(run, Model())
-        # half speed, so that the nodes keep up on a loaded machine; the log is as long as the
-        # recording above took, which grows with the load, so the deadlines scale with it
-        rate = 0.5
-        replay_s = (run.stamps_ns[-1] - run.stamps_ns[0]) * 1e-9 / rate
-        nodes.start('replay_node', *params(log=str(log_file), rate=rate, wait_for_subscribers=1,
+        # fk_node has finished what the live stream left it: its count stands still
+        assert client.wait_for(lambda: settled(client, 'fk_node: kinematics', 'poses_published'), 120)
+        published_before = int(kin()['poses_published'])
+        nodes.start('replay_node', *params(log=str(log_file), rate=0.0, wait_for_subscribers=1,
                                             qos_depth=DEPTH))
-        assert nodes.procs['replay_node'].wait(120 + 3 * replay_s) == 0, nodes.dump()
+        assert nodes.procs['replay_node'].wait(300) == 0, nodes.dump()
+        replay = client.status(': replay')['values']
+        assert int(replay['sent']) == run.stamps_ns.size and int(replay['lost']) == 0, replay
         n_valid = int(processed.valid.sum())
-        assert client.wait_for(lambda: len(client.poses) >= n_valid, 30 + replay_s), \
-            (len(client.poses), n_valid)
+        # what the nodes computed and published (their count, not what this subscriber got) ...
+        assert client.wait_for(lambda: int(kin()['poses_published']) - published_before == n_valid, 30), \
+            (kin(), n_valid)
+        # ... and, through the batched stream, every one of those poses, equal to mmd process
+        assert client.wait_for(lambda: len(client.poses) >= n_valid, 60), (len(client.poses), n_valid)
         stamps, poses = client.pose_array()
         assert len(stamps) == n_valid
         index = {int(s): i for i, s in enumerate(run.stamps_ns)}
@@ -125,10 +178,11 @@ def test_calibrate_measure_record_and_replay(tmp_path):
         assert processed.valid[rows].all()
         np.testing.assert_allclose(poses[:, :3], processed.poses[rows, :3], atol=1e-9)
         np.testing.assert_allclose(poses[:, 3:], processed.poses[rows, 3:], atol=1e-9)
-        # and the live poses of those samples were the same too
+        # and the live poses of those samples were the same too; a recorded sample without a
+        # live pose was lost on its way to a stage, and counted there
         live = {int(s): p for s, p in zip(live_stamps, live_poses)}
         common = [i for i, s in enumerate(stamps) if int(s) in live]
-        assert len(common) > 0.9 * len(stamps)
+        assert len(stamps) - len(common) <= live_lost, (len(stamps), len(common), live_lost)
         np.testing.assert_allclose(np.array([live[int(stamps[i])] for i in common]), poses[common],
                                    atol=1e-9)
     except BaseException:

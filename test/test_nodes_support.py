@@ -128,3 +128,11 @@ def gaps_from_stamps(stamps_ns, period_ns: int = 1_000_000) -> int:
     s = np.sort(np.asarray(stamps_ns, dtype=np.int64))
     steps = np.rint(np.diff(s) / period_ns).astype(np.int64)
     return int(np.sum(np.maximum(steps - 1, 0)))
+
+
+def seen(client, since: float, suffix: str, text: str, level: int | None = None) -> bool:
+    """A diagnostics status ending in ``suffix`` said ``text`` after ``since`` (monotonic)."""
+    with client._lock:
+        history = list(client.diagnostic_history)
+    return any(t >= since and e['name'].endswith(suffix) and text in e['message']
+               and (level is None or e['level'] == level) for t, e in history)

@@ -4,6 +4,11 @@ A :class:`Calibration` holds, for every bar channel (measuring and reference bar
 calibration points (q_i^j, d_r^j): the averaged encoder count with the bar on socket pair j and
 that pair's reference distance. It is saved as YAML, atomically, with the previous file kept as
 a backup; a corrupt file is refused with its name.
+
+Counts mean something only on the terminal and the bars they were read from: a calibration
+records the terminal it was made with (:class:`TerminalBinding`: serial number, simulated or
+not, what is on each channel), and :func:`binding_problem` says why it must not be used with
+another one.
 """
 
 from __future__ import annotations
@@ -19,12 +24,13 @@ from numpy.typing import ArrayLike, NDArray
 
 from mmd_ros.core import validate
 from mmd_ros.core.compiled import fast, use_compiled
-from mmd_ros.core.errors import CalibrationError
+from mmd_ros.core.errors import CalibrationError, ConfigError
 from mmd_ros.core.uncertainty import CalibrationUncertainty
 from mmd_ros.core.units import M_PER_MM
 from mmd_ros.core.yamlio import atomic_write_text, parse_yaml, read_yaml
 
-__all__ = ['BarCalibration', 'Calibration', 'CdfBank', 'CentreDistanceFunction', 'load_calibration']
+__all__ = ['BarCalibration', 'Calibration', 'CdfBank', 'CentreDistanceFunction', 'TerminalBinding',
+           'binding_problem', 'channel_roles', 'load_calibration']
 
 FloatArray = NDArray[np.float64]
 
@@ -101,8 +107,95 @@ class BarCalibration:
     counts: tuple[float, ...]
     distances_m: tuple[float, ...]
 
-    def cdf(self) -> CentreDistanceFunction:
-        return CentreDistanceFunction(self.counts, self.distances_m)
+    def cdf(self, growth: float = 1.0) -> CentreDistanceFunction:
+        """Eq. (10) of this bar; ``growth`` scales the reference distances (the reference plate's
+        expansion from the CMM's 20 °C to the temperature of the calibration, see
+        :func:`mmd_ros.core.thermal.reference_plate_growth`)."""
+        return CentreDistanceFunction(self.counts, np.asarray(self.distances_m) * growth)
+
+
+def channel_roles(channels: Any) -> dict[str, str]:
+    """What is on each channel of a device (:class:`~mmd_ros.core.device.Channel` list):
+    ``{'bar1': 'measuring bar 1', 'ref1': 'reference bar on dr4', 'ch8': 'unused'}``."""
+    out = {}
+    for c in channels:
+        if c.role == 'measuring':
+            out[c.name] = f'measuring bar {c.bar}'
+        elif c.role == 'reference':
+            out[c.name] = f'reference bar on {c.pair}'
+        else:
+            out[c.name] = str(c.role)
+    return out
+
+
+@dataclass(frozen=True)
+class TerminalBinding:
+    """The encoder terminal and channel map a calibration was made with.
+
+    serial : the terminal's serial number ('' unknown)
+    simulated : a simulated terminal (the digital twin), not hardware
+    channels : what was on each channel (:func:`channel_roles`)
+    """
+
+    serial: str
+    simulated: bool
+    channels: dict[str, str] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {'serial': self.serial, 'simulated': self.simulated, 'channels': dict(self.channels)}
+
+    @classmethod
+    def from_dict(cls, data: Any, source: str) -> TerminalBinding:
+        if not isinstance(data, dict):
+            raise ConfigError(source, 'terminal', 'must map serial, simulated and channels')
+        serial, simulated = data.get('serial', ''), data.get('simulated')
+        channels = data.get('channels') or {}
+        if not isinstance(serial, str):
+            raise ConfigError(source, 'terminal.serial', f'must be a string, got {serial!r}')
+        if not isinstance(simulated, bool):
+            raise ConfigError(source, 'terminal.simulated', f'must be true or false, got {simulated!r}')
+        if not isinstance(channels, dict) or not all(isinstance(k, str) and isinstance(v, str)
+                                                     for k, v in channels.items()):
+            raise ConfigError(source, 'terminal.channels', 'must map channel names to what is on them')
+        return cls(serial, simulated, dict(channels))
+
+    def to_yaml(self) -> str:
+        return yaml.safe_dump(self.to_dict(), sort_keys=False)
+
+    @classmethod
+    def from_yaml(cls, text: str, source: str) -> TerminalBinding:
+        return cls.from_dict(parse_yaml(text, source), source)
+
+    def describe(self) -> str:
+        return ('the simulated terminal ' if self.simulated else 'terminal ') + (self.serial or '(serial unknown)')
+
+
+def binding_problem(calibration: Calibration, terminal: TerminalBinding) -> str | None:
+    """Why ``calibration`` must not be used with ``terminal``, or None.
+
+    Refused: a calibration made on a simulated terminal (recorded, or its ``quality.source``
+    says it came from the digital twin) used with hardware; one made with another terminal
+    (serial numbers differ, when both are known); one whose calibrated channels carried other
+    bars. A calibration that records no terminal (older files) is judged by its source only.
+    """
+    b = calibration.terminal
+    source = str(calibration.quality.get('source', '')) if calibration.quality else ''
+    simulated = b.simulated if b is not None else 'digital twin' in source
+    if simulated and not terminal.simulated:
+        return (f'it was made on a simulated terminal ({source or (b.describe() if b else "")}), '
+                f'and this is real hardware ({terminal.describe()})')
+    if b is None:
+        return None
+    if b.serial and terminal.serial and b.serial != terminal.serial:
+        return f'it was made with {b.describe()}, and this is {terminal.describe()}'
+    if not b.simulated and terminal.simulated:
+        return f'it was made with real hardware ({b.describe()}), and this is {terminal.describe()}'
+    moved = [f'{name} ({b.channels[name]} then, {terminal.channels.get(name, "absent")} now)'
+             for name in calibration.bars
+             if name in b.channels and b.channels[name] != terminal.channels.get(name)]
+    if moved:
+        return 'its channels carried other bars: ' + ', '.join(moved)
+    return None
 
 
 @dataclass(frozen=True)
@@ -116,6 +209,7 @@ class Calibration:
         expansion is counted from the CMM's 20 °C), or None when not known
     created : free text time stamp (ISO 8601)
     valid : False after a terminal counter reset until the bars are re-referenced
+    terminal : the terminal and channel map it was made with, or None (not recorded)
     uncertainty : what the routine measured about its own points (read noise, friction
         hysteresis and seating repeatability of two-sided captures); empty for old files
     """
@@ -127,13 +221,14 @@ class Calibration:
     created: str = ''
     valid: bool = True
     quality: dict[str, Any] = field(default_factory=dict)
+    terminal: TerminalBinding | None = None
     uncertainty: CalibrationUncertainty = field(default_factory=CalibrationUncertainty)
 
-    def cdfs(self, channels: list[str]) -> list[CentreDistanceFunction]:
+    def cdfs(self, channels: list[str], growth: float = 1.0) -> list[CentreDistanceFunction]:
         missing = [c for c in channels if c not in self.bars]
         if missing:
             raise CalibrationError(f'calibration of {self.device!r} has no points for {missing}')
-        return [self.bars[c].cdf() for c in channels]
+        return [self.bars[c].cdf(growth) for c in channels]
 
     # -- files ---------------------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
@@ -152,6 +247,7 @@ class Calibration:
                 } for name, b in self.bars.items()
             },
             'quality': self.quality,
+            **({'terminal': self.terminal.to_dict()} if self.terminal is not None else {}),
             'uncertainty': self.uncertainty.to_dict(),
         }
 
@@ -195,6 +291,8 @@ class Calibration:
             created=str(data.get('created', '')),
             valid=f.boolean(data, 'valid', default=True),
             quality=dict(f.mapping(data, 'quality') if quality else {}),
+            terminal=(TerminalBinding.from_dict(data['terminal'], source)
+                      if data.get('terminal') is not None else None),
             uncertainty=CalibrationUncertainty.from_dict(data.get('uncertainty'), source),
         )
 

@@ -9,6 +9,7 @@ bar lengths' covariance Sigma_d of :class:`~mmd_ros.core.budget.LengthBudget`.
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -22,7 +23,9 @@ from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.errors import CalibrationError
 from mmd_ros.core.kinematics import ForwardKinematics
 from mmd_ros.core.model import Model, TermContext
-from mmd_ros.core.thermal import ReferenceBar, ThermalCompensation, ThermalState
+from mmd_ros.core.thermal import (
+    ReferenceBar, ThermalCompensation, ThermalState, reference_plate_growth,
+)
 from mmd_ros.core.uncertainty import pose_covariance
 
 __all__ = ['Compensated', 'Pipeline', 'ProcessResult', 'SampleResult']
@@ -86,16 +89,25 @@ class SampleResult:
 
 
 class Pipeline:
-    """The compensation and kinematics of one calibrated device under one model."""
+    """The compensation and kinematics of one calibrated device under one model.
+
+    The pipeline owns a copy of the model: terms that carry state between calls (play
+    operators, filters, the previous sample) carry it for this pipeline's stream only, so two
+    pipelines built from one :class:`Model` (two runs, a calibration swapped live) never see
+    each other's state.
+    """
 
     def __init__(self, device: DeviceDescription, calibration: Calibration,
                  model: Model | None = None) -> None:
         self.device = device
         self.calibration = calibration
-        self.model = model or Model()
+        self.model = copy.deepcopy(model) if model is not None else Model()
+        self.model.reset()
         names = device.channel_names
         measuring = [names[k] for k in device.measuring_channels]
-        self.cdfs = CdfBank(calibration.cdfs(measuring))
+        # the reference distances at the temperature the bars were calibrated at
+        growth = reference_plate_growth(device, calibration.ambient_c)
+        self.cdfs = CdfBank(calibration.cdfs(measuring, growth))
         self.channels = np.array(device.measuring_channels)
         references = []
         if self.model.thermal_mode != 'off':
@@ -104,8 +116,8 @@ class Pipeline:
                     raise CalibrationError(
                         f'reference bar {ch.name!r} has no calibration points; calibrate it or '
                         'set thermal.mode: off in the model')
-                references.append(ReferenceBar(ch.index, device.pair(ch.pair).distance_m,
-                                               calibration.bars[ch.name].cdf(),
+                references.append(ReferenceBar(ch.index, device.pair(ch.pair).distance_m * growth,
+                                               calibration.bars[ch.name].cdf(growth),
                                                calibration.thermal_zero_m.get(ch.name, 0.0)))
         self.thermal = ThermalCompensation(
             device, references, mode=self.model.thermal_mode,

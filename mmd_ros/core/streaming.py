@@ -9,7 +9,10 @@ covariance J^-1 Sigma_d J^-T (Sigma_d of :class:`~mmd_ros.core.budget.LengthBudg
 lengths and the thermal state of each sample). Both keep the figures their diagnostics report.
 
 A bar out of its calibrated span gives NaN in the published lengths (the extrapolated value is
-not a measurement) and no pose; live, such samples are not solved.
+not a measurement) and no pose; live, such samples are not solved. So does a bar whose encoder
+signal the terminal reported lost (or a quadrature error: a count may be missing) in that
+sample, and every bar of a sample whose reference bar's signal was lost (its thermal
+compensation, Eq. 11, is then unknown).
 """
 
 from __future__ import annotations
@@ -32,6 +35,7 @@ from mmd_ros.core.kinematics import ForwardKinematics
 from mmd_ros.core.model import Model
 from mmd_ros.core.pipeline import Pipeline
 from mmd_ros.core.uncertainty import pose_covariance
+from mmd_ros.core.validity import Validity
 
 __all__ = ['CompensationOut', 'Compensator', 'Kinematics', 'KinematicsOut', 'calibration_created_ns']
 
@@ -53,8 +57,11 @@ def calibration_created_ns(calibration: Calibration) -> int | None:
 class CompensationOut:
     """Compensated lengths of N samples.
 
-    lengths_m : (N, 6) — d_i* [m], NaN where the bar is out of its calibrated span
+    lengths_m : (N, 6) — d_i* [m], NaN where the bar is out of its calibrated span or has no
+        encoder signal
     out_of_range : (N, 6)
+    no_signal : (N, 6) — no length because an encoder signal was lost (the bar's, or a
+        reference bar's)
     reference_error_m : (N, k) — Eq. (11) per reference bar [m]
     temp_change_c : (N,) — temperature change since the thermal zero [°C]
     plate_scale : (N,) — the plates' expansion factor applied to the joints
@@ -67,6 +74,7 @@ class CompensationOut:
     reference_error_m: FloatArray
     temp_change_c: FloatArray
     plate_scale: FloatArray
+    no_signal: NDArray[np.bool_] | None = None
     bar_error_m: FloatArray | None = None
     fit_columns_m: FloatArray | None = None
 
@@ -83,6 +91,11 @@ class _CompStats:
     last_ref_error_m: FloatArray = field(default_factory=lambda: np.zeros(0))
     last_temp_change_c: float = math.nan
     held: int = 0
+    no_signal: int = 0
+    period_no_signal: NDArray[np.int64] = field(default_factory=lambda: np.zeros(6, np.int64))
+    #: samples outside the model's validated range since the last report: per bar, temperature
+    period_outside_bars: NDArray[np.int64] = field(default_factory=lambda: np.zeros(6, np.int64))
+    period_outside_temp: int = 0
 
 
 class Compensator:
@@ -94,10 +107,13 @@ class Compensator:
     def __init__(self, device: DeviceDescription, model: Model) -> None:
         self.device = device
         self.model = model
+        self.validity = Validity.from_model(model)
         fit = model.uncertainty.fit
         fit_terms = [t for group in fit.directions for t in group] if fit is not None else []
         self.needs_pose = any(getattr(t, 'needs_pose', False) for t in model.terms + fit_terms)
         self.reference_names = [c.name for c in device.reference_channels]
+        self._measuring = list(device.measuring_channels)
+        self._references = [c.index for c in device.reference_channels]
         self._lock = threading.Lock()
         self._pipeline: Pipeline | None = None
         self._fk: ForwardKinematics | None = None
@@ -162,8 +178,13 @@ class Compensator:
         pipeline = self._pipeline
         return pipeline.budget if pipeline is not None else None
 
-    def process(self, stamps_ns: NDArray[np.int64], counts: FloatArray) -> CompensationOut | None:
-        """Lengths of the samples of one transfer, or None when there is no usable calibration."""
+    def process(self, stamps_ns: NDArray[np.int64], counts: FloatArray,
+                status: NDArray[np.uint8] | None = None) -> CompensationOut | None:
+        """Lengths of the samples of one transfer, or None when there is no usable calibration.
+
+        status : (N, 8) channel status codes of the terminal (0 good; see
+            :meth:`~mmd_ros.hardware.stream.SampleBatch.status_codes`), or None when all good
+        """
         with self._lock:
             pipeline, fk = self._pipeline, self._fk
             if pipeline is None:
@@ -179,10 +200,18 @@ class Compensator:
             comp = pipeline.add_pose_terms(comp, times, counts, first)
         out = comp.out_of_range
         lengths = np.where(out, np.nan, comp.lengths_m)
+        no_signal = None
+        if status is not None:
+            bad = np.asarray(status) != 0
+            no_signal = bad[:, self._measuring] | bad[:, self._references].any(axis=1)[:, None]
+            lengths[no_signal] = np.nan
         result = CompensationOut(lengths, out, comp.thermal.reference_error_m,
-                                 comp.thermal.temp_change_c, comp.thermal.plate_scale,
+                                 comp.thermal.temp_change_c, comp.thermal.plate_scale, no_signal,
                                  comp.thermal.bar_error_m, comp.fit_columns_m)
         st = self.stats
+        if no_signal is not None:
+            st.no_signal += int(np.count_nonzero(no_signal.any(axis=1)))
+            st.period_no_signal += no_signal.sum(axis=0)
         st.samples += len(stamps_ns)
         bad = out.sum(axis=0)
         st.out_of_range += bad
@@ -190,6 +219,14 @@ class Compensator:
         if result.reference_error_m.size:
             st.last_ref_error_m = result.reference_error_m[-1].copy()
         st.last_temp_change_c = float(result.temp_change_c[-1])
+        if self.validity is not None:
+            temp = result.temp_change_c
+            if self.validity.absolute:
+                ambient = self.calibration.ambient_c if self.calibration is not None else None
+                temp = None if ambient is None else temp + ambient
+            bars, t_out = self.validity.outside(comp.cdf_lengths_m, temp)
+            st.period_outside_bars += bars
+            st.period_outside_temp += t_out
         return result
 
 

@@ -167,6 +167,13 @@ class SampleBatch:
         bits = (self.channel_status >> CHANNEL_STATUS_QUADRATURE_ERROR_SHIFT) & 0xFF
         return (bits[:, None] & _CHANNEL_BITS[None, :]) != 0
 
+    def status_codes(self) -> NDArray[np.uint8] | None:
+        """shape (N, 8): per sample and channel 0 (signal good), 1 (signal lost), 2 (quadrature
+        error) or 3 (both); None when every sample of the batch is good (the usual case)."""
+        if not self.channel_status.any():
+            return None
+        return (self.signal_lost.astype(np.uint8) | (self.quadrature_error.astype(np.uint8) << 1))
+
     def with_reconnected(self) -> SampleBatch:
         return dataclasses.replace(self, reconnected=True)
 

@@ -8,6 +8,7 @@ one, the reference instrument's reading.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 from dataclasses import dataclass, field
@@ -79,6 +80,16 @@ class RunLog:
     metadata: dict[str, Any] = field(default_factory=dict)
     problem: LogProblem | None = None
     segment: tuple[int, int] = (1, 1)
+
+    def content_hash(self) -> str:
+        """Identity of the run: a hash of its raw counts and their stamps (16 hex digits).
+
+        Two logs of the same run (a copy, a renamed file, the log re-written by ``mmd process``)
+        have the same hash; a model file names the runs it was fitted on by it."""
+        h = hashlib.sha256()
+        h.update(np.ascontiguousarray(self.stamps_ns, dtype=np.int64).tobytes())
+        h.update(np.ascontiguousarray(self.counts, dtype=np.float64).tobytes())
+        return h.hexdigest()[:16]
 
     @property
     def times_s(self) -> NDArray[np.float64]:

@@ -24,7 +24,8 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Header, String
 
-from mmd_ros.core.calibration import Calibration
+from mmd_ros.core.calibration import Calibration, TerminalBinding
+from mmd_ros.core.errors import MmdError
 from mmd_ros.nodes.calibration_stage import (
     CalibrationConfig, CalibrationService, CalibrationStage, calibration_params,
 )
@@ -36,6 +37,7 @@ from mmd_ros.nodes.convert import DIAGNOSTIC_ARRAY, STRING, RawBatch, from_time,
 from mmd_ros.nodes.diagnostics import Diagnostics
 from mmd_ros.nodes.outlets import Outlet
 from mmd_ros.nodes.params import declare
+from mmd_ros.nodes.progress import CountedInputs, ProgressPublisher
 from mmd_ros.nodes.qos import DIAGNOSTICS, LATCHED, data_qos
 
 __all__ = ['CalibrationNode', 'main']
@@ -60,9 +62,12 @@ class CalibrationNode(CalibrationService, Node):
                                       logger=self.get_logger())
         qos = data_qos(v['qos'], v['qos_depth'])
         self.pending = RawBatch(self.names)
-        self.create_subscription(JointState, 'raw_counts', self._on_raw, qos, raw=True)
+        self.inputs = CountedInputs(self)
+        self.inputs.subscribe(JointState, 'raw_counts', self._on_raw, qos)
         self.create_timer(0.02, self._flush)
+        self.progress = ProgressPublisher(self, self.inputs, [], v['qos_depth'])
         self.create_subscription(Header, 'terminal/counter_reset', self._on_reset, LATCHED)
+        self.create_subscription(String, 'terminal/info', self._on_terminal, LATCHED)
         self._create_calibration_service()
         self.add_on_set_parameters_callback(self._on_set)
         self.create_timer(1.0, self.calibration.poll_file)
@@ -78,7 +83,20 @@ class CalibrationNode(CalibrationService, Node):
 
     def _flush(self) -> None:
         if len(self.pending):
-            self.calibration.feed(*self.pending.take())
+            stamps, counts, status = self.pending.take_all()
+            if status is not None:  # samples without encoder signal are no calibration points
+                good = ~status.any(axis=1)
+                stamps, counts = stamps[good], counts[good]
+            self.calibration.feed(stamps, counts)
+
+    def _on_terminal(self, msg: String) -> None:
+        """The encoder node says which terminal it reads: bind and check the calibration."""
+        try:
+            binding = TerminalBinding.from_yaml(msg.data, 'terminal/info')
+        except MmdError as exc:
+            self.get_logger().error(f'terminal/info message refused: {exc}')
+            return
+        self.calibration.set_terminal(binding)
 
     def _on_reset(self, msg: Header) -> None:
         stamp = from_time(msg.stamp)
@@ -102,7 +120,9 @@ class CalibrationNode(CalibrationService, Node):
         return SetParametersResult(successful=True)
 
     def _report(self) -> list:
-        return [self.calibration.report(*self._selection())]
+        r = self.calibration.report(*self._selection())
+        self.inputs.report(r)
+        return [r]
 
 
 def main(args: list[str] | None = None) -> int:

@@ -9,15 +9,24 @@ temporary file, fsync, rename; the previous file is kept as ``<file>.bak``; a co
 is replaced is kept as ``<file>.corrupt``), and published on the latched ``/mmd/calibration``
 topic whenever it changes. A terminal counter reset marks it invalid until every bar is
 re-referenced.
+
+A calibration is bound to the terminal it was made with (serial number, simulated or not, the
+bar on each channel: :class:`~mmd_ros.core.calibration.TerminalBinding`), recorded in the file
+when it is saved. A file made for another terminal, or on the simulator when this is hardware,
+is refused (ERROR in the diagnostics; with ``calibration_any_terminal`` it is used, still with
+an ERROR); a refused file that a new calibration replaces is kept as ``<file>.foreign``. When
+the calibration cannot be written (a read-only or full file system, a path under a file) the
+node still runs with what it could load, and the diagnostics say ERROR until a save succeeds.
 """
 
 from __future__ import annotations
 
 import math
 import os
+import tempfile
 import threading
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -27,7 +36,9 @@ from numpy.typing import NDArray
 from rclpy.parameter import Parameter
 from std_srvs.srv import Trigger
 
-from mmd_ros.core.calibration import Calibration, load_calibration
+from mmd_ros.core.calibration import (
+    Calibration, TerminalBinding, binding_problem, load_calibration,
+)
 from mmd_ros.core.calibration_routine import CalibrationRoutine, RoutineSettings, Window
 from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.errors import CalibrationError, ConfigError, MmdError
@@ -35,7 +46,7 @@ from mmd_ros.nodes.diagnostics import ERROR, OK, WARN, Events, Report
 from mmd_ros.nodes.params import Param, check
 from mmd_ros.nodes.reports import calibration_age_s
 
-__all__ = ['CALIBRATION_PARAMS', 'CalibrationConfig', 'CalibrationService', 'CalibrationStage', 'SampleBuffer',
+__all__ = ['ANY_TERMINAL', 'CALIBRATION_PARAMS', 'CalibrationConfig', 'CalibrationService', 'CalibrationStage', 'SampleBuffer',
            'default_calibration_file', 'now_iso']
 
 
@@ -43,19 +54,36 @@ def ros_home() -> Path:
     return Path(os.environ.get('ROS_HOME') or Path.home() / '.ros')
 
 
-def default_calibration_file(device_name: str = 'mmd_prototype') -> str:
-    return str(ros_home() / 'mmd' / f'{device_name}_calibration.yaml')
+def default_calibration_file(device_name: str = 'mmd_prototype', terminal: str = '') -> str:
+    """``$ROS_HOME/mmd/<device>_calibration.yaml``, or ``<device>_<terminal>_calibration.yaml``
+    for a named terminal (the simulated one has its own serial number, so a simulation never
+    writes the file a real terminal reads)."""
+    name = f'{device_name}_{terminal}' if terminal else device_name
+    return str(ros_home() / 'mmd' / f'{name}_calibration.yaml')
+
+
+def why_not(exc: OSError) -> str:
+    """What an OSError of a write means, in words (a path under a file says "File exists")."""
+    if isinstance(exc, (FileExistsError, NotADirectoryError)):
+        return f'{exc.filename or "a part of the path"} is a file, not a folder'
+    return exc.strerror or str(exc)
 
 
 def now_iso() -> str:
     return datetime.now(timezone.utc).isoformat(timespec='milliseconds')
 
 
-def calibration_params(device_name: str = 'mmd_prototype') -> list[Param]:
+#: Parameter of the nodes that check a calibration against the terminal.
+ANY_TERMINAL = Param('calibration_any_terminal', False, 'use a calibration made for another '
+                     'terminal, other bars or on the simulator anyway (diagnostics stay at ERROR)')
+
+
+def calibration_params(device_name: str = 'mmd_prototype', terminal: str = '') -> list[Param]:
     return [
-        Param('calibration_file', default_calibration_file(device_name),
+        Param('calibration_file', default_calibration_file(device_name, terminal),
               'calibration file (YAML): read at start, reloaded when it changes, written '
               'atomically after every change (previous one kept as <file>.bak)'),
+        ANY_TERMINAL,
         Param('bar', '', 'the bar to calibrate next ("" follows the routine: bar1..bar6, then '
               'the reference bar)', dynamic=True),
         Param('pair', '', 'the socket pair of the next capture ("" follows the routine); '
@@ -89,6 +117,7 @@ CALIBRATION_PARAMS = calibration_params()
 @dataclass(frozen=True)
 class CalibrationConfig:
     calibration_file: str
+    calibration_any_terminal: bool
     settle_window_s: float
     settle_std_um: float
     settle_drift_um: float
@@ -157,19 +186,28 @@ class CalibrationStage:
 
     publish : called with every new calibration (to publish it on /mmd/calibration)
     on_valid : called when the calibration becomes valid again after a counter reset
+    on_refused : called when the calibration in use is refused (the terminal turned out to be
+        another one): nothing may be computed with it any more
     factory : simulation: makes a calibration when the file does not exist yet
+    terminal : the terminal the samples come from, as far as known at start (its serial may
+        be '' until it is opened: :meth:`set_terminal`); None: not known (calibration_node
+        before the encoder node said which terminal it reads)
     """
 
     def __init__(self, cfg: CalibrationConfig, device: DeviceDescription, *, thermal_mode: str,
                  publish: Callable[[Calibration], None], logger: Any,
                  on_valid: Callable[[], None] | None = None,
-                 factory: Callable[[], Calibration] | None = None) -> None:
+                 on_refused: Callable[[], None] | None = None,
+                 factory: Callable[[], Calibration] | None = None,
+                 terminal: TerminalBinding | None = None) -> None:
         self.cfg = cfg
         self.device = device
         self.path = Path(cfg.calibration_file).expanduser()
-        self.publish = publish
+        self._publish = publish
         self.log = logger
         self.on_valid = on_valid
+        self.on_refused = on_refused
+        self.terminal = terminal
         self.settings = RoutineSettings(
             settle_std_m=cfg.settle_std_um * 1e-6, settle_drift_m=cfg.settle_drift_um * 1e-6,
             min_samples=max(2, int(0.5 * cfg.settle_window_s * device.sample_rate_hz)),
@@ -180,18 +218,97 @@ class CalibrationStage:
                                    device.sample_rate_hz)
         self.events = Events(hold_s=10.0)
         self.file_problem = ''
+        self.binding_note = ''  # the calibration in use is foreign, used by override
+        self.save_problem = ''
+        self.foreign = False  # the file holds a calibration refused for its terminal
         self.last_message = ''
         self.captures = self.refused = 0
         self._lock = threading.RLock()
         self._file_sig: tuple[float, int] | None = None
+        self._probe_writable()
         self._load(initial=True)
-        if self.routine.calibration is None and factory is not None and not self.path.exists():
+        if self.routine.calibration is None and factory is not None and self._signature() is None \
+                and not self.foreign:
             cal = factory()
             cal = Calibration(cal.device, cal.bars, cal.thermal_zero_m, cal.ambient_c, now_iso(),
                               True, cal.quality, uncertainty=cal.uncertainty)
-            self._persist(cal)
             self.routine.set_calibration(cal)
-            self.log.info(f'simulation: factory calibration of the twin written to {self.path}')
+            note = self._save(cal)
+            self.log.info('simulation: factory calibration of the twin in use.' + note)
+
+    # -- the terminal --------------------------------------------------------------------------
+    def bind(self, cal: Calibration) -> Calibration:
+        """``cal`` bound to the terminal in use (when known)."""
+        t = self.terminal
+        if t is None:
+            return cal
+        if cal.terminal is not None and (not t.serial or self.binding_note):
+            # the terminal's serial is not known yet (the calibration's is), or a foreign
+            # calibration is used by override: it keeps saying where it is from
+            return cal
+        return replace(cal, terminal=t)
+
+    def publish(self, cal: Calibration) -> None:
+        self._publish(self.bind(cal))
+
+    def _refusal(self, cal: Calibration) -> str | None:
+        """Why ``cal`` must not be used with this terminal (None: it may, perhaps by override;
+        then :attr:`binding_note` says so)."""
+        self.binding_note = ''
+        if self.terminal is None:
+            return None
+        problem = binding_problem(cal, self.terminal)
+        if problem is None:
+            return None
+        if self.cfg.calibration_any_terminal:
+            self.binding_note = (f'calibration of {self.path} used by override '
+                                 f'(calibration_any_terminal): {problem}')
+            return None
+        return (f'calibration file refused: {self.path}: {problem}; calibrate this terminal '
+                '(calibrate_bar), or set calibration_any_terminal:=true to use it anyway')
+
+    def set_terminal(self, terminal: TerminalBinding) -> None:
+        """The terminal is known now (opened, or announced by the encoder node): check the
+        calibration in use against it; a refused one is withdrawn (``on_refused``)."""
+        with self._lock:
+            if terminal == self.terminal:
+                return
+            self.terminal = terminal
+            cal = self.routine.calibration
+            if cal is None:
+                if self.foreign or self._signature() is not None:
+                    self._file_sig = None  # the file may suit this terminal: read it again
+                    if self._load():
+                        self.publish(self.routine.calibration)
+                return
+            problem = self._refusal(cal)
+            if problem is None:
+                if self.binding_note:
+                    self.log.error(self.binding_note)
+                return
+            self.routine.set_calibration(None)
+            self.file_problem, self.foreign = problem, True
+        self.log.error(problem)
+        self.events.note('file', problem, ERROR)
+        if self.on_refused is not None:
+            self.on_refused()
+
+    def _probe_writable(self) -> None:
+        """Say now, not after the 49th capture, when the calibration cannot be written."""
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            fd, probe = tempfile.mkstemp(prefix=f'.{self.path.name}.', suffix='.probe',
+                                         dir=self.path.parent)
+            os.close(fd)
+            os.unlink(probe)
+        except OSError as exc:
+            self._cannot_save(exc)
+
+    def _cannot_save(self, exc: OSError) -> None:
+        self.save_problem = (f'calibrations cannot be saved to {self.path}: {why_not(exc)}; the '
+                             'calibration in use is not on disk (fix the folder or set '
+                             'calibration_file)')
+        self.log.error(self.save_problem)
 
     # -- the file ------------------------------------------------------------------------------
     def _signature(self) -> tuple[float, int] | None:
@@ -221,12 +338,22 @@ class CalibrationStage:
             self.file_problem = (f'calibration file refused: {self.path} is for device '
                                  f'{cal.device!r}, not {self.device.name!r}')
             self.log.error(self.file_problem)
+            self.foreign = True
             return False
-        self.file_problem = ''
+        problem = self._refusal(cal)
+        if problem is not None:
+            self.file_problem, self.foreign = problem, True
+            self.log.error(problem)
+            self.events.note('file', problem, ERROR)
+            return False
+        self.file_problem, self.foreign = '', False
         with self._lock:
             self.routine.set_calibration(cal)
+        if self.binding_note:
+            self.log.error(self.binding_note)
         self.log.info(f'calibration loaded from {self.path} (created {cal.created or "?"}, '
-                      f'{"valid" if cal.valid else "INVALID: re-reference the bars"})')
+                      f'{"valid" if cal.valid else "INVALID: re-reference the bars"}'
+                      + (f', made with {cal.terminal.describe()}' if cal.terminal else '') + ')')
         return True
 
     def start(self) -> None:
@@ -243,21 +370,36 @@ class CalibrationStage:
             self.publish(self.routine.calibration)
 
     def _persist(self, cal: Calibration) -> str:
-        """Save atomically; a corrupt file in the way is kept as ``.corrupt``. Returns a note."""
+        """Save atomically, bound to the terminal; a corrupt file in the way is kept as
+        ``.corrupt``, one refused for its terminal or device as ``.foreign``. Returns a note;
+        raises OSError when it cannot be written."""
         note = ''
         if self.path.exists():
+            keep = ''
             try:
                 load_calibration(self.path)
+                keep = 'foreign' if self.foreign else ''
             except ConfigError:
-                corrupt = self.path.with_name(self.path.name + '.corrupt')
-                os.replace(self.path, corrupt)
-                note = f' (the corrupt file was kept as {corrupt.name})'
+                keep = 'corrupt'
+            if keep:
+                kept = self.path.with_name(f'{self.path.name}.{keep}')
+                os.replace(self.path, kept)
+                note = f' (the {keep} file was kept as {kept.name})'
         existed = self.path.exists()
-        cal.save(self.path)
+        self.bind(cal).save(self.path)
         self._file_sig = self._signature()
-        self.file_problem = ''
+        self.file_problem, self.foreign, self.save_problem = '', False, ''
         return (f' Saved to {self.path}' + (f' (previous kept as {self.path.name}.bak)' if existed else '')
                 + note + '.')
+
+    def _save(self, cal: Calibration) -> str:
+        """:meth:`_persist`, saying (note, log, diagnostics) when the file cannot be written."""
+        try:
+            return self._persist(cal)
+        except OSError as exc:
+            self._cannot_save(exc)
+            return (f' COULD NOT SAVE to {self.path}: {why_not(exc)}; the calibration is in use '
+                    'but not on disk: fix the folder and capture again.')
 
     # -- samples and events --------------------------------------------------------------------
     def feed(self, stamps: NDArray[np.int64], counts: NDArray[np.float64]) -> None:
@@ -293,10 +435,7 @@ class CalibrationStage:
             cal = self.routine.invalidate('terminal counter reset (power loss or watchdog)', now_iso())
             if cal is None:
                 return
-            try:
-                self._persist(cal)
-            except OSError as exc:
-                self.log.error(f'cannot save the invalidated calibration to {self.path}: {exc}')
+            self._save(cal)
         self.events.note('reset', 'terminal counter reset: calibration invalid until every bar is '
                          're-referenced', ERROR)
         self.log.warn('terminal counter reset: the calibration is invalid until the bars are '
@@ -326,12 +465,7 @@ class CalibrationStage:
                                        pair=pair, mode=mode)
             message = res.message
             if res.calibration is not None:
-                try:
-                    note = self._persist(res.calibration)
-                except OSError as exc:
-                    note = (f' COULD NOT SAVE to {self.path}: {exc.strerror or exc}; the '
-                            'calibration is in use but not on disk: fix the folder and capture again.')
-                    self.log.error(f'cannot save the calibration to {self.path}: {exc}')
+                note = self._save(res.calibration)
                 head, sep, tail = message.partition(' Next: ')
                 message = head + note + (sep + tail if sep else '')
                 self.publish(res.calibration)
@@ -367,6 +501,10 @@ class CalibrationStage:
         r = Report('calibration', OK, 'calibration valid')
         if self.file_problem:
             r.worse(ERROR, self.file_problem)
+        if self.binding_note:
+            r.worse(ERROR, self.binding_note)
+        if self.save_problem:
+            r.worse(ERROR, self.save_problem)
         if cal is None:
             r.worse(WARN, 'no calibration: run the calibration routine (calibrate_bar)')
         else:
@@ -377,8 +515,12 @@ class CalibrationStage:
             elif missing:
                 r.worse(WARN, f'calibration incomplete: no CDF for {", ".join(missing)}')
         self.events.apply(r)
+        made_with = cal.terminal if cal is not None else None
         r.values.update({
             'file': str(self.path),
+            'saved': not self.save_problem,
+            'terminal': self.terminal.describe() if self.terminal is not None else 'unknown',
+            'made_with': made_with.describe() if made_with is not None else 'not recorded',
             'valid': bool(cal is not None and cal.valid and not self.routine.missing_bars()),
             'created': cal.created if cal is not None else '',
             'age_s': round(calibration_age_s(cal), 1),

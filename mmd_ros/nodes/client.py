@@ -19,6 +19,7 @@ import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import Path
 from rcl_interfaces.msg import Parameter as ParameterMsg
 from rcl_interfaces.srv import SetParameters
 from rclpy.context import Context
@@ -50,7 +51,9 @@ class MmdClient:
 
     topics : which per-sample topics to collect: 'pose', 'reference', 'raw' (stamps only),
         'pose_stamps' (the poses' stamps and arrival times only, read from the serialised
-        message without building message objects: what a lean consumer costs)
+        message without building message objects: what a lean consumer costs), 'pose_batch'
+        (the poses of ``pose_batch``, one ``nav_msgs/Path`` per transfer, collected as 'pose'
+        collects those of ``pose``)
     """
 
     def __init__(self, namespace: str = '/mmd', *, topics: tuple[str, ...] = ('pose', 'reference'),
@@ -70,14 +73,19 @@ class MmdClient:
         self.diagnostic_history: list[tuple[float, dict[str, Any]]] = []
         qos = data_qos('reliable', depth)
         n = self.node
-        if 'pose' in topics:
-            n.create_subscription(PoseStamped, f'{self.ns}/pose', self._on_pose, qos)
-        if 'pose_stamps' in topics:
-            n.create_subscription(PoseStamped, f'{self.ns}/pose', self._on_pose_bytes, qos, raw=True)
-        if 'reference' in topics:
-            n.create_subscription(JointState, f'{self.ns}/reference/pose', self._on_reference, qos)
-        if 'raw' in topics:
-            n.create_subscription(JointState, f'{self.ns}/raw_counts', self._on_raw, qos)
+        self.batches = 0
+        self._subscriptions: dict[str, Any] = {}
+        wanted = {
+            'pose': (PoseStamped, 'pose', self._on_pose, False),
+            'pose_batch': (Path, 'pose_batch', self._on_pose_batch, False),
+            'pose_stamps': (PoseStamped, 'pose', self._on_pose_bytes, True),
+            'reference': (JointState, 'reference/pose', self._on_reference, False),
+            'raw': (JointState, 'raw_counts', self._on_raw, False),
+        }
+        for key, (cls, topic, callback, raw) in wanted.items():
+            if key in topics:
+                self._subscriptions[key] = n.create_subscription(cls, f'{self.ns}/{topic}', callback,
+                                                                 qos, raw=raw)
         n.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, DIAGNOSTICS)
         self.executor = EventsExecutor(context=self.context)
         self.executor.add_node(n)
@@ -93,6 +101,15 @@ class MmdClient:
                 if not self._running:
                     return
 
+    def drop(self, *topics: str) -> None:
+        """Stop collecting ``topics`` (keys as in the constructor): a per-sample subscription
+        this process no longer needs only makes it fall behind on everything else, service
+        answers included."""
+        for key in topics:
+            sub = self._subscriptions.pop(key, None)
+            if sub is not None:
+                self.node.destroy_subscription(sub)
+
     # -- collected data ------------------------------------------------------------------------
     def _on_pose(self, msg: PoseStamped) -> None:
         p = msg.pose
@@ -103,6 +120,19 @@ class MmdClient:
             self.poses.append(row)
             self.pose_stamps.append(row[0])
             self.pose_arrivals.append(arrival)
+
+    def _on_pose_batch(self, msg: Path) -> None:
+        arrival = time.time_ns()
+        rows = []
+        for ps in msg.poses:
+            p = ps.pose
+            rows.append((from_time(ps.header.stamp), p.position.x, p.position.y, p.position.z,
+                         p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w))
+        with self._lock:
+            self.batches += 1
+            self.poses.extend(rows)
+            self.pose_stamps.extend(r[0] for r in rows)
+            self.pose_arrivals.extend([arrival] * len(rows))
 
     def _on_pose_bytes(self, data: bytes) -> None:
         arrival = time.time_ns()

@@ -6,8 +6,11 @@ publishes ``bar_lengths`` (d_i* [m]; NaN for a bar outside its calibrated span) 
 (Eq. 11 error per reference bar [m], temperature change since the thermal zero [°C], the
 plates' scale factor). The calibration comes from the latched ``calibration`` topic (the
 calibration node, a replay) and, with ``calibration_file`` set, from that file, reloaded when
-it changes; either way without a restart. A ``terminal/counter_reset`` event stops the output
-until a calibration made after it arrives. Topics, parameters: ``msg_docs/nodes.md``.
+it changes; either way without a restart. A calibration made with another terminal than the one
+``terminal/info`` names (or on the simulator, for hardware) is refused unless
+``calibration_any_terminal`` is set; either way the diagnostics say ERROR. A
+``terminal/counter_reset`` event stops the output until a calibration made after it arrives.
+Topics, parameters: ``msg_docs/nodes.md``.
 """
 
 from __future__ import annotations
@@ -20,16 +23,20 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Header, String
 
-from mmd_ros.core.calibration import Calibration, load_calibration
+from mmd_ros.core.calibration import (
+    Calibration, TerminalBinding, binding_problem, load_calibration,
+)
 from mmd_ros.core.errors import MmdError
 from mmd_ros.nodes.common import (
     COMMON_PARAMS, MODEL_PARAMS, NAMESPACE, load_device_param, load_model_param, run,
 )
 from mmd_ros.core.streaming import Compensator
 from mmd_ros.nodes.convert import DIAGNOSTIC_ARRAY, JS, STRING, RawBatch, Rows, from_time, string_bytes
+from mmd_ros.nodes.calibration_stage import ANY_TERMINAL
 from mmd_ros.nodes.diagnostics import ERROR, Diagnostics, Events
 from mmd_ros.nodes.outlets import Outlet
 from mmd_ros.nodes.params import Param, declare
+from mmd_ros.nodes.progress import CountedInputs, ProgressPublisher
 from mmd_ros.nodes.qos import DIAGNOSTICS, LATCHED, data_qos
 from mmd_ros.nodes.reports import compensation_report
 
@@ -44,6 +51,7 @@ PARAMS = [
           'changes ("" only the calibration topic)'),
     Param('thermal_warn_c', 2.0, 'warn when the temperature has changed more than this since the '
           'thermal zero with one reference bar (Eq. 13 territory) [°C]', low=0.0, high=100.0),
+    ANY_TERMINAL,
 ]
 
 
@@ -60,6 +68,10 @@ class CompensationNode(Node):
         self.thermal_warn_c = v['thermal_warn_c']
         self.compensator = Compensator(self.device, self.model)
         self.events = Events()
+        self.any_terminal = v['calibration_any_terminal']
+        self.terminal: TerminalBinding | None = None
+        self._offered: tuple[Calibration, str] | None = None
+        self.binding_problem = ''
         qos = data_qos(v['qos'], v['qos_depth'])
         kind = 'sensor' if v['qos'] == 'sensor' else 'reliable'
         self.out_lengths = Outlet(self, 'bar_lengths', JointState, JS, qos, kind)
@@ -72,14 +84,30 @@ class CompensationNode(Node):
             self._poll_file()
             self.create_timer(1.0, self._poll_file)
         self.pending = RawBatch(self.names)
-        self.create_subscription(JointState, 'raw_counts', self._on_raw, qos, raw=True)
+        self.inputs = CountedInputs(self)
+        self.inputs.subscribe(JointState, 'raw_counts', self._on_raw, qos)
         self.create_timer(FLUSH_PERIOD_S, self._flush)
+        self.progress = ProgressPublisher(self, self.inputs, [self.out_lengths, self.out_thermal],
+                                          v['qos_depth'])
         self.create_subscription(String, 'calibration', self._on_calibration, LATCHED)
         self.create_subscription(Header, 'terminal/counter_reset', self._on_reset, LATCHED)
+        self.create_subscription(String, 'terminal/info', self._on_terminal, LATCHED)
         self.diagnostics = Diagnostics(self, self.out_diag, [self._report], v['diagnostics_period_s'])
         self.out_model.payload(string_bytes(self.model.to_yaml()), self.get_clock().now().nanoseconds)
 
     def _use(self, cal: Calibration, source: str) -> None:
+        self._offered = (cal, source)
+        self.binding_problem = ''
+        refusal = binding_problem(cal, self.terminal) if self.terminal is not None else None
+        if refusal is not None:
+            if not self.any_terminal:
+                self.binding_problem = (f'calibration from {source} refused: {refusal}; calibrate '
+                                        'this terminal, or set calibration_any_terminal:=true')
+                self.get_logger().error(self.binding_problem)
+                self.compensator.set_calibration(None, source)
+                return
+            self.binding_problem = f'calibration from {source} used by override: {refusal}'
+            self.get_logger().error(self.binding_problem)
         problem = self.compensator.set_calibration(cal, source)
         if problem:
             self.get_logger().warn(problem)
@@ -113,6 +141,16 @@ class CompensationNode(Node):
             return
         self._use(cal, str(self.file))
 
+    def _on_terminal(self, msg: String) -> None:
+        """The encoder node says which terminal it reads: check the calibration against it."""
+        try:
+            self.terminal = TerminalBinding.from_yaml(msg.data, 'terminal/info')
+        except MmdError as exc:
+            self.get_logger().error(f'terminal/info message refused: {exc}')
+            return
+        if self._offered is not None:
+            self._use(*self._offered)
+
     def _on_reset(self, msg: Header) -> None:
         self.compensator.hold(from_time(msg.stamp))
 
@@ -124,15 +162,16 @@ class CompensationNode(Node):
     def _flush(self) -> None:
         if not len(self.pending):
             return
-        stamps, counts = self.pending.take()
+        stamps, counts, status = self.pending.take_all()
         hold = self.compensator.hold_from_ns
         if hold is not None:
             keep = stamps < hold
             self.compensator.stats.held += int((~keep).sum())
             stamps, counts = stamps[keep], counts[keep]
+            status = status[keep] if status is not None else None
             if not stamps.size:
                 return
-        comp = self.compensator.process(stamps, counts)
+        comp = self.compensator.process(stamps, counts, status)
         if comp is None:
             return
         self.out_lengths.rows(self.rows.lengths.encode(stamps, comp.lengths_m), stamps)
@@ -140,7 +179,10 @@ class CompensationNode(Node):
 
     def _report(self) -> list:
         r = compensation_report(self.compensator, self.thermal_warn_c, self.model.source)
+        if self.binding_problem:
+            r.worse(ERROR, self.binding_problem)
         self.events.apply(r)
+        self.inputs.report(r)
         return [r]
 
 

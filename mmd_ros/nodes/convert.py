@@ -17,16 +17,18 @@ from numpy.typing import NDArray
 from std_msgs.msg import Header, String
 
 from mmd_ros.core.rotation import angles_to_quaternion, quaternion_to_angles
-from mmd_ros.logs.cdr import JointStateLayout, PoseLayout, encode_string
+from mmd_ros.logs.cdr import ENCAPSULATION, JointStateLayout, PoseLayout, encode_string, split_stamps
 from mmd_ros.logs.layout import BAR_NAMES, FRAME_LOWER, REFERENCE_POSE_NAMES
 
 __all__ = [
-    'DIAGNOSTIC_ARRAY', 'FK_STATUS_NAMES', 'HEADER', 'JS', 'POSE', 'POSE_COV', 'RawBatch', 'Rows',
+    'DIAGNOSTIC_ARRAY', 'FK_STATUS_NAMES', 'HEADER', 'JS', 'PATH', 'POSE', 'POSE_COV', 'PathLayout',
+    'RawBatch', 'Rows',
     'STRING', 'from_time', 'header', 'joint_state_values', 'pose_from_msg', 'string_bytes',
     'stamp_of_serialized', 'string_msg', 'thermal_names', 'to_time',
 ]
 
 JS = 'sensor_msgs/msg/JointState'
+PATH = 'nav_msgs/msg/Path'
 POSE = 'geometry_msgs/msg/PoseStamped'
 POSE_COV = 'geometry_msgs/msg/PoseWithCovarianceStamped'
 STRING = 'std_msgs/msg/String'
@@ -91,6 +93,98 @@ def pose_from_msg(pose) -> NDArray[np.float64]:
     return np.array([pose.position.x, pose.position.y, pose.position.z, *ang])
 
 
+class PathLayout:
+    """``nav_msgs/msg/Path`` as CDR bytes: the poses of one transfer in one message.
+
+    ``header.stamp`` is the last pose's stamp, each ``poses[k]`` a ``PoseStamped`` with its
+    sample's own stamp; every header has ``frame_id`` ``frame_id``. The byte layout for n poses
+    (alignment differs from one element to the next) is built once and cached.
+    """
+
+    def __init__(self, frame_id: str) -> None:
+        self.frame = frame_id.encode('utf-8') + b'\x00'
+        self._templates: dict[int, tuple[NDArray[np.uint8], NDArray[np.int64], NDArray[np.int64]]] = {}
+
+    def _template(self, n: int) -> tuple[NDArray[np.uint8], NDArray[np.int64], NDArray[np.int64]]:
+        if n in self._templates:
+            return self._templates[n]
+        buf = bytearray()
+
+        def align(k: int) -> None:
+            buf.extend(b'\x00' * (-len(buf) % k))
+
+        def header() -> int:
+            align(4)
+            at = len(buf)
+            buf.extend(b'\x00' * 8)
+            buf.extend(struct.pack('<I', len(self.frame)) + self.frame)
+            return at
+
+        stamps = [header()]
+        align(4)
+        buf.extend(struct.pack('<I', n))
+        values = []
+        for _ in range(n):
+            stamps.append(header())
+            align(8)
+            values.append(len(buf))
+            buf.extend(b'\x00' * 56)
+        four = len(ENCAPSULATION)
+        out = (np.frombuffer(ENCAPSULATION + bytes(buf), np.uint8).copy(),
+               np.asarray(stamps, np.int64) + four, np.asarray(values, np.int64) + four)
+        if len(self._templates) < 256:
+            self._templates[n] = out
+        return out
+
+    def encode(self, stamps_ns: NDArray[np.int64], values: NDArray[np.float64]) -> bytes:
+        """One Path of n poses: stamps (n,) [ns], values (n, 7) [x y z qx qy qz qw]."""
+        stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
+        n = int(stamps_ns.size)
+        template, stamp_at, value_at = self._template(n)
+        data = template.copy()
+        all_stamps = np.concatenate([stamps_ns[-1:] if n else np.zeros(1, np.int64), stamps_ns])
+        sec, nsec = split_stamps(all_stamps)
+        words = np.column_stack([sec.astype('<i4').view('<u4'), nsec.astype('<u4')]).view(np.uint8)
+        data[stamp_at[:, None] + np.arange(8)] = words.reshape(-1, 8)
+        if n:
+            block = np.ascontiguousarray(values, dtype='<f8').reshape(n, 7).view(np.uint8)
+            data[value_at[:, None] + np.arange(56)] = block
+        return data.tobytes()
+
+
+class _StatusLayout:
+    """A ``sensor_msgs/JointState`` with fixed names, ``position`` and ``effort`` of that length
+    and an empty ``velocity``, as CDR rows: rclpy serialises a template once, the offsets of
+    the stamp and of both blocks are found in it, and N messages are filled in with numpy."""
+
+    def __init__(self, names: list[str]) -> None:
+        from rclpy.serialization import serialize_message
+        from sensor_msgs.msg import JointState
+        k = len(names)
+        marks = [float(1000 + i) for i in range(k)], [float(2000 + i) for i in range(k)]
+        data = serialize_message(JointState(header=header(0), name=list(names), position=marks[0],
+                                            effort=marks[1]))
+        self.template = np.frombuffer(data, np.uint8).copy()
+        self.k = k
+        self.position_at = data.index(struct.pack('<d', marks[0][0]))
+        self.effort_at = data.index(struct.pack('<d', marks[1][0]))
+        self.template[self.position_at:self.position_at + 8 * k] = 0
+        self.template[self.effort_at:self.effort_at + 8 * k] = 0
+
+    def encode(self, stamps_ns: NDArray[np.int64], position: NDArray[np.float64],
+               effort: NDArray[np.uint8]) -> NDArray[np.uint8]:
+        n = len(stamps_ns)
+        rows = np.empty((n, self.template.size), np.uint8)
+        rows[:] = self.template
+        sec, nsec = split_stamps(np.asarray(stamps_ns, dtype=np.int64))
+        rows[:, 4:8] = sec.astype('<i4').view(np.uint8).reshape(n, 4)
+        rows[:, 8:12] = nsec.astype('<u4').view(np.uint8).reshape(n, 4)
+        for at, values in ((self.position_at, position), (self.effort_at, effort)):
+            block = np.ascontiguousarray(values, dtype='<f8').reshape(n, self.k)
+            rows[:, at:at + 8 * self.k] = block.view(np.uint8)
+        return rows
+
+
 class Rows:
     """CDR bytes of N samples of each per-sample topic (fixed layouts, built once).
 
@@ -107,6 +201,20 @@ class Rows:
         self.reference = JointStateLayout(REFERENCE_POSE_NAMES, FRAME_LOWER)
         self.pose = PoseLayout(FRAME_LOWER)
         self.pose_cov = PoseLayout(FRAME_LOWER, covariance=True)
+        self.path = PathLayout(FRAME_LOWER)
+        self._status_layout: _StatusLayout | None = None
+
+    def pose_batch(self, stamps_ns: NDArray[np.int64], poses: NDArray[np.float64]) -> bytes:
+        """A Path of poses (n, 6) [m, rad] stamped ``stamps_ns``, frame mmd_lower."""
+        return self.path.encode(stamps_ns, PoseLayout.values_from_poses(poses))
+
+    def raw_with_status(self, stamps_ns: NDArray[np.int64], counts: NDArray[np.float64],
+                        status: NDArray[np.uint8]) -> NDArray[np.uint8]:
+        """``raw_counts`` rows (N, size) whose ``effort`` holds the channel status codes (1
+        signal lost, 2 quadrature error, 3 both; 0 good) of samples the terminal flagged."""
+        if self._status_layout is None:
+            self._status_layout = _StatusLayout(self.raw.names)
+        return self._status_layout.encode(stamps_ns, counts, status)
 
     def poses(self, stamps_ns: NDArray[np.int64], poses: NDArray[np.float64],
               covariance: NDArray[np.float64] | None = None) -> NDArray[np.uint8]:
@@ -143,22 +251,38 @@ class RawBatch:
 
     def take(self) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
         """Stamps (N,) [ns] and values (N, k) of the collected messages, in arrival order."""
+        stamps, values, _ = self.take_all()
+        return stamps, values
+
+    def take_all(self) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.uint8] | None]:
+        """Stamps (N,) [ns], values (N, k) and the status codes (N, k) that messages with an
+        ``effort`` of k values carry (``raw_counts`` of a sample the terminal flagged; 0 for
+        the others), or None when no message carries any."""
         items, self.items = self.items, []
         if not items:
-            return np.zeros(0, np.int64), np.zeros((0, len(self.names)))
+            return np.zeros(0, np.int64), np.zeros((0, len(self.names))), None
         size = self.layout.size
         if all(len(p) == size for p in items):
             rows = np.frombuffer(b''.join(items), dtype=np.uint8).reshape(len(items), size)
             decoded = self.layout.decode(rows)
             if decoded is not None:
-                return decoded
+                return decoded[0], decoded[1], None
         from rclpy.serialization import deserialize_message
         from sensor_msgs.msg import JointState
         stamps = np.empty(len(items), np.int64)
         values = np.empty((len(items), len(self.names)))
+        status = np.zeros((len(items), len(self.names)), np.uint8)
         for i, payload in enumerate(items):
+            if len(payload) == size:
+                decoded = self.layout.decode(np.frombuffer(payload, np.uint8).reshape(1, size))
+                if decoded is not None:
+                    stamps[i], values[i] = decoded[0][0], decoded[1][0]
+                    continue
             msg = deserialize_message(payload, JointState)
             stamps[i] = from_time(msg.header.stamp)
             values[i] = joint_state_values(msg, self.names)
-        self.foreign += len(items)
-        return stamps, values
+            if len(msg.effort) == len(self.names):
+                status[i] = np.asarray(msg.effort, dtype=np.float64).astype(np.uint8)
+            else:
+                self.foreign += 1
+        return stamps, values, status if status.any() else None

@@ -6,7 +6,9 @@ every sample's raw counts on ``raw_counts`` (one ``sensor_msgs/JointState`` per 
 with the terminal's sample time mapped to ROS time). A terminal counter reset is published on
 the latched ``terminal/counter_reset`` (``std_msgs/Header``: stamp of the first sample after it,
 ``frame_id`` the terminal's serial) so that the calibration and compensation nodes stop using
-the lost count offsets. Topics, parameters: ``msg_docs/nodes.md``.
+the lost count offsets. Which terminal it reads (serial number, simulated or not, the bar on each
+channel) goes to the latched ``terminal/info`` each time it is opened: the calibration and
+compensation nodes check a calibration against it. Topics, parameters: ``msg_docs/nodes.md``.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Header, String
 
-from mmd_ros.core.calibration import Calibration
+from mmd_ros.core.calibration import Calibration, TerminalBinding
 from mmd_ros.core.errors import MmdError
 from mmd_ros.nodes.common import COMMON_PARAMS, NAMESPACE, load_device_param, run
 from mmd_ros.nodes.convert import DIAGNOSTIC_ARRAY, HEADER, JS, STRING, Rows, header, string_bytes
@@ -48,10 +50,12 @@ class EncoderNode(Node):
         self.out_reference = Outlet(self, 'reference/pose', JointState, JS, qos, kind)
         self.out_device = Outlet(self, 'device_description', String, STRING, LATCHED, 'latched')
         self.out_reset = Outlet(self, 'terminal/counter_reset', Header, HEADER, LATCHED, 'latched')
+        self.out_info = Outlet(self, 'terminal/info', String, STRING, LATCHED, 'latched')
         self.out_diag = Outlet(self, '/diagnostics', DiagnosticArray, DIAGNOSTIC_ARRAY, DIAGNOSTICS)
         self.terminal = TerminalStage(TerminalConfig.from_values(v), device, rows, self.out_raw,
                                       self.out_reference, self.get_logger(), alive=self.context.ok)
         self.terminal.on_reset.append(self._on_reset)
+        self.terminal.on_open.append(self._on_open)
         self._reset_at_ns: int | None = None
         self.create_subscription(String, 'calibration', self._on_calibration, LATCHED)
         self.add_on_set_parameters_callback(self._on_set)
@@ -59,6 +63,9 @@ class EncoderNode(Node):
                                        v['diagnostics_period_s'], hardware_id=lambda: self.terminal.serial)
         self.out_device.payload(string_bytes(device.to_yaml()), self.get_clock().now().nanoseconds)
         self.terminal.start()
+
+    def _on_open(self, binding: TerminalBinding) -> None:
+        self.out_info.payload(string_bytes(binding.to_yaml()), self.get_clock().now().nanoseconds)
 
     def _on_reset(self, stamp_ns: int) -> None:
         # called from the reader thread before the first sample after the reset is published

@@ -4,11 +4,13 @@ Pairs each ``bar_lengths`` sample with the ``thermal`` sample of the same stamp 
 scale factor, and the Eq. 11 errors and temperature change the uncertainty budget needs),
 solves the forward kinematics warm-started from the previous poses and publishes ``pose``
 (``geometry_msgs/PoseStamped``, frame ``mmd_lower``, SI units, quaternion x y z w),
-``pose_with_covariance`` and ``fk_status`` for every sample. The covariance is J^-1 Sigma_d J^-T
-with the bar lengths' uncertainty budget of the calibration (latched ``calibration`` topic) and
-the model (latched ``model`` topic): until both have arrived no covariance is published. A
-sample that does not converge, or has a bar out of its calibrated range (NaN length), gets no
-pose and is counted in the diagnostics. Topics, parameters: ``msg_docs/nodes.md``.
+``pose_batch`` (``nav_msgs/Path``: the poses solved together, each with its own stamp, one
+message per batch), ``pose_with_covariance`` and ``fk_status`` for every sample. The covariance
+is J^-1 Sigma_d J^-T with the bar lengths' uncertainty budget of the calibration (latched
+``calibration`` topic) and the model (latched ``model`` topic): until both have arrived no
+covariance is published. A sample that does not converge, or has a bar out of its calibrated
+range (NaN length), gets no pose and is counted in the diagnostics. Topics, parameters:
+``msg_docs/nodes.md``.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from collections import OrderedDict
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+from nav_msgs.msg import Path
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
@@ -30,10 +33,11 @@ from mmd_ros.core.model import Model
 from mmd_ros.logs.layout import BAR_NAMES
 from mmd_ros.nodes.common import COMMON_PARAMS, NAMESPACE, load_device_param, run
 from mmd_ros.core.streaming import Kinematics
-from mmd_ros.nodes.convert import DIAGNOSTIC_ARRAY, JS, POSE, POSE_COV, RawBatch, Rows
+from mmd_ros.nodes.convert import DIAGNOSTIC_ARRAY, JS, PATH, POSE, POSE_COV, RawBatch, Rows
 from mmd_ros.nodes.diagnostics import WARN, Diagnostics
 from mmd_ros.nodes.outlets import Outlet
 from mmd_ros.nodes.params import Param, declare
+from mmd_ros.nodes.progress import CountedInputs, ProgressPublisher
 from mmd_ros.nodes.qos import DIAGNOSTICS, LATCHED, data_qos
 from mmd_ros.nodes.reports import kinematics_report
 
@@ -74,6 +78,7 @@ class FkNode(Node):
         self.out_pose_cov = Outlet(self, 'pose_with_covariance', PoseWithCovarianceStamped,
                                    POSE_COV, qos, kind)
         self.out_status = Outlet(self, 'fk_status', JointState, JS, qos, kind)
+        self.out_pose_batch = Outlet(self, 'pose_batch', Path, PATH, qos, kind)
         self.out_diag = Outlet(self, '/diagnostics', DiagnosticArray, DIAGNOSTIC_ARRAY, DIAGNOSTICS)
         self.in_lengths = RawBatch(BAR_NAMES)
         self.in_thermal = RawBatch(self.rows.thermal_names)
@@ -83,12 +88,15 @@ class FkNode(Node):
         self._lengths: OrderedDict[int, np.ndarray] = OrderedDict()
         self._thermal: OrderedDict[int, np.ndarray] = OrderedDict()
         self.unpaired = 0
-        self.create_subscription(JointState, 'bar_lengths', self._on_lengths, qos, raw=True)
-        self.create_subscription(JointState, 'thermal', self._on_thermal, qos, raw=True)
+        self.inputs = CountedInputs(self)
+        self.inputs.subscribe(JointState, 'bar_lengths', self._on_lengths, qos)
+        self.inputs.subscribe(JointState, 'thermal', self._on_thermal, qos)
         self.create_subscription(String, 'model', self._on_model, LATCHED)
         self.create_subscription(String, 'calibration', self._on_calibration, LATCHED)
         self.create_timer(FLUSH_PERIOD_S, self._flush)
         self.diagnostics = Diagnostics(self, self.out_diag, [self._report], v['diagnostics_period_s'])
+        self.progress = ProgressPublisher(self, self.inputs, [self.out_pose, self.out_pose_cov,
+                                                              self.out_status], v['qos_depth'])
 
     def _on_model(self, msg: String) -> None:
         try:
@@ -158,6 +166,7 @@ class FkNode(Node):
             s = stamps[kin.valid]
             poses = kin.poses[kin.valid]
             self.out_pose.rows(self.rows.poses(s, poses), s)
+            self.out_pose_batch.payload(self.rows.pose_batch(s, poses), int(s[-1]))
             if kin.covariance is not None:
                 self.out_pose_cov.rows(self.rows.poses(s, poses, kin.covariance), s)
         self.out_status.rows(self.rows.fk_status.encode(stamps, kin.status_values()), stamps)
@@ -168,6 +177,7 @@ class FkNode(Node):
             r.worse(WARN, self.budget_problem)
         r.values['unpaired_samples'] = self.unpaired
         r.values['foreign_messages'] = self.in_lengths.foreign + self.in_thermal.foreign
+        self.inputs.report(r)
         return [r]
 
 

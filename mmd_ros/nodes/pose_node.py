@@ -2,7 +2,10 @@
 
 Terminal → compensation → forward kinematics, with the calibration service and the recorder,
 passing each transfer's samples between the stages by direct calls (no serialisation between
-them) and still publishing every topic of the separate nodes. Defaults: the simulated terminal
+them) and still publishing every topic of the separate nodes, plus ``pose_batch`` (a transfer's
+poses in one ``nav_msgs/Path``, for subscribers that cannot take 1 kHz). Samples the terminal
+flagged (encoder signal lost) are no measurements: no length, no pose. The calibration is bound
+to the terminal it was made with (``calibration_stage``). Defaults: the simulated terminal
 streaming the digital twin in a demonstration scenario (random 6-DOF motion), a factory
 calibration of the twin when there is no calibration file yet, and recording on, so that
 ``ros2 run mmd_ros pose_node`` works on a machine without hardware.
@@ -17,13 +20,14 @@ from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+from nav_msgs.msg import Path
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 
-from mmd_ros.core.calibration import Calibration
+from mmd_ros.core.calibration import Calibration, TerminalBinding
 from mmd_ros.core.errors import MmdError
 from mmd_ros.nodes.calibration_stage import (
     CalibrationConfig, CalibrationService, CalibrationStage, calibration_params,
@@ -33,7 +37,7 @@ from mmd_ros.nodes.common import (
 )
 from mmd_ros.core.streaming import Compensator, Kinematics
 from mmd_ros.nodes.convert import (
-    DIAGNOSTIC_ARRAY, JS, POSE, POSE_COV, STRING, Rows, string_bytes,
+    DIAGNOSTIC_ARRAY, JS, PATH, POSE, POSE_COV, STRING, Rows, string_bytes,
 )
 from mmd_ros.nodes.diagnostics import Diagnostics
 from mmd_ros.nodes.outlets import Outlet
@@ -62,7 +66,9 @@ class PoseNode(CalibrationService, Node):
         super().__init__('pose_node', namespace=NAMESPACE)
         v = declare(self, COMMON_PARAMS + MODEL_PARAMS + TERMINAL_PARAMS + POSE_PARAMS)
         device = load_device_param(v['device_file'])
-        cal_params = calibration_params(device.name)
+        # the simulated terminal has its own default calibration file: a simulation never
+        # writes the file a real terminal reads
+        cal_params = calibration_params(device.name, v['sim_serial'] if v['device'] == 'sim' else '')
         v.update(declare(self, cal_params))
         record = v['record']
         if record:
@@ -83,6 +89,7 @@ class PoseNode(CalibrationService, Node):
         self.out_device = outlet('device_description', String, STRING, LATCHED, 'latched')
         self.out_calibration = outlet('calibration', String, STRING, LATCHED, 'latched')
         self.out_model = outlet('model', String, STRING, LATCHED, 'latched')
+        self.out_info = outlet('terminal/info', String, STRING, LATCHED, 'latched')
         self.out_raw = outlet('raw_counts', JointState, JS)
         self.out_reference = outlet('reference/pose', JointState, JS)
         self.out_lengths = outlet('bar_lengths', JointState, JS)
@@ -90,6 +97,9 @@ class PoseNode(CalibrationService, Node):
         self.out_status = outlet('fk_status', JointState, JS)
         self.out_pose = outlet('pose', PoseStamped, POSE)
         self.out_pose_cov = outlet('pose_with_covariance', PoseWithCovarianceStamped, POSE_COV)
+        # the poses of a transfer in one message, for subscribers that cannot take 1 kHz (not
+        # recorded: the same poses are in pose)
+        self.out_pose_batch = Outlet(self, 'pose_batch', Path, PATH, qos, log_qos)
         self.out_diag = outlet('/diagnostics', DiagnosticArray, DIAGNOSTIC_ARRAY, DIAGNOSTICS, 'reliable')
         self.publish_covariance = v['publish_covariance']
         self.thermal_warn_c = v['thermal_warn_c']
@@ -105,7 +115,9 @@ class PoseNode(CalibrationService, Node):
         self.calibration = CalibrationStage(
             CalibrationConfig.from_values(v), device, thermal_mode=self.model.thermal_mode,
             publish=self._publish_calibration, logger=self.get_logger(),
-            on_valid=self.terminal.mark_referenced, factory=factory)
+            on_valid=self.terminal.mark_referenced, on_refused=self._calibration_refused,
+            factory=factory, terminal=self.terminal.binding())
+        self.terminal.on_open.append(self._on_open)
         self.terminal.on_reset.append(self._on_reset)
         self.terminal.on_batch.append(self._on_batch)
 
@@ -136,14 +148,21 @@ class PoseNode(CalibrationService, Node):
                 self.get_logger().error(f'no covariance with this calibration: {exc}')
         self.out_calibration.payload(string_bytes(cal.to_yaml()), self.get_clock().now().nanoseconds)
 
+    def _on_open(self, binding: TerminalBinding) -> None:
+        self.out_info.payload(string_bytes(binding.to_yaml()), self.get_clock().now().nanoseconds)
+        self.calibration.set_terminal(binding)
+
+    def _calibration_refused(self) -> None:
+        self.compensator.set_calibration(None, 'refused: made with another terminal')
+
     def _on_reset(self, stamp_ns: int) -> None:
         self.compensator.hold(stamp_ns)
         self.calibration.on_counter_reset(stamp_ns)
 
-    def _on_batch(self, stamps, counts, batch) -> None:
+    def _on_batch(self, stamps, counts, status) -> None:
         # poses first (what CNC tooling waits for), then the calibration routine's capture, the
         # covariance (computed only now) and the rest of the transfer's topics
-        comp = self.compensator.process(stamps, counts)
+        comp = self.compensator.process(stamps, counts, status)
         if comp is not None:
             kin = self.kinematics.solve(comp.lengths_m, comp.plate_scale, comp.reference_error_m,
                                         comp.temp_change_c, comp.bar_error_m, comp.fit_columns_m)
@@ -152,7 +171,12 @@ class PoseNode(CalibrationService, Node):
                 s = stamps[valid]
                 poses = kin.poses[valid]
                 self.out_pose.rows(self.rows.poses(s, poses), s)
-        self.calibration.feed(stamps, counts)
+                self.out_pose_batch.payload(self.rows.pose_batch(s, poses), int(s[-1]))
+        if status is None:
+            self.calibration.feed(stamps, counts)
+        else:  # samples without encoder signal are no calibration points
+            good = ~status.any(axis=1)
+            self.calibration.feed(stamps[good], counts[good])
         if comp is None:
             return
         if valid is not None and kin.covariance is not None:

@@ -25,6 +25,7 @@ from mmd_ros.nodes.convert import DIAGNOSTIC_ARRAY, HEADER, JS, POSE, POSE_COV, 
 from mmd_ros.nodes.diagnostics import Diagnostics
 from mmd_ros.nodes.outlets import Outlet
 from mmd_ros.nodes.params import Param, ParameterError, declare
+from mmd_ros.nodes.progress import CountedInputs, ProgressPublisher
 from mmd_ros.nodes.qos import DIAGNOSTICS, LATCHED, data_qos
 from mmd_ros.nodes.recorder_stage import RECORDER_PARAMS, RecorderConfig, RecorderStage
 
@@ -36,6 +37,7 @@ TOPICS: dict[str, tuple[type, str, str]] = {
     'calibration': (String, STRING, 'latched'),
     'model': (String, STRING, 'latched'),
     'terminal/counter_reset': (Header, HEADER, 'latched'),
+    'terminal/info': (String, STRING, 'latched'),
     'raw_counts': (JointState, JS, 'data'),
     'reference/pose': (JointState, JS, 'data'),
     'reference/bar_lengths': (JointState, JS, 'data'),
@@ -67,16 +69,25 @@ class RecorderNode(Node):
         data = data_qos(v['qos'], v['qos_depth'])
         data_kind = 'sensor' if v['qos'] == 'sensor' else 'reliable'
         self.received = 0
+        self.inputs = CountedInputs(self)
         for topic in v['topics'].split():
             cls, type_name, kind = TOPICS[topic]
             qos = {'latched': LATCHED, 'data': data, 'diagnostics': DIAGNOSTICS}[kind]
             log_qos = {'latched': 'latched', 'data': data_kind, 'diagnostics': 'reliable'}[kind]
             callback = self._writer(self.resolve_topic_name(topic), type_name, log_qos,
                                     cls is not String)
-            self.create_subscription(cls, topic, callback, qos, raw=True)
+            if kind == 'data':  # per-sample topics: losses counted, progress published
+                self.inputs.subscribe(cls, topic, callback, qos)
+            else:
+                self.create_subscription(cls, topic, callback, qos, raw=True)
         self.out_diag = Outlet(self, '/diagnostics', DiagnosticArray, DIAGNOSTIC_ARRAY, DIAGNOSTICS)
-        self.diagnostics = Diagnostics(self, self.out_diag, [lambda: [self.stage.report()]],
-                                       v['diagnostics_period_s'])
+        self.diagnostics = Diagnostics(self, self.out_diag, [self._report], v['diagnostics_period_s'])
+        self.progress = ProgressPublisher(self, self.inputs, [], v['qos_depth'])
+
+    def _report(self) -> list:
+        r = self.stage.report()
+        self.inputs.report(r)
+        return [r]
 
     def _writer(self, topic: str, type_name: str, log_qos: str, stamped: bool):
         put = self.stage.queue.put_message

@@ -44,11 +44,24 @@ def compensation_report(comp: Compensator, thermal_warn_c: float, model_source: 
                     'with bar length (Eq. 12); fit a second reference bar or set a new thermal zero')
         else:
             r.worse(OK, f'thermal drift {dt:+.2f} °C since the thermal zero (Eq. 12)')
+    if comp.validity is not None:
+        text = comp.validity.describe(st.period_outside_bars, st.period_outside_temp)
+        if text:
+            r.worse(WARN, text)
+        r.values['model_validated_runs'] = len(comp.validity.runs)
+        r.values['outside_validated_range'] = int(st.period_outside_bars.sum() + st.period_outside_temp)
+        st.period_outside_bars = np.zeros(6, np.int64)
+        st.period_outside_temp = 0
     out = st.period_out
     if out.any():
         bars = [f'bar{i + 1} ({int(v)})' for i, v in enumerate(out) if v]
         r.worse(WARN, 'out of the calibrated range: ' + ', '.join(bars)
                 + ' samples: no pose for them')
+    lost = st.period_no_signal
+    if lost.any():
+        bars = [f'bar{i + 1} ({int(v)})' for i, v in enumerate(lost) if v]
+        r.worse(WARN, 'encoder signal lost (terminal channel status): ' + ', '.join(bars)
+                + ' samples: not measurements, no length and no pose for them')
     r.values.update({
         'calibration': comp.calibration_source,
         'calibration_valid': bool(cal is not None and cal.valid and comp.ready),
@@ -60,12 +73,14 @@ def compensation_report(comp: Compensator, thermal_warn_c: float, model_source: 
         'temp_change_c': round(dt, 4) if math.isfinite(dt) else math.nan,
         'samples': st.samples,
         'samples_without_calibration': st.held,
+        'samples_without_signal': st.no_signal,
     })
     for name, err in zip(comp.reference_names, st.last_ref_error_m):
         r.values[f'{name}_error_um'] = round(float(err) * 1e6, 4)
     for i in range(6):
         r.values[f'bar{i + 1}_out_of_range'] = int(st.out_of_range[i])
     st.period_out = np.zeros(6, np.int64)
+    st.period_no_signal = np.zeros(6, np.int64)
     return r
 
 
@@ -78,8 +93,8 @@ def kinematics_report(kin: Kinematics) -> Report:
     if st.period_not_converged:
         r.worse(WARN, f'{st.period_not_converged} sample(s) did not converge: no pose for them')
     if st.period_out_of_range:
-        r.worse(WARN, f'{st.period_out_of_range} sample(s) with a bar out of its calibrated range: '
-                'no pose for them')
+        r.worse(WARN, f'{st.period_out_of_range} sample(s) with a bar out of its calibrated range '
+                'or without encoder signal (no length): no pose for them')
     solved = st.period_solved
     now = time.monotonic()
     elapsed = now - st.period_t0

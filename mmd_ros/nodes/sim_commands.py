@@ -19,6 +19,8 @@ Terminal faults (:class:`mmd_ros.hardware.sim_backend.SimTerminal`):
 - ``drop <n>``: the next n samples are never sent (a sequence gap)
 - ``reset_counters``: the terminal's counters restart (power loss of its counter section)
 - ``stall`` / ``resume``: the terminal's USB side hangs / recovers
+- ``signal_lost <channel>`` / ``signal_ok <channel>``: a channel's encoder signal is lost (its
+  readhead unplugged or dirty: the terminal flags every sample) / good again
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ from mmd_ros.twin import TwinError
 __all__ = ['COMMANDS', 'SimCommandError', 'run_commands']
 
 COMMANDS = ('place', 'remove', 'hold', 'mount', 'move', 'unplug', 'plug', 'corrupt', 'drop',
-            'reset_counters', 'stall', 'resume')
+            'reset_counters', 'stall', 'resume', 'signal_lost', 'signal_ok')
 
 
 class SimCommandError(ValueError):
@@ -62,7 +64,8 @@ def run_command(words: list[str], source: TwinSource, terminal: SimTerminal) -> 
         return ''
     cmd, args = words[0], words[1:]
     need = {'place': 2, 'remove': 1, 'hold': 2, 'mount': 0, 'unplug': 0, 'plug': 0,
-            'corrupt': 1, 'drop': 1, 'reset_counters': 0, 'stall': 0, 'resume': 0}
+            'corrupt': 1, 'drop': 1, 'reset_counters': 0, 'stall': 0, 'resume': 0,
+            'signal_lost': 1, 'signal_ok': 1}
     if cmd not in COMMANDS:
         raise SimCommandError(f'unknown command {cmd!r}; commands: {", ".join(COMMANDS)}')
     if cmd == 'move':
@@ -118,6 +121,15 @@ def run_command(words: list[str], source: TwinSource, terminal: SimTerminal) -> 
     if cmd == 'stall':
         terminal.stall()
         return 'terminal stalled'
+    if cmd in ('signal_lost', 'signal_ok'):
+        if args[0] not in source.names:
+            raise SimCommandError(f'no channel {args[0]!r}; channels are {list(source.names)}')
+        k = list(source.names).index(args[0])
+        lost = cmd == 'signal_lost'
+        terminal.set_signal_lost(k, lost)
+        if not lost:
+            terminal.set_quadrature_error(k, False)
+        return f'{args[0]}: encoder signal ' + ('lost' if lost else 'good')
     terminal.resume()
     return 'terminal resumed'
 

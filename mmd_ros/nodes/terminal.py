@@ -19,9 +19,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from mmd_ros.core.calibration import TerminalBinding, channel_roles
 from mmd_ros.core.device import DeviceDescription
 from mmd_ros.hardware import (
-    HardwareError, SampleBatch, SimTerminal, SimUsbBackend, TerminalDisconnectedError,
+    DeviceInfo, HardwareError, SampleBatch, SimTerminal, SimUsbBackend, TerminalDisconnectedError,
     TerminalDriver, TerminalTimeoutError,
 )
 from mmd_ros.hardware.protocol import PRODUCT_ID, VENDOR_ID
@@ -106,7 +107,15 @@ class TerminalConfig:
         return cls(**{k: v[k] for k in cls.__dataclass_fields__})
 
 
-BatchCallback = Callable[[NDArray[np.int64], NDArray[np.float64], SampleBatch], None]
+#: (stamps_ns (N,), counts (N, 8), channel status codes (N, 8) or None when all are good)
+BatchCallback = Callable[[NDArray[np.int64], NDArray[np.float64], NDArray[np.uint8] | None], None]
+
+
+def runs(flags: NDArray[np.bool_]) -> list[tuple[int, int]]:
+    """[a, b) ranges of equal values of ``flags``, in order."""
+    edges = np.flatnonzero(np.diff(flags.astype(np.int8))) + 1
+    bounds = np.r_[0, edges, flags.size]
+    return [(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]
 
 
 class TerminalStage:
@@ -116,10 +125,13 @@ class TerminalStage:
     alive : False once the node's context is shut down (the reader thread then ends)
     raw_last : publish raw counts and reference after ``on_batch`` (pose_node: the poses go
         out first, which shortens their latency)
-    on_batch : called from the reader thread with (stamps_ns, counts (N, 8), batch) for every
-        run of samples of one counter epoch, in order
+    on_batch : called from the reader thread with (stamps_ns, counts (N, 8), status) for every
+        run of samples of one counter epoch, in order; status (N, 8) the channel status codes
+        (:meth:`SampleBatch.status_codes`: 1 signal lost, 2 quadrature error), None when good
     on_reset : called from the reader thread with the stamp of the first sample after a
         terminal counter reset, before that sample goes to ``on_batch``
+    on_open : called from the reader thread with the terminal's :class:`TerminalBinding`
+        each time it has been opened, before its first sample goes to ``on_batch``
     """
 
     def __init__(self, cfg: TerminalConfig, device: DeviceDescription, rows: Rows, raw: Outlet,
@@ -135,6 +147,7 @@ class TerminalStage:
         self.log = logger
         self.on_batch: list[BatchCallback] = []
         self.on_reset: list[Callable[[int], None]] = []
+        self.on_open: list[Callable[[TerminalBinding], None]] = []
         self.source: TwinSource | None = None
         self.terminal: SimTerminal | None = None
         backend = None
@@ -151,6 +164,7 @@ class TerminalStage:
         self.state = 'starting'
         self.state_text = 'opening the terminal'
         self.samples = 0
+        self.flagged_samples = 0
         self.resets_seen = 0
         self.last_stamp_ns = 0
         self._stop = threading.Event()
@@ -227,6 +241,8 @@ class TerminalStage:
                 backoff = 0.1
                 self._set_state('streaming', f'streaming from {info.serial} '
                                 f'({info.model}, firmware {info.firmware}) at {info.sample_rate_hz} Hz')
+                for cb in self.on_open:
+                    cb(self.binding(info))
             try:
                 batch = self.driver.read_batch(self.cfg.read_timeout_s)
             except TerminalTimeoutError as exc:
@@ -263,6 +279,7 @@ class TerminalStage:
     def _handle(self, batch: SampleBatch) -> None:
         dev_t = batch.device_time_ns
         counts = batch.counts.astype(np.float64)
+        status = batch.status_codes()
         n = batch.n
         if batch.counter_reset:
             ri = max(0, batch.reset_index)
@@ -275,7 +292,7 @@ class TerminalStage:
                 self.mapper.new_epoch()
             stamps[a:b] = self.mapper.map(dev_t[a:b], batch.host_time_ns)
         if not self.raw_last:
-            self._publish_raw(stamps, counts, dev_t)
+            self._publish_raw(stamps, counts, dev_t, status)
         for a, b, reset in parts:
             if reset:
                 self.resets_seen += 1
@@ -284,17 +301,27 @@ class TerminalStage:
                 for cb in self.on_reset:
                     cb(int(stamps[a]))
             for cb in self.on_batch:
-                cb(stamps[a:b], counts[a:b], batch)
+                cb(stamps[a:b], counts[a:b], status[a:b] if status is not None else None)
         if self.raw_last:
-            self._publish_raw(stamps, counts, dev_t)
+            self._publish_raw(stamps, counts, dev_t, status)
         if self._timing is not None:
             np.column_stack([stamps, np.full(n, batch.host_time_ns, dtype=np.int64)]).tofile(self._timing)
         self.samples += n
+        if status is not None:
+            self.flagged_samples += int(np.count_nonzero(status.any(axis=1)))
         self.last_stamp_ns = int(stamps[-1])
 
     def _publish_raw(self, stamps: NDArray[np.int64], counts: NDArray[np.float64],
-                     dev_t: NDArray[np.int64]) -> None:
-        self.raw.rows(self.rows.raw.encode(stamps, counts), stamps)
+                     dev_t: NDArray[np.int64], status: NDArray[np.uint8] | None) -> None:
+        if status is None:
+            self.raw.rows(self.rows.raw.encode(stamps, counts), stamps)
+        else:
+            # a sample whose channel status is not good carries it in ``effort``
+            flagged = status.any(axis=1)
+            for a, b in runs(flagged):
+                encode = self.rows.raw_with_status if flagged[a] else self.rows.raw.encode
+                args = (stamps[a:b], counts[a:b]) + ((status[a:b],) if flagged[a] else ())
+                self.raw.rows(encode(*args), stamps[a:b])
         if self.source is not None and self.reference is not None and self.cfg.publish_reference:
             ref = self.source.reference_at(dev_t)
             known = np.isfinite(ref).any(axis=1)
@@ -302,6 +329,14 @@ class TerminalStage:
                 self.reference.rows(self.rows.reference.encode(stamps[known], ref[known]), stamps[known])
 
     # -- status --------------------------------------------------------------------------------
+    def binding(self, info: DeviceInfo | None = None) -> TerminalBinding:
+        """The terminal as a calibration records it: its serial number ('' while a real
+        terminal without a ``serial`` parameter has not been opened yet), simulated or not,
+        the bar on each channel."""
+        sim = self.cfg.device == 'sim'
+        serial = info.serial if info is not None else (self.cfg.serial or (self.cfg.sim_serial if sim else ''))
+        return TerminalBinding(serial, sim, channel_roles(self.device.channels))
+
     @property
     def serial(self) -> str:
         info = self.driver.info
@@ -326,7 +361,9 @@ class TerminalStage:
         if st.overflows > prev.overflows:
             self.events.note('overflow', 'the terminal\'s FIFO overflowed: the host fell behind')
         if st.signal_errors > prev.signal_errors:
-            self.events.note('signal', 'encoder signal lost or quadrature error on a channel')
+            self.events.note('signal', f'encoder signal lost or quadrature error on a channel in '
+                             f'{st.signal_errors - prev.signal_errors} sample(s): they are not '
+                             'measurements (no pose)')
         if st.timeouts > prev.timeouts:
             self.events.note('stall', 'the terminal sent nothing within the read timeout', ERROR)
         self.events.apply(r)
@@ -349,6 +386,7 @@ class TerminalStage:
             'counter_resets': st.resets,
             'fifo_overflows': st.overflows,
             'signal_errors': st.signal_errors,
+            'samples_flagged': self.flagged_samples,
             'disconnects': st.disconnects,
             'reconnects': st.reconnects,
             'timeouts': st.timeouts,
