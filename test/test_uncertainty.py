@@ -126,7 +126,7 @@ def test_sigma_d_is_symmetric_positive_and_shares_the_reference_bar(realistic):
     assert np.allclose(ref, ref[:, :1, :1])                   # Eq. (13): the same for every pair
     assert np.count_nonzero(parts['quantisation'] - np.diag(np.diag(parts['quantisation'][0]))) == 0
     assert {'interpolation', 'calibration_points', 'hysteresis', 'calibration_drift',
-            'thermal_mismatch', 'plate_expansion'} <= set(parts)
+            'thermal_mismatch'} <= set(parts)
     assert np.all(np.isfinite(res.covariance[res.valid]))
     summary = budget.summary()
     assert summary['hysteresis_nm'][0] > 100 and summary['interpolation']['sigma_um'] > 0.2

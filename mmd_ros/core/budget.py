@@ -31,7 +31,6 @@ from mmd_ros.core.calibration import Calibration
 from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.errors import CalibrationError
 from mmd_ros.core.model import Model
-from mmd_ros.core.thermal import CMM_TEMP_C
 from mmd_ros.core.uncertainty import (
     InterpolationError, NoiseEstimator, capture_var, fit_interpolation_error,
     quantisation_cross_weights,
@@ -134,8 +133,8 @@ class _Friction:
 
 #: The budget's sources, in the order reports list them.
 SOURCES = ('quantisation', 'read_noise', 'reference_bar', 'calibration_points',
-           'calibration_drift', 'reference_distances', 'plate_expansion', 'interpolation',
-           'thermal_approximation', 'thermal_mismatch', 'hysteresis', 'fitted_terms', 'residual')
+           'calibration_drift', 'reference_distances', 'interpolation', 'thermal_approximation',
+           'thermal_mismatch', 'hysteresis', 'fitted_terms', 'residual')
 
 
 class LengthBudget:
@@ -238,16 +237,6 @@ class LengthBudget:
             self.notes.append('thermal mismatch: the device description does not state '
                               'bars.thermal_mismatch_fraction')
         self.mismatch_fraction = float(frac or 0.0) if mode != 'off' else 0.0
-
-        # -- the reference plate's expansion, which the compensation leaves out: Table 2 holds its
-        # distances at the CMM's 20 °C, the calibration happened at ambient_c, so every point
-        # (and every length) is short by alpha_refplate (ambient_c - 20) d
-        self.scale_error = 0.0
-        if calibration.ambient_c is not None:
-            self.scale_error = -device.reference_plate_cte_per_c * (calibration.ambient_c - CMM_TEMP_C)
-        else:
-            self.notes.append('reference plate expansion: the calibration does not give the '
-                              'ambient temperature (ambient_c)')
 
         # -- the reference bar(s): live reading and the thermal zero (one capture)
         s_cal = figures.read_noise_m or 0.0
@@ -388,8 +377,6 @@ class LengthBudget:
             h[nn, rows, pj1] += u
             t.full['reference_distances'] = self._kept('reference_distances') * np.einsum(
                 'nip,p,njp->nij', h, self.pair_var_m2, h)
-        if self.scale_error:
-            t.bias['plate_expansion'] = self.scale_error * x
         if self.thermal_mode == 'single':
             t.bias['thermal_approximation'] = -(x - self.ref_distances_m[0]) * self.scale_cte \
                 * np.asarray(temp_change_c)[:, None]
@@ -521,7 +508,7 @@ class LengthBudget:
         if fast['diag'] is not None:
             tab = fast['diag']
             diag += tab[rows, i0] * g + tab[rows, i0 + 1] * f
-        bias = self.scale_error * x if self.scale_error else np.zeros((n, 6))
+        bias = np.zeros((n, 6))
         if fast['drift'] is not None:
             tab = fast['drift']
             bias += tab[rows, i0] * g + tab[rows, i0 + 1] * f

@@ -50,8 +50,10 @@ __all__ = [
 
 FloatArray = NDArray[np.float64]
 
-#: Keys of a model file. ``analysis`` is the history ``mmd analyze`` appends (free-form).
-MODEL_KEYS = ('format_version', 'thermal', 'length_sigma_um', 'terms', 'uncertainty', 'analysis')
+#: Keys of a model file. ``analysis`` (the history ``mmd analyze`` appends) and ``validity``
+#: (the range it validated the model on) are free-form records.
+MODEL_KEYS = ('format_version', 'thermal', 'length_sigma_um', 'terms', 'uncertainty', 'analysis',
+              'validity')
 THERMAL_KEYS = ('mode', 'plate_expansion')
 THERMAL_MODES = ('auto', 'single', 'interpolate', 'off')
 #: Largest 1-sigma bar-length uncertainty a model may state [µm] (a bar that uncertain measures
@@ -380,7 +382,8 @@ class Model:
             raise ConfigError(source, 'terms', f'must be a list of terms, got {raw_terms!r}')
         terms = [term_from_dict(item, source, f'terms[{k}]') for k, item in enumerate(raw_terms)]
         uncertainty = ModelUncertainty.from_dict(data.get('uncertainty'), source)
-        extra = {'analysis': data['analysis']} if 'analysis' in data else {}
+        # free-form records of mmd analyze: its history and the range it validated the model on
+        extra = {k: data[k] for k in ('analysis', 'validity') if k in data}
         return cls(mode, plate, None if sigma is None else sigma * M_PER_UM, terms, extra, source,
                    uncertainty)
 

@@ -30,6 +30,7 @@ starts again from the state it had before the first call, so the replay gives th
 from __future__ import annotations
 
 import copy
+import math
 from typing import Any
 
 import numpy as np

@@ -20,7 +20,6 @@ source                     contribution to Sigma_d                              
 ``calibration_drift``      known error (1 - u) beta_j + u beta_j+1 (the routine's      yes
                            temperature drift, measured by the reference bar)
 ``reference_distances``    sum_j h_j(d_i) h_j(d_k) u_dr,j^2 (Table 2, CMM)              yes
-``plate_expansion``        known error -alpha_refplate (T_cal - 20 °C) d_i             yes
 ``interpolation``          V_i(d_i): variance of e - L, e a smooth random scale       no
                            error fitted to the points, L its Eq. (10) interpolant
 ``thermal_approximation``  known error -alpha_scale (d_i - d_ref) dT (the Eq. 12       yes
