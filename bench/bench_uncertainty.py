@@ -9,7 +9,7 @@ absolute), the share of samples in the 95 % ellipsoid (Mahalanobis distance^2 <=
 pooled and per run, and a JSON line.
 
 Usage: ``python bench/bench_uncertainty.py [--cases ideal,noeffect,realistic,realistic_noskew]
-[--scenario random|iso_y|rotary|thermal] [--runs 6] [--seconds 8] [--after]``. ``--after``
+[--scenario random|iso_y|rotary|thermal] [--runs 6] [--seconds 8] [--after] [--approaches 2]``. ``--after``
 first runs ``mmd analyze`` (full pose reference, absolute) on a 60 s random run of each case's
 first twin and judges the extended model on new runs of that twin.
 """
@@ -60,7 +60,8 @@ def judge(errors: list[np.ndarray], covs: list[np.ndarray]) -> dict:
             'predicted_um_urad': np.round(pred * 1e6, 4).tolist(), 'samples': int(e.shape[0])}
 
 
-def run_case(device, name: str, scenario: str, runs: int, seconds: float, after: bool) -> dict:
+def run_case(device, name: str, scenario: str, runs: int, seconds: float, after: bool,
+             approaches: int = 2) -> dict:
     preset, effect_params, ambient = CASES[name]
     kind, params, rate = SCENARIOS[scenario]
     room = ambient_profile(ambient)
@@ -68,7 +69,7 @@ def run_case(device, name: str, scenario: str, runs: int, seconds: float, after:
     model, note = Model(), ''
     for k in range(runs):
         twin = TwinDevice(device, Effects.preset(preset).with_assignments(effect_params), seed=k + 1)
-        calibration = twin.calibrate(-211.0 * k, room)
+        calibration = twin.calibrate(-211.0 * k, room, approaches=approaches)
         start = 600.0
         if after and k == 0:
             model, note, start = fit(device, twin, room, calibration)
@@ -92,7 +93,8 @@ def run_case(device, name: str, scenario: str, runs: int, seconds: float, after:
                 errors.append(pose_error(res.poses, run.true_poses)[ok])
                 covs.append(res.covariance[ok])
             break
-    out = {'case': name, 'scenario': scenario, 'runs': runs, 'after_analysis': after, **judge(errors, covs)}
+    out = {'case': name, 'scenario': scenario, 'runs': runs, 'after_analysis': after,
+           'calibration_approaches': approaches, **judge(errors, covs)}
     if note:
         out['analysis'] = note
     return out
@@ -121,12 +123,15 @@ def main() -> None:
     parser.add_argument('--runs', type=int, default=6)
     parser.add_argument('--seconds', type=float, default=8.0)
     parser.add_argument('--after', action='store_true')
+    parser.add_argument('--approaches', type=int, default=2, choices=(1, 2),
+                        help='the twin\'s calibration: 2 two-sided with the drift read (default), 1 '
+                        'the paper\'s routine')
     args = parser.parse_args()
     device = load_device(find_config('mmd_prototype.yaml'))
     results = []
     for name in args.cases.split(','):
         t0 = time.perf_counter()
-        r = run_case(device, name, args.scenario, args.runs, args.seconds, args.after)
+        r = run_case(device, name, args.scenario, args.runs, args.seconds, args.after, args.approaches)
         r['seconds'] = round(time.perf_counter() - t0, 1)
         results.append(r)
         print(f'{name:17s} {args.scenario:8s} ratio ' + ' '.join(f'{v:.2f}' for v in r['ratio'])

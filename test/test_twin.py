@@ -189,12 +189,12 @@ def test_two_sided_calibration_measures_hysteresis_and_seating(device):
     first and last on its resting pair gives the temperature change over the routine."""
     twin = TwinDevice(device, Effects.realistic(), seed=1)
     room = AmbientProfile.section_4_1()
-    schedule = twin.calibration_schedule(0.0)
+    schedule = twin.calibration_schedule(0.0, approaches=2)
     assert len(schedule) == 1 + 7 * 7 * 2
     assert (schedule[0].channel, schedule[0].pair) == (6, 'dr4')          # the drift check
     assert (schedule[-1].channel, schedule[-1].pair, schedule[-1].seat) == (6, 'dr4', 0)
     assert {p.approach for p in schedule[1:-2] if p.channel < 6} == {1.0, -1.0}
-    calibration = twin.calibrate(0.0, room)
+    calibration = twin.calibrate(0.0, room, approaches=2)
     unc = calibration.uncertainty
     assert unc.approaches == 2
     truth = twin.physics.hysteresis_m[device.measuring_channels]
@@ -209,7 +209,7 @@ def test_two_sided_calibration_measures_hysteresis_and_seating(device):
     # the temperature change over the routine, within its stated uncertainty (the ideal
     # preset: bars of the device's CTE, so the change reads in degrees as the device says)
     ideal = TwinDevice(device, Effects.ideal(), seed=1)
-    unc = ideal.calibrate(0.0, room).uncertainty
+    unc = ideal.calibrate(0.0, room, approaches=2).uncertainty
     bar_temp = room.lagged(np.array([schedule[0].start_s, schedule[-1].start_s]),
                            ideal.physics.time_constant_s[6])
     assert abs(unc.routine_temp_change_c - (bar_temp[1] - bar_temp[0])) < 3 * unc.routine_temp_sigma_c

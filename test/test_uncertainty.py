@@ -106,7 +106,7 @@ def test_two_sided_figures_from_synthetic_placements():
 def realistic():
     twin = TwinDevice(DEVICE, Effects.realistic(), seed=4)
     room = ambient_profile('section_4_1')
-    calibration = twin.calibrate(0.0, room)
+    calibration = twin.calibrate(0.0, room, approaches=2)
     run = twin.simulate(make_scenario('random_motion', ['duration_s=4']), room, start_s=600.0,
                         reference='pose6')
     return twin, room, calibration, run
@@ -179,7 +179,7 @@ def _pooled(effects: Effects, ambient: str, k_runs: int, seconds: float = 5.0):
     for k in range(k_runs):
         twin = TwinDevice(DEVICE, effects, seed=k + 1)
         room = ambient_profile(ambient)
-        calibration = twin.calibrate(-211.0 * k, room)
+        calibration = twin.calibrate(-211.0 * k, room, approaches=2)
         run = twin.simulate(make_scenario('random_motion', [f'duration_s={seconds}', f'seed={k}']),
                             room, start_s=600.0, reference='pose6')
         res = Pipeline(DEVICE, calibration).process(run.times_s, run.counts, with_covariance=True)
@@ -235,7 +235,7 @@ def test_after_the_loop_the_fit_s_uncertainty_is_in_the_model(tmp_path):
     from mmd_ros.twin.recording import SimulationSpec, simulate_to_log
     log = tmp_path / 'fit.mcap'
     spec = SimulationSpec(scenario='random_motion', scenario_params=('duration_s=60', 'seed=100'),
-                          effects='realistic', reference='pose6', seed=1)
+                          effects='realistic', reference='pose6', seed=1, calibration_approaches=2)
     simulate_to_log(spec, log, progress=False)
     result = analyze(read_run(log), options=AnalysisOptions(datum='none'))
     assert 'sampling_skew' in [f.effect for f in result.found]
@@ -246,7 +246,7 @@ def test_after_the_loop_the_fit_s_uncertainty_is_in_the_model(tmp_path):
     back = Model.from_yaml(model.to_yaml())
     twin = TwinDevice(DEVICE, Effects.realistic(), seed=1)
     room = ambient_profile('section_4_1')
-    calibration = twin.calibrate(0.0, room)
+    calibration = twin.calibrate(0.0, room, approaches=2)
     errors, covs = [], []
     for k in range(3):
         run = twin.simulate(make_scenario('random_motion', ['duration_s=5', f'seed={k}']), room,
@@ -283,7 +283,8 @@ def test_mmd_process_json_reports_the_coverage(tmp_path, capsys):
     from mmd_ros.twin.recording import SimulationSpec, simulate_to_log
     log = tmp_path / 'run.mcap'
     simulate_to_log(SimulationSpec(scenario='random_motion', scenario_params=('duration_s=3',),
-                                   effects='ideal', reference='pose6'), log, progress=False)
+                                   effects='ideal', reference='pose6', calibration_approaches=2),
+                    log, progress=False)
     capsys.readouterr()
     assert main(['process', str(log), '--json']) == 0
     summary = json.loads(capsys.readouterr().out)

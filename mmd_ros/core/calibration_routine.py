@@ -132,8 +132,10 @@ def capture_uncertainty(device: DeviceDescription, captures: list[CaptureStats],
         hyst, seating_m, dof = {}, None, 0
     one = bias + (seating_m or 0.0) ** 2
     temp, drift, temp_sigma = _routine_drift(device, captures, drifts, cdfs, one)
-    return CalibrationUncertainty(noise, samples, 2 if names else 1, hyst, seating_m, dof, temp,
-                                  drift, temp_sigma)
+    figures = CalibrationUncertainty(noise, samples, 2 if names else 1, hyst, seating_m, dof, temp,
+                                     drift, temp_sigma)
+    # at the precision the calibration file keeps, so that a saved calibration reads back equal
+    return CalibrationUncertainty.from_dict(figures.to_dict(), '<calibration>')
 
 
 def _routine_drift(device: DeviceDescription, points: list[CaptureStats], drifts: list[CaptureStats],

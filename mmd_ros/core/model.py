@@ -204,7 +204,8 @@ def _matrix6(value: Any, source: str, key: str) -> FloatArray:
     what = 'a symmetric positive semi-definite 6 x 6 matrix'
     arr = validate.floats(value, source, key, (6, 6), what=what)
     size = max(float(np.max(np.abs(arr))), 1e-12)
-    if np.max(np.abs(arr - arr.T)) > 1e-9 * size or np.min(np.linalg.eigvalsh(0.5 * (arr + arr.T))) < -1e-6 * size:
+    # (a written matrix may have lost a little to rounding: nearly singular ones then dip below 0)
+    if np.max(np.abs(arr - arr.T)) > 1e-6 * size or np.min(np.linalg.eigvalsh(0.5 * (arr + arr.T))) < -1e-4 * size:
         raise ConfigError(source, key, f'must be {what}, got {value!r}')
     return 0.5 * (arr + arr.T)
 
@@ -243,10 +244,10 @@ class FitUncertainty:
     def to_dict(self) -> dict[str, Any]:
         nm2 = 1e18
         return {
-            'residual_nm2': np.round(self.residual_m2 * nm2, 4).tolist(),
+            'residual_nm2': (self.residual_m2 * nm2).tolist(),
             'replaces': list(self.replaces),
             'systematic_scale': float(self.systematic_scale),
-            'mean_terms_nm2': np.round(self.mean_terms_m2 * nm2, 4).tolist(),
+            'mean_terms_nm2': (self.mean_terms_m2 * nm2).tolist(),
             'directions': [[{'type': t.type_name, **t.params()} for t in group]
                            for group in self.directions],
             'from': self.record,

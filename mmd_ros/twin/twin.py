@@ -8,10 +8,11 @@ which it can be calibrated on the reference plate (section 3.2) and then run sce
 Physical truth inside the twin: the CMM-measured joints (Table 1) and reference distances
 (Table 2), whatever the device description tells the software to use; plates expand from
 20 °C; the reference plate lies horizontally. A bar resting on a reference pair (seat 0) sits
-with its own seating offset and friction state (fixed per bar and pair); the calibration seats
-each bar on each pair twice, once from shorter and once from longer (friction state +1 and -1,
-further seatings with their own offsets), and leaves a reference bar on its resting pair in its
-resting placement, so that it simply continues it afterwards.
+with its own seating offset and friction state (fixed per bar and pair). The calibration places
+each bar once on each pair as it rests there (the paper's routine), or, with ``approaches=2``,
+seats it twice, once from shorter and once from longer (friction state +1 and -1, further
+seatings with their own offsets); either way it leaves a reference bar on its resting pair in
+its resting placement, so that it simply continues it afterwards.
 """
 
 from __future__ import annotations
@@ -276,7 +277,7 @@ class TwinDevice:
 
     # -- calibration (section 3.2) -------------------------------------------------------------
     def calibration_schedule(self, at_s: float, settle_s: float = 3.0,
-                             average_s: float = 2.0, approaches: int = 2) -> list[Placement]:
+                             average_s: float = 2.0, approaches: int = 1) -> list[Placement]:
         """The order of the calibration routine starting at ``at_s``: each measuring bar (bar
         order), then each reference bar, on the seven pairs in turn; a reference bar visits
         its resting pair last and stays there. A placement takes ``settle_s`` to seat the bar,
@@ -320,7 +321,7 @@ class TwinDevice:
         return out
 
     def calibrate(self, at_s: float, ambient: AmbientProfile, settle_s: float = 3.0,
-                  average_s: float = 2.0, approaches: int = 2) -> Calibration:
+                  average_s: float = 2.0, approaches: int = 1) -> Calibration:
         """Run the calibration routine of section 3.2 (see :meth:`calibration_schedule`).
 
         Each calibration point is the mean count over its averaging window (of both
@@ -367,7 +368,8 @@ class TwinDevice:
         for c in self.device.reference_channels:
             pair, q = last[c.index]
             reading = float(readers[c.name](np.array([q]))[0][0])
-            zero[c.name] = 0.0 if approaches == 1 else reading - self.device.pair(pair).distance_m
+            offset = 0.0 if approaches == 1 else reading - self.device.pair(pair).distance_m
+            zero[c.name] = float(offset / 1e-6) * 1e-6   # as the calibration file keeps it
         uncertainty = capture_uncertainty(self.device, captures, readers)
         return Calibration(
             device=self.device.name, bars=bars, thermal_zero_m=zero,
