@@ -43,6 +43,9 @@ FloatArray = NDArray[np.float64]
 #: Half-width of the play operator that tells a bar's motion direction for the hysteresis
 #: source: it flips after 2 um of reverse travel [m].
 DIRECTION_TRAVEL_M = 1e-6
+#: Model terms that compensate the bars' friction hysteresis (the budget's hysteresis source
+#: is then off: the fit's uncertainty and residual stand for what is left of it).
+FRICTION_TERMS = ('hysteresis', 'friction')
 #: Travel after a reversal by which a bar's friction state has turned over (an assumption:
 #: rolling guides turn within a few um; the calibration does not measure it) [m].
 FRICTION_TURNOVER_M = 20e-6
@@ -245,7 +248,7 @@ class LengthBudget:
 
         # -- friction hysteresis measured by a two-sided calibration, unless compensated: a bar
         # that last lengthened reads short by h (the sign from its motion, a play operator)
-        compensated = any(t.type_name == 'hysteresis' for t in model.terms)
+        compensated = any(t.type_name in FRICTION_TERMS for t in model.terms)
         h = np.array([figures.hysteresis_m.get(m, 0.0) for m in measuring])
         self.hysteresis_m = np.zeros(6) if compensated else np.abs(h)
         self._direction = _Friction(DIRECTION_TRAVEL_M, FRICTION_TURNOVER_M)
