@@ -1,5 +1,7 @@
 """Forward-kinematics benchmarks: per-sample (warm start, 1 kHz trajectory), per transfer as the
-nodes solve it (8 samples, compiled and Python) and batch throughput.
+nodes solve it (8 samples, compiled and Python), the same with the pose covariance of the
+uncertainty budget (what ``fk_node`` and ``pose_node`` add per transfer: the budget's
+observation of the samples, Sigma_d and J^-1 Sigma_d J^-T) and batch throughput.
 
 Prints the figures and a final JSON line. Targets (issue 2): per-sample median <= 50 us,
 batch >= 300,000 samples/s at N = 100,000. Never fails on timing.
@@ -54,6 +56,29 @@ def main() -> None:
             'median_us': statistics.median(t_transfer) * 1e6,
             'p99_us': float(np.percentile(t_transfer, 99) * 1e6)}
 
+    # the nodes' path with the covariance: a realistic twin's calibration (its budget has every
+    # source: hysteresis, drift, interpolation...), 8 samples per transfer
+    from mmd_ros.core.budget import LengthBudget
+    from mmd_ros.core.model import Model
+    from mmd_ros.core.streaming import Kinematics
+    from mmd_ros.twin import AmbientProfile, Effects, TwinDevice
+    device = load_device(find_config('mmd_prototype.yaml'))
+    calibration = TwinDevice(device, Effects.realistic(), seed=1).calibrate(
+        0.0, AmbientProfile.section_4_1())
+    kin = Kinematics(device, LengthBudget(device, calibration, Model()))
+    eps, dt, scale = np.full((8, 1), 0.05e-6), np.full(8, -0.1), np.ones(8)
+    t_solve, t_cov = [], []
+    for k in range(0, len(noisy), 8):
+        t0 = time.perf_counter()
+        out = kin.solve(noisy[k:k + 8], scale, eps, dt)
+        t1 = time.perf_counter()
+        out.covariance
+        t_cov.append(time.perf_counter() - t1)
+        t_solve.append(t1 - t0)
+    with_cov = {'solve_and_observe_median_us': statistics.median(t_solve) * 1e6,
+                'covariance_median_us': statistics.median(t_cov) * 1e6,
+                'covariance_p99_us': float(np.percentile(t_cov, 99) * 1e6)}
+
     rng = np.random.default_rng(0)
     n = 100_000
     poses = np.column_stack([rng.uniform(-0.08, 0.08, (n, 2)), rng.uniform(0.27, 0.33, n),
@@ -73,6 +98,7 @@ def main() -> None:
         'per_sample_p99_us': float(np.percentile(times, 99) * 1e6),
         'per_sample_median_iterations': statistics.median(iterations),
         'transfer_of_8_us': transfer,
+        'transfer_of_8_with_covariance_us': with_cov,
         'batch_samples_per_s_median': statistics.median(rates),
         'batch_samples_per_s_runs': rates,
         'batch_n': n,
@@ -84,6 +110,9 @@ def main() -> None:
     for path, v in transfer.items():
         print(f'a transfer of 8 noisy samples (solve_stream, {path}): median {v["median_us"]:.1f} us, '
               f'p99 {v["p99_us"]:.1f} us')
+    print(f'a transfer with the pose covariance (fk_node, pose_node): solve and observe median '
+          f'{with_cov["solve_and_observe_median_us"]:.1f} us, then the covariance median '
+          f'{with_cov["covariance_median_us"]:.1f} us, p99 {with_cov["covariance_p99_us"]:.1f} us')
     if not COMPILED:
         print('(the compiled helpers were not built: no C compiler when mmd_ros was installed)')
     print(f'batch FK, N = {n}: median {result["batch_samples_per_s_median"]:,.0f} samples/s over 5 runs, '

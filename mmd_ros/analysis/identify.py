@@ -52,6 +52,7 @@ from mmd_ros.analysis.data import (
 )
 from mmd_ros.analysis.effects import Effect, Parameter, catalogue
 from mmd_ros.analysis.errors import AnalysisError
+from mmd_ros.analysis.uncertainty import ResidualRun, fitted_effects, with_fit_uncertainty
 from mmd_ros.core.calibration import Calibration
 from mmd_ros.core.kinematics import jacobian
 from mmd_ros.core.model import Model, ModelTerm
@@ -165,6 +166,7 @@ class Found:
     claimed: bool = True
     reason: str = ''
     unchecked: list[Unchecked] = field(default_factory=list)
+    covariance: FloatArray | None = None  # (P, P) of the parameters [SI]
 
     def parameter_rows(self) -> list[dict[str, Any]]:
         rows = []
@@ -1076,7 +1078,7 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
             break
         fits, e_pred = sel.final_fit()
         current = []
-        for a, (theta, sigma, _cb) in zip(sel.active, fits):
+        for a, (theta, sigma, cb) in zip(sel.active, fits):
             params = sel.parameters(a.effect, a.hyper)
             ident = np.linalg.norm(a.basis, axis=1) > 0
             first_theta = sel.theta_for(a.effect, theta, first)
@@ -1084,7 +1086,8 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
                                  a.effect.hyper_label(a.hyper), params, theta, sigma, ident,
                                  a.step_gain, a.effect.interpret(
                                      first.ctx, a.hyper, first_theta if first_theta is not None else theta,
-                                     sigma[:first_theta.size] if first_theta is not None else sigma)))
+                                     sigma[:first_theta.size] if first_theta is not None else sigma),
+                                 covariance=a.basis @ cb @ a.basis.T))
         # an effect must remove most of the structure along its own coordinate; one that fits
         # only part of it follows something else (the worst is dropped, then all are refitted)
         worst_k, worst_ratio, worst_txt = -1, 0.0, ''
@@ -1208,6 +1211,7 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
         extended = _build_model(model, _terms_for(sel, chosen, last), records)
 
     # -- leave one run out: each log predicted by the model fitted on the others
+    unseen: list[ResidualRun] = []
     validation = ('within-run: held-out time blocks of one log, interleaved with the blocks the '
                   'model was fitted on (not independent validation)')
     if len(runs) > 1:
@@ -1215,7 +1219,7 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
                       '(the pipeline re-run); within-run held-out blocks as a second figure')
         if chosen and o.leave_one_out:
             say('leave-one-run-out: refitting without each log')
-            _leave_one_out(runs, sel.active, model, o, summaries)
+            _leave_one_out(runs, sel.active, model, o, summaries, unseen)
         else:
             for s, r in zip(summaries, runs):
                 every = np.flatnonzero(r.usable)
@@ -1223,6 +1227,17 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
                 s.loro_before = component_errors(r.obs, whole, every)
                 s.loro_after = s.loro_before
                 s.loro_note = 'nothing added: the model is unchanged'
+
+    if extended is not None:
+        # the model's own uncertainty: its terms' parameter covariance and the residual left,
+        # on logs the fit never saw when there are several (analysis/uncertainty.py)
+        effects = fitted_effects(sel, chosen, found, runs[-1])
+        if unseen:
+            extended = with_fit_uncertainty(extended, runs[-1].ctx, effects, unseen, unseen=True)
+        elif afters:
+            extended = with_fit_uncertainty(extended, runs[-1].ctx, effects, [
+                ResidualRun(r.ctx, after, res, r.split.test_idx)
+                for r, (after, res) in zip(runs, afters)])
 
     first_summary = summaries[0]
     contributions: dict[str, FloatArray] = {}
@@ -1285,7 +1300,8 @@ def _validity(runs: list[_Run], afters: list[tuple[Processed, FloatArray]] | Non
 
 
 def _leave_one_out(runs: list[_Run], active: list[_Active], model: Model,
-                   o: AnalysisOptions, summaries: list[RunSummary]) -> None:
+                   o: AnalysisOptions, summaries: list[RunSummary],
+                   unseen: list[ResidualRun] | None = None) -> None:
     """Each log predicted by the effects found (same settings) refitted on the other logs (the
     ones not written stay in the fit, as in the analysis); the pipeline re-run over the whole
     log with the written ones. Parameters of a calibration or run that no other log shares
@@ -1306,6 +1322,8 @@ def _leave_one_out(runs: list[_Run], active: list[_Active], model: Model,
         res_a = _datum_corrected(r.obs, r.obs.residual(after), after.measured(r.obs.kind), every)
         res_b = _datum_corrected(r.obs, r.obs.residual(r.ctx.base), r.ctx.base.measured(r.obs.kind), every)
         both = every[np.all(np.isfinite(res_a[every]), axis=1)]
+        if unseen is not None:          # for the written model's uncertainty
+            unseen.append(ResidualRun(r.ctx, after, res_a, both))
         summaries[k].loro_before = component_errors(r.obs, res_b, both)
         summaries[k].loro_after = component_errors(r.obs, res_a, both)
         if missing:

@@ -33,15 +33,17 @@ def run_command(args: argparse.Namespace) -> int:
         print(f'warning: {run.problem}', file=sys.stderr)
     model = load_model(args.model) if args.model else (run.model or Model())
     progress = Progress('processing', run.counts.shape[0], enabled=not quiet)
+    # with a reference pose the covariance is computed to report how well it covers the error
     result = process_run(run, model, calibration_path=args.calibration,
-                         with_covariance=args.covariance, progress=progress)
+                         with_covariance=args.covariance or run.reference_pose is not None,
+                         progress=progress)
     progress.close()
     cal = run.calibration if not args.calibration else load_calibration(args.calibration)
-    write_processed(out, run, model, result, cal.to_yaml())
+    write_processed(out, run, model, result, cal.to_yaml(), with_covariance=args.covariance)
     if args.csv:
         write_csv(Path(args.csv), result)
     elapsed = time.perf_counter() - started
-    summary = summarize(run, result)
+    summary = summarize(run, result, absolute_reference=True if args.absolute_reference else None)
     summary.update(output=str(out), csv=args.csv, seconds=elapsed,
                    samples_per_s=summary['samples'] / elapsed if elapsed > 0 else None,
                    model=model.to_dict())
@@ -57,6 +59,11 @@ def run_command(args: argparse.Namespace) -> int:
         from mmd_ros.core.accuracy import ComponentStats
         print(format_stats([ComponentStats(**s) for s in summary['pose_error']],
                            'pose error against the reference (MMD - reference):'))
+    if 'uncertainty_coverage' in summary:
+        from mmd_ros.core.accuracy import format_coverage
+        print(format_coverage(summary['uncertainty_coverage']))
+        for note in summary.get('uncertainty_budget', {}).get('notes', []):
+            print(f'  not in the budget: {note}')
     if 'length_error' in summary:
         from mmd_ros.core.accuracy import ComponentStats
         print(format_stats([ComponentStats(**s) for s in summary['length_error']],
@@ -76,7 +83,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument('--out', help='output MCAP (default: LOG.processed.mcap)')
     p.add_argument('--csv', help='also write the poses and lengths as CSV to this file')
     p.add_argument('--covariance', action='store_true',
-                   help='also write /mmd/pose_with_covariance (propagated uncertainty)')
+                   help='also write /mmd/pose_with_covariance (the propagated uncertainty, '
+                   'msg_docs/frames.md); with a reference pose in the log it is always computed '
+                   'and compared with the error')
+    p.add_argument('--absolute-reference', action='store_true', dest='absolute_reference',
+                   help='the reference pose is absolute in {L} (default: what the log\'s metadata '
+                   'says, else zeroed at the start: an offset per component is removed)')
     add_segment_argument(p)
     p.add_argument('--force', action='store_true',
                    help='allow --out/--csv to replace an existing raw log (never the input)')

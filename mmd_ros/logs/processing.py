@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from mmd_ros.core.accuracy import error_stats, length_error, pose_error
+from mmd_ros.core.accuracy import coverage, error_stats, length_error, pose_error
 from mmd_ros.core.calibration import load_calibration
 from mmd_ros.core.errors import CalibrationError
 from mmd_ros.core.model import Model
@@ -46,6 +46,7 @@ class ProcessedRun:
     reference_error_m: NDArray[np.float64]
     temp_change_c: NDArray[np.float64]
     covariance: NDArray[np.float64] | None
+    budget: dict[str, Any] | None = None  # the uncertainty budget's numbers and notes
 
 
 def process_run(run: RunLog, model: Model, *, calibration_path: str | None = None,
@@ -75,13 +76,15 @@ def process_run(run: RunLog, model: Model, *, calibration_path: str | None = Non
         cat(lambda p: p.compensated.out_of_range), cat(lambda p: p.iterations),
         cat(lambda p: p.residual_m), cat(lambda p: p.compensated.thermal.reference_error_m),
         cat(lambda p: p.compensated.thermal.temp_change_c),
-        cat(lambda p: p.covariance) if with_covariance else None)
+        cat(lambda p: p.covariance) if with_covariance else None,
+        pipeline.budget.summary() if with_covariance else None)
 
 
 def write_processed(path: Path, run: RunLog, model: Model, result: ProcessedRun,
-                    calibration_text: str) -> None:
-    """Write bar lengths, poses, thermal state and FK status in the live pipeline's topics
-    (under a temporary name, renamed to ``path`` once complete)."""
+                    calibration_text: str, *, with_covariance: bool = True) -> None:
+    """Write bar lengths, poses, thermal state and FK status in the live pipeline's topics (and
+    the poses with their covariance when computed and ``with_covariance``), under a temporary
+    name, renamed to ``path`` once complete."""
     stamps = result.stamps_ns
     t0 = int(stamps[0])
     ref_names = [c.name + '_error' for c in run.device.reference_channels][:result.reference_error_m.shape[1]]
@@ -102,7 +105,7 @@ def write_processed(path: Path, run: RunLog, model: Model, result: ProcessedRun,
             (TOPIC_FK_STATUS, 'sensor_msgs/msg/JointState',
              log.joint_state_rows(FK_STATUS_NAMES, stamps, status)),
         ]
-        if result.covariance is not None:
+        if result.covariance is not None and with_covariance:
             streams.append((TOPIC_POSE_COV, 'geometry_msgs/msg/PoseWithCovarianceStamped',
                             log.pose_rows(FRAME_LOWER, stamps, _masked(result.poses, result.valid),
                                           result.covariance)))
@@ -127,8 +130,14 @@ def write_csv(path: Path, result: ProcessedRun) -> None:
             handle.write(f'{stamp},' + ','.join(f'{v:.12g}' for v in row) + '\n')
 
 
-def summarize(run: RunLog, result: ProcessedRun) -> dict[str, Any]:
-    """Counts of samples and, with a reference in the log, the error statistics."""
+def summarize(run: RunLog, result: ProcessedRun, *, absolute_reference: bool | None = None
+              ) -> dict[str, Any]:
+    """Counts of samples and, with a reference in the log, the error statistics and, with the
+    covariance computed, how well it covers the error (:func:`~mmd_ros.core.accuracy.coverage`).
+
+    absolute_reference : the reference pose is absolute in {L} (no offset removed); None takes
+        what the log's metadata says (``reference_absolute``), else False (zeroed at the start)
+    """
     n = int(result.stamps_ns.size)
     summary: dict[str, Any] = {
         'log': str(run.path),
@@ -144,8 +153,22 @@ def summarize(run: RunLog, result: ProcessedRun) -> dict[str, Any]:
     if run.segment[1] > 1:
         summary['segment'] = {'index': run.segment[0], 'of': run.segment[1]}
     if run.reference_pose is not None:
-        stats = error_stats(pose_error(result.poses, run.reference_pose), result.valid)
+        errors = pose_error(result.poses, run.reference_pose)
+        stats = error_stats(errors, result.valid)
         summary['pose_error'] = [s.as_dict() for s in stats]
+        if result.covariance is not None:
+            absolute = absolute_reference
+            if absolute is None:
+                absolute = bool(run.metadata.get('reference_absolute', False))
+            sigma = run.metadata.get('reference_sigma')
+            ref_sigma = (np.array([np.nan if v is None else float(v) for v in sigma])
+                         if isinstance(sigma, list) and len(sigma) == 6 else None)
+            report = coverage(errors, result.covariance, result.valid, absolute=absolute,
+                              reference_sigma=ref_sigma)
+            if report is not None:
+                summary['uncertainty_coverage'] = report
+    if result.budget is not None:
+        summary['uncertainty_budget'] = result.budget
     if run.reference_lengths is not None:
         stats = error_stats(length_error(result.lengths_m, run.reference_lengths), result.valid,
                             kind='lengths')
