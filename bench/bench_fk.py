@@ -1,6 +1,9 @@
 """Forward-kinematics benchmarks: per-sample (warm start, 1 kHz trajectory), per transfer as the
-nodes solve it (8 samples, compiled and Python), batch throughput (compiled on threads or a
-process pool, against the numpy reference in the same run), and the plausibility test's figures.
+nodes solve it (8 samples, compiled and Python), the same with the pose covariance of the
+uncertainty budget (what ``fk_node`` and ``pose_node`` add per transfer: the budget's
+observation of the samples, Sigma_d and J^-1 Sigma_d J^-T), batch throughput (compiled on
+threads or a process pool, against the numpy reference in the same run), and the plausibility
+test's figures.
 
 Batch, N = 100,000: "warm" is a 1 kHz trajectory through ``solve_series`` (every 16th sample
 solved cold, the others from the poses interpolated between them), "cold" is random poses
@@ -90,6 +93,32 @@ def per_sample_and_transfer(fk: ForwardKinematics) -> dict:
             'per_sample_p99_us': float(np.percentile(times, 99) * 1e6),
             'per_sample_median_iterations': statistics.median(iterations),
             'transfer_of_8_us': transfer}
+
+
+def transfer_with_covariance() -> dict:
+    """The nodes' path with the covariance: a realistic twin's calibration (its budget has every
+    source: hysteresis, drift, interpolation...), 8 samples per transfer."""
+    from mmd_ros.core.budget import LengthBudget
+    from mmd_ros.core.model import Model
+    from mmd_ros.core.streaming import Kinematics
+    from mmd_ros.twin import AmbientProfile, Effects, TwinDevice
+    calibration = TwinDevice(DEVICE, Effects.realistic(), seed=1).calibrate(
+        0.0, AmbientProfile.section_4_1())
+    kin = Kinematics(DEVICE, LengthBudget(DEVICE, calibration, Model()))
+    lengths = inverse_kinematics(DEVICE.geometry, trajectory(20000))
+    noisy = lengths + np.random.default_rng(1).normal(0, 50e-9, lengths.shape)
+    eps, dt, scale = np.full((8, 1), 0.05e-6), np.full(8, -0.1), np.ones(8)
+    t_solve, t_cov = [], []
+    for k in range(0, len(noisy), 8):
+        t0 = time.perf_counter()
+        out = kin.solve(noisy[k:k + 8], scale, eps, dt)
+        t1 = time.perf_counter()
+        out.covariance
+        t_cov.append(time.perf_counter() - t1)
+        t_solve.append(t1 - t0)
+    return {'solve_and_observe_median_us': statistics.median(t_solve) * 1e6,
+            'covariance_median_us': statistics.median(t_cov) * 1e6,
+            'covariance_p99_us': float(np.percentile(t_cov, 99) * 1e6)}
 
 
 def batch(fk: ForwardKinematics, n: int, repeats: int) -> dict:
@@ -182,6 +211,7 @@ def main() -> None:
     fk = ForwardKinematics.for_device(DEVICE)
     result = {'benchmark': 'fk', 'load_average': list(os.getloadavg())}
     result.update(per_sample_and_transfer(fk))
+    result['transfer_of_8_with_covariance_us'] = transfer_with_covariance()
     result['batch'] = batch(fk, 100_000, args.repeats)
     result['plausibility'] = plausibility(args.jumps)
 
@@ -192,6 +222,10 @@ def main() -> None:
     for path, v in result['transfer_of_8_us'].items():
         print(f'a transfer of 8 noisy samples (solve_stream, {path}): median {v["median_us"]:.1f} us, '
               f'p99 {v["p99_us"]:.1f} us')
+    with_cov = result['transfer_of_8_with_covariance_us']
+    print(f'a transfer with the pose covariance (fk_node, pose_node): solve and observe median '
+          f'{with_cov["solve_and_observe_median_us"]:.1f} us, then the covariance median '
+          f'{with_cov["covariance_median_us"]:.1f} us, p99 {with_cov["covariance_p99_us"]:.1f} us')
     if not COMPILED:
         print('(the compiled helpers are not in use: only the numpy path was measured)')
     b = result['batch']

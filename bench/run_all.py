@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-QUICK = {'bench_process.py', 'bench_ros.py'}
+QUICK = {'bench_machine.py', 'bench_process.py', 'bench_ros.py'}
 
 
 def main() -> int:

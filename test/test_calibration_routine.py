@@ -37,21 +37,28 @@ class Plate:
         self.device, self.twin, self.room = device, twin, room
         self.t = 10.0
         self.where = {c.name: c.pair for c in device.reference_channels}
+        self.last = ''
         self.offset = np.zeros(8) if offset is None else np.asarray(offset, float)
 
-    def window(self, moving: dict[str, float] | None = None, seconds: float = WINDOW_S) -> Window:
+    def window(self, moving: dict[str, float] | None = None, seconds: float = WINDOW_S,
+               approach: float | None = None, seat: int = 0) -> Window:
+        """The last placed bar seated from ``approach`` (+1 short, -1 long) at ``seat``."""
         times = self.t + np.arange(int(seconds * RATE)) / RATE
         self.t += seconds + 1.0
         counts = np.zeros((times.size, 8))
         for name, pair in self.where.items():
             k = self.device.channel_names.index(name)
-            counts[:, k] = self.twin.counts_on_pair(k, pair, times, self.room)
+            last = name == self.last
+            counts[:, k] = self.twin.counts_on_pair(k, pair, times, self.room,
+                                                    approach=approach if last else None,
+                                                    seat=seat if last else 0)
         for name, amp_m in (moving or {}).items():
             k = self.device.channel_names.index(name)
             counts[:, k] += amp_m / self.device.encoder_resolution_m * np.sin(2 * np.pi * 2 * (times - times[0]))
         return Window.of(counts + self.offset, seconds)
 
     def place(self, step: Step) -> None:
+        self.last = step.channel
         if step.channel not in [c.name for c in self.device.reference_channels]:
             self.where = {k: v for k, v in self.where.items()
                           if k in [c.name for c in self.device.reference_channels]}
@@ -76,13 +83,14 @@ def test_full_routine_matches_the_twins_own_calibration(world):
     plate = Plate(device, twin, room)
     results = run_full(routine, plate)
     order = [(r.step.channel, r.step.pair) for r in results]
-    schedule = [(device.channel_names[p.channel], p.pair) for p in twin.calibration_schedule(0.0)]
+    schedule = [(device.channel_names[p.channel], p.pair)
+                for p in twin.calibration_schedule(0.0, approaches=1)]
     assert order == schedule  # the paper's order: bar by bar, the reference bar last on dr4
     cal = routine.calibration
     assert cal is not None and cal.valid and set(cal.bars) == set(device.channel_names[:7])
     assert [r.completed for r in results if r.completed] == device.channel_names[:7]
     assert 'Calibration complete' in results[-1].message
-    truth = twin.calibrate(0.0, room)
+    truth = twin.calibrate(0.0, room, approaches=1)
     for name, bar in truth.bars.items():
         mine = cal.bars[name]
         assert mine.pairs == bar.pairs
@@ -92,6 +100,9 @@ def test_full_routine_matches_the_twins_own_calibration(world):
         quality = cal.quality['bars'][name]
         assert abs(quality['scale_ppm']) < 200 and quality['nonlinearity_um'] < 10
     assert abs(cal.thermal_zero_m['ref1']) < 1e-12  # read where its last point was taken
+    # the captures measured their own read noise (the twin's: 10 nm) for the uncertainty budget
+    assert 5e-9 < cal.uncertainty.read_noise_m < 15e-9
+    assert cal.uncertainty.capture_samples == int(WINDOW_S * RATE)
     assert cal.ambient_c == 20.0
     Pipeline(device, cal)  # a complete calibration makes a pipeline
     again = Calibration.from_yaml(cal.to_yaml())
@@ -200,3 +211,36 @@ def test_bar_quality_of_a_straight_scale():
     q = bar_quality(bar, 50e-9, 1e-8)
     assert q['scale_nm_per_count'] == pytest.approx(50.0)
     assert abs(q['scale_ppm']) < 1e-3 and q['nonlinearity_um'] < 1e-6 and q['noise_um'] == 0.01
+
+
+def test_two_sided_routine_measures_hysteresis_seating_and_drift():
+    """With approaches=2 the routine reads the reference bar on its resting pair first, then
+    asks for every pair twice (from short, from long); the points are the means, and the
+    calibration records each bar's friction hysteresis (the twin's drawn one), the seating
+    repeatability and the temperature drift over the routine."""
+    device = load_device(find_config('mmd_prototype.yaml'))
+    twin = TwinDevice(device, Effects.realistic(), seed=5)
+    room = AmbientProfile.constant(20.0)
+    routine = CalibrationRoutine(device, settings=RoutineSettings(approaches=2))
+    plate = Plate(device, twin, room)
+    seats = {'': (None, 0), 'short': (1.0, 1), 'long': (-1.0, 2)}
+    results, step, k = [], routine.next_step(), 0
+    assert step.kind == 'drift' and (step.channel, step.pair) == ('ref1', 'dr4')
+    while step is not None:
+        plate.place(step)
+        approach, seat = seats[step.approach]
+        k += 1
+        window = plate.window(approach=approach, seat=seat)
+        res = routine.capture(step, window, f'2024-01-01T00:{k // 60:02d}:{k % 60:02d}+00:00')
+        assert res.accepted, res.message
+        results.append(res)
+        step = res.next_step
+    assert len(results) == 1 + 7 * 7 * 2
+    assert 'from short' in results[1].message and 'from long' in results[2].message
+    unc = routine.calibration.uncertainty
+    assert unc.approaches == 2 and unc.routine_temp_change_c is not None
+    assert abs(unc.routine_temp_change_c) < 3 * unc.routine_temp_sigma_c   # a constant room
+    truth = twin.physics.hysteresis_m[device.measuring_channels]
+    found = np.array([unc.hysteresis_m[f'bar{i}'] for i in range(1, 7)])
+    np.testing.assert_allclose(found, truth, atol=0.04e-6)
+    assert 10e-9 < unc.seating_m < 60e-9

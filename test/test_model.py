@@ -7,7 +7,7 @@ import pytest
 
 from mmd_ros.core.device import find_config, load_device
 from mmd_ros.core.errors import ConfigError
-from mmd_ros.core.model import HysteresisTerm, Model, TermContext, load_model
+from mmd_ros.core.model import HysteresisTerm, Model, ModelUncertainty, TermContext, load_model
 from mmd_ros.core.pipeline import Pipeline
 from mmd_ros.twin import AmbientProfile, Effects, TwinDevice, make_scenario
 
@@ -15,12 +15,15 @@ DEVICE = load_device(find_config('mmd_prototype.yaml'))
 
 
 def test_model_file_round_trip(tmp_path):
-    model = Model(thermal_mode='single', plate_expansion=False, length_sigma_m=0.3e-6,
-                  terms=[HysteresisTerm(np.arange(1, 7) * 0.1e-6, 4e-6)])
+    model = Model(thermal_mode='single', plate_expansion=False,
+                  terms=[HysteresisTerm(np.arange(1, 7) * 0.1e-6, 4e-6)],
+                  uncertainty=ModelUncertainty(thermal_mismatch_fraction=0.1, read_noise_m=7e-9))
     path = model.save(tmp_path / 'model.yaml')
+    assert 'length_sigma_um' not in path.read_text()   # no fixed sigma is written any more
     back = load_model(path)
     assert back.thermal_mode == 'single' and back.plate_expansion is False
-    assert back.length_sigma_m == pytest.approx(0.3e-6)
+    assert back.uncertainty.thermal_mismatch_fraction == pytest.approx(0.1)
+    assert back.uncertainty.read_noise_m == pytest.approx(7e-9)
     assert isinstance(back.terms[0], HysteresisTerm)
     assert back.terms[0].amplitude_m == pytest.approx(np.arange(1, 7) * 0.1e-6)
     assert back.terms[0].travel_m == pytest.approx(4e-6)
@@ -33,6 +36,13 @@ def test_model_file_round_trip(tmp_path):
     ('format_version: 1\nterms: [{type: magic}]\n', 'terms[0].type'),
     ('format_version: 1\nterms: [{type: hysteresis, amplitude_um: [1, 2]}]\n', 'amplitude_um'),
     ('format_version: 1\nlength_sigma_um: -1\n', 'length_sigma_um'),
+    ('format_version: 1\nuncertainty: {thermal_mismatch_fraction: 2}\n',
+     'uncertainty.thermal_mismatch_fraction'),
+    ('format_version: 1\nuncertainty: {read_noise_nm: -1}\n', 'uncertainty.read_noise_nm'),
+    ('format_version: 1\nuncertainty: {fit: {residual_nm2: [[1, 2], [3, 4]]}}\n',
+     'uncertainty.fit.residual_nm2'),
+    ('format_version: 1\nuncertainty: {fit: {replaces: [everything]}}\n', 'uncertainty.fit.replaces'),
+    ('format_version: 1\nuncertainty: {sigma_um: 0.4}\n', 'uncertainty.sigma_um'),
 ])
 def test_bad_model_files_name_the_key(tmp_path, text, key):
     path = tmp_path / 'model.yaml'
@@ -86,6 +96,24 @@ def test_streamed_samples_give_the_batch_result():
     assert last.covariance is not None and np.allclose(last.covariance, batch.covariance[-1], rtol=1e-6)
 
 
+def test_two_pipelines_of_one_model_keep_their_own_term_state():
+    """Issue 10, section 4: a model whose terms carry state (play operator, previous sample)
+    used by a second pipeline starts that pipeline from a fresh state, whatever the first one
+    processed; and the model object itself is left untouched."""
+    from mmd_ros.core.terms import SamplingSkewTerm
+    twin = TwinDevice(DEVICE, Effects.realistic(), seed=5)
+    room = AmbientProfile.constant(21.0)
+    calibration = twin.calibrate(0.0, room)
+    run = twin.simulate(make_scenario('random_motion', ['duration_s=2']), room, start_s=400.0)
+    model = Model(terms=[HysteresisTerm(np.full(6, 0.5e-6), 2e-6), SamplingSkewTerm(np.full(6, 40e-6))])
+    fresh = Pipeline(DEVICE, calibration, Model.from_dict(model.to_dict())).process(run.times_s, run.counts)
+    first = Pipeline(DEVICE, calibration, model)
+    first.process(run.times_s[::-1].copy(), run.counts[::-1].copy())   # leaves its terms in some state
+    second = Pipeline(DEVICE, calibration, model).process(run.times_s, run.counts)
+    assert np.array_equal(second.compensated.lengths_m, fresh.compensated.lengths_m)
+    assert model.terms[0]._play is None   # the model's own terms never ran
+
+
 def test_node_stages_transfer_by_transfer_give_the_batch_result():
     """What compensation_node, fk_node and pose_node compute, 8 samples per transfer, is what
     ``Pipeline.process`` gives for the whole run, covariance included."""
@@ -98,12 +126,14 @@ def test_node_stages_transfer_by_transfer_give_the_batch_result():
     batch = Pipeline(DEVICE, calibration, model).process(run.times_s, run.counts, with_covariance=True)
     compensator = Compensator(DEVICE, model)
     compensator.set_calibration(calibration, 'test')
-    kinematics = Kinematics(DEVICE, model.length_sigma_m)
+    kinematics = Kinematics(DEVICE)
     stamps = np.round(run.times_s * 1e9).astype(np.int64)
     poses, covariances, valid = [], [], []
     for a in range(0, run.n_samples, 8):
         comp = compensator.process(stamps[a:a + 8], run.counts[a:a + 8])
-        kin = kinematics.solve(comp.lengths_m, comp.plate_scale)
+        kinematics.budget = compensator.budget
+        kin = kinematics.solve(comp.lengths_m, comp.plate_scale, comp.reference_error_m,
+                               comp.temp_change_c, comp.bar_error_m, comp.fit_columns_m)
         poses.append(kin.poses)
         valid.append(kin.valid)
         covariances.append(kin.covariance)
@@ -117,8 +147,9 @@ def test_node_stages_transfer_by_transfer_give_the_batch_result():
     scale = np.max(np.diagonal(cov, axis1=1, axis2=2))
     np.testing.assert_allclose(cov, batch.covariance[valid], rtol=1e-6, atol=1e-5 * scale)
     assert np.all(np.diagonal(cov, axis1=1, axis2=2) > 0)
-    without = Kinematics(DEVICE, model.length_sigma_m, with_covariance=False)
+    without = Kinematics(DEVICE, compensator.budget, with_covariance=False)
     assert without.solve(comp.lengths_m, comp.plate_scale).covariance is None
+    assert Kinematics(DEVICE).solve(comp.lengths_m, comp.plate_scale).covariance is None
 
 
 def test_kinematics_diagnostics_count_what_the_samples_show():

@@ -42,6 +42,26 @@ def check_accuracy(client, since_ns: int, n: int = 1500) -> None:
 
 
 
+def publish_machine_joints(client, n: int) -> None:
+    """Publish n joint states of a five-axis controller on /mmd/machine/joint_states."""
+    from sensor_msgs.msg import JointState
+    pub = client.node.create_publisher(JointState, '/mmd/machine/joint_states', 10)
+    assert client.wait_for(lambda: pub.get_subscription_count() > 0, 30)
+    for k in range(n):
+        msg = JointState()
+        msg.header.stamp = client.node.get_clock().now().to_msg()
+        msg.name = ['X', 'Y', 'Z', 'A', 'C']
+        msg.position = [1e-3 * k, 0.0, 0.3, 0.0, 0.0]
+        pub.publish(msg)
+        time.sleep(0.02)
+
+
+def check_machine_joints(run, n: int) -> None:
+    js = run.machine_joints
+    assert js is not None and js.names == ['X', 'Y', 'Z', 'A', 'C']
+    assert js.positions[:, 0] == pytest.approx(1e-3 * np.arange(n))
+
+
 @needs_ros
 def test_pose_node_through_every_fault(tmp_path):
     from mmd_ros.nodes.client import MmdClient, guided_calibration
@@ -64,6 +84,9 @@ def test_pose_node_through_every_fault(tmp_path):
         # counter wrap: every channel started 1500 counts below 2^31 - 1 (a factory calibration
         # of the twin, in the same counts); unwrapped counts cross it as the bars move
         check_accuracy(client, start)
+
+        # a machine tool's controller publishes its axis positions: recorded beside the poses
+        publish_machine_joints(client, 20)
 
         # corrupt frames, dropped samples, a pulled cable
         t_faults = time.monotonic()
@@ -155,6 +178,7 @@ def test_pose_node_through_every_fault(tmp_path):
         with client._lock:
             got = [s for s in client.raw_stamps if s <= run.stamps_ns[-1]]
         assert all(s in recorded for s in got)  # everything published up to there was recorded
+        check_machine_joints(run, 20)
     except BaseException:
         print(nodes.dump())
         raise

@@ -84,3 +84,25 @@ def test_interpolate_mode_needs_two_bars():
     _, refs = make(DEVICE, [(6, 'dr4')])
     with pytest.raises(ModelError, match='two reference bars'):
         ThermalCompensation(DEVICE, refs, mode='interpolate')
+
+
+@pytest.mark.parametrize('room_c', [24.2, 28.0])
+def test_calibrated_away_from_20c_the_pose_does_not_follow_the_bar_lengths(room_c):
+    """Issue 10: the reference pairs are CMM distances at 20 °C; the bars are calibrated at the
+    room's temperature, where the ZERODUR plate is a_ref (T - 20) longer. A CDF through the
+    20 °C distances made every bar read short in proportion to its length, and x followed x
+    (0.033 µm over 200 mm at 24.2 °C, 0.058 µm at 28 °C on this twin). Read noise large enough
+    to dither the calibration averages, so that their own rounding does not hide the slope."""
+    from mmd_ros.core.model import Model
+    from mmd_ros.core.pipeline import Pipeline
+    from mmd_ros.twin import AmbientProfile, Effects, TwinDevice, make_scenario
+    twin = TwinDevice(DEVICE, Effects(read_noise_m=25e-9), seed=1)
+    room = AmbientProfile.constant(room_c)
+    calibration = twin.calibrate(0.0, room)
+    run = twin.simulate(make_scenario('iso_linear', ['n_cycles=1']), room, start_s=600.0,
+                        sample_rate_hz=100.0)
+    res = Pipeline(DEVICE, calibration, Model()).process(run.times_s, run.counts)
+    x = run.true_poses[:, 0]
+    err = res.poses[:, 0] - x
+    slope = np.polyfit(x, err, 1)[0]
+    assert abs(slope * 0.2) < 0.008e-6, slope * 0.2   # over the 200 mm of travel

@@ -21,6 +21,7 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
+from mmd_ros.core.calibration import Calibration
 from mmd_ros.core.device import find_config, load_device
 from mmd_ros.twin import (
     HOME_POSE, AmbientProfile, Bump, Effects, Hold, IsoLinear, IsoRotary, MachineErrors,
@@ -167,7 +168,7 @@ def test_ideal_twin_at_constant_temperature_is_reproduced_by_its_calibration(dev
 def test_calibration_routine(device):
     twin = TwinDevice(device, Effects.realistic(), seed=1)
     ambient = AmbientProfile.section_4_1()
-    calibration = twin.calibrate(0.0, ambient)
+    calibration = twin.calibrate(0.0, ambient, approaches=1)   # the paper's routine
     assert sorted(calibration.bars) == sorted(['bar1', 'bar2', 'bar3', 'bar4', 'bar5', 'bar6', 'ref1'])
     for bar in calibration.bars.values():
         assert bar.pairs == tuple(p.name for p in device.pairs)
@@ -176,9 +177,43 @@ def test_calibration_routine(device):
     assert calibration.thermal_zero_m == {'ref1': 0.0}
     assert calibration.ambient_c == pytest.approx(24.2)
     assert calibration.quality == {} and calibration.device == device.name
-    schedule = twin.calibration_schedule(0.0)
+    schedule = twin.calibration_schedule(0.0, approaches=1)
     assert len(schedule) == 7 * 7
     assert schedule[-1].channel == 6 and schedule[-1].pair == 'dr4'
+
+
+def test_two_sided_calibration_measures_hysteresis_and_seating(device):
+    """The default routine seats every bar on every pair from shorter and from longer: the
+    points are the means (free of the friction state), half the difference is each bar's
+    friction hysteresis, their scatter the seating repeatability, and the reference bar read
+    first and last on its resting pair gives the temperature change over the routine."""
+    twin = TwinDevice(device, Effects.realistic(), seed=1)
+    room = AmbientProfile.section_4_1()
+    schedule = twin.calibration_schedule(0.0, approaches=2)
+    assert len(schedule) == 1 + 7 * 7 * 2
+    assert (schedule[0].channel, schedule[0].pair) == (6, 'dr4')          # the drift check
+    assert (schedule[-1].channel, schedule[-1].pair, schedule[-1].seat) == (6, 'dr4', 0)
+    assert {p.approach for p in schedule[1:-2] if p.channel < 6} == {1.0, -1.0}
+    calibration = twin.calibrate(0.0, room, approaches=2)
+    unc = calibration.uncertainty
+    assert unc.approaches == 2
+    truth = twin.physics.hysteresis_m[device.measuring_channels]
+    found = np.array([unc.hysteresis_m[f'bar{i}'] for i in range(1, 7)])
+    np.testing.assert_allclose(found, truth, atol=0.03e-6)     # 0.15..0.45 um, to 30 nm
+    assert 15e-9 < unc.seating_m < 50e-9                         # 30 nm drawn
+    assert 5e-9 < unc.read_noise_m < 15e-9                       # 10 nm
+    back = Calibration.from_yaml(calibration.to_yaml()).uncertainty   # the file keeps them
+    assert back.seating_m == pytest.approx(unc.seating_m, abs=1e-12)
+    assert back.hysteresis_m == pytest.approx(unc.hysteresis_m, abs=1e-11)
+    assert back.drift_m['bar1'] == pytest.approx(unc.drift_m['bar1'], abs=1e-12)
+    # the temperature change over the routine, within its stated uncertainty (the ideal
+    # preset: bars of the device's CTE, so the change reads in degrees as the device says)
+    ideal = TwinDevice(device, Effects.ideal(), seed=1)
+    unc = ideal.calibrate(0.0, room, approaches=2).uncertainty
+    bar_temp = room.lagged(np.array([schedule[0].start_s, schedule[-1].start_s]),
+                           ideal.physics.time_constant_s[6])
+    assert abs(unc.routine_temp_change_c - (bar_temp[1] - bar_temp[0])) < 3 * unc.routine_temp_sigma_c
+    assert unc.routine_temp_sigma_c < 0.03
 
 
 def test_two_reference_bars_each_end_calibration_on_their_resting_pair(device_two_refs):
@@ -214,7 +249,7 @@ def test_reference_bar_thermal_error_over_section_4_1(device, preset, low_um, hi
     run = twin.simulate(ThermalSoak(), room, sample_rate_hz=0.05)
     ref = device.reference_channels[0]
     eps = lengths_from_calibration(calibration, ref.name, run.counts[:, ref.index]) \
-        - device.pair(ref.pair).distance_m  # Eq. (11)
+        - device.pair(ref.pair).distance_m - calibration.thermal_zero_m[ref.name]  # Eq. (11)
     warming = run.bar_temp_c[:, ref.index] - run.bar_temp_c[0, ref.index]
     clear = np.abs(warming) > 0.2
     assert np.all(np.sign(eps[clear]) == -np.sign(warming[clear]))

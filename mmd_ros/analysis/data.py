@@ -27,13 +27,13 @@ from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.kinematics import jacobian
 from mmd_ros.core.model import HysteresisTerm, Model
 from mmd_ros.core.pipeline import Pipeline
-from mmd_ros.core.terms import SamplingSkewTerm
+from mmd_ros.core.terms import SamplingSkewTerm, dahl_state, play_positions
 from mmd_ros.core.units import ARCSEC_PER_RAD, M_PER_UM
 
 __all__ = [
-    'BLOCK', 'FitContext', 'MOVING_M', 'Observation', 'Processed', 'Split', 'binned_r2',
-    'effective_samples', 'make_observation', 'make_split', 'noise_floor', 'residual_features',
-    'run_pipeline',
+    'BLOCK', 'DIRECTION_TRAVEL_M', 'FitContext', 'MOVING_M', 'Observation', 'Processed', 'Split',
+    'bar_quantisation', 'binned_r2', 'effective_samples', 'make_observation', 'make_split', 'noise_floor',
+    'quantisation_floor', 'residual_features', 'run_pipeline', 'sample_noise',
 ]
 
 FloatArray = NDArray[np.float64]
@@ -88,8 +88,7 @@ def run_pipeline(device: DeviceDescription, calibration: Calibration, model: Mod
                  times_s: FloatArray, counts: FloatArray,
                  progress: Callable[[int], None] | None = None) -> Processed:
     """The live pipeline over a whole run, block by block in time order (as ``mmd process``)."""
-    model = Model.from_dict(model.to_dict(), model.source)  # fresh term states
-    pipeline = Pipeline(device, calibration, model)
+    pipeline = Pipeline(device, calibration, model)  # its own copy of the terms' state
     lo, hi = pipeline.cdfs.distances_m.min(axis=1), pipeline.cdfs.distances_m.max(axis=1)
     parts = []
     for start in range(0, times_s.size, BLOCK):
@@ -253,31 +252,78 @@ def effective_samples(series: FloatArray) -> float:
     return max(total, 1.0)
 
 
+#: Mean variance of a linear interpolation between two independent points of equal variance,
+#: relative to that variance: the mean of (1 - w)^2 + w^2 over the segment.
+INTERPOLATED_SHARE = 2.0 / 3.0
+
+
+def bar_quantisation(device: DeviceDescription) -> float:
+    """Variance of a bar's length from rounding to encoder counts [m^2]: the sample's own count
+    (uniform, res^2 / 12), and the CDF points' (Eq. 10): each point is an average of counts that
+    the read noise may be too small to dither (5–10 nm against 50 nm counts), so it can be off
+    by up to half a count, res^2 / 12 again, which the CDF interpolates between the points (on
+    average 2/3 of it along a segment). Systematic, not noise: the twin at 24.2 °C leaves an
+    S-shaped ±0.04 µm x error from it (points off by -14 … +9 nm)."""
+    q = device.encoder_resolution_m ** 2 / 12.0
+    return q * (1.0 + INTERPOLATED_SHARE)
+
+
+def quantisation_floor(device: DeviceDescription, poses: FloatArray, thermal_on: bool) -> FloatArray:
+    """Encoder quantisation propagated into the six pose components, (6,) [m, rad]; mean
+    variance over (up to 500 of) ``poses``. Per bar, :func:`bar_quantisation` [m^2]; and the
+    same as one count again common to all bars for the reference bar's rounding when thermal
+    compensation is on.
+    """
+    q = device.encoder_resolution_m ** 2 / 12.0
+    cov = np.eye(6) * bar_quantisation(device) + (q if thermal_on else 0.0) * np.ones((6, 6))
+    sel = poses[:: max(1, poses.shape[0] // 500)]
+    sel = sel[np.all(np.isfinite(sel), axis=1)]
+    if sel.shape[0] == 0:
+        return np.full(6, np.nan)
+    jinv = np.linalg.inv(jacobian(device.geometry, sel))
+    pc = jinv @ cov @ np.swapaxes(jinv, 1, 2)
+    return np.sqrt(np.mean(np.diagonal(pc, axis1=1, axis2=2), axis=0))
+
+
 def noise_floor(obs: Observation, device: DeviceDescription, processed: Processed,
                 residual: FloatArray, idx: NDArray[np.int64], thermal_on: bool) -> FloatArray:
     """What the residual cannot go below, per observed component, (k,) [m or rad].
 
-    Encoder quantisation (one count, uniform: res / sqrt(12) per bar, and the same again common
-    to all bars for the reference bar's rounding when thermal compensation is on), propagated
-    into the observation space, plus the sample-to-sample noise of the residual itself (robust
-    standard deviation of its differences / sqrt 2: reference noise, read noise).
+    Encoder quantisation (:func:`quantisation_floor`; for bar lengths
+    :func:`bar_quantisation` and the reference bar's rounding), propagated into the observation
+    space, plus the sample-to-sample
+    noise of the residual itself (robust standard deviation of its differences / sqrt 2:
+    reference noise, read noise), taken over the pairs of consecutive samples in which the bars
+    moved least.
     """
     q = device.encoder_resolution_m ** 2 / 12.0
-    cov = np.eye(6) * q + (q if thermal_on else 0.0) * np.ones((6, 6))
     if obs.kind == 'pose':
-        sel = idx[:: max(1, idx.size // 500)]
-        jinv = np.linalg.inv(jacobian(device.geometry, processed.poses[sel]))
-        pc = jinv @ cov @ np.swapaxes(jinv, 1, 2)
-        quant = np.mean(np.diagonal(pc, axis1=1, axis2=2), axis=0)[obs.components]
+        quant = quantisation_floor(device, processed.poses[idx], thermal_on)[obs.components] ** 2
     else:
-        quant = np.diag(cov)[obs.components]
+        quant = np.full(len(obs.components), bar_quantisation(device) + (q if thermal_on else 0.0))
+    return np.sqrt(quant + sample_noise(residual, processed, idx) ** 2)
+
+
+def sample_noise(values: FloatArray, processed: Processed, idx: NDArray[np.int64]) -> FloatArray:
+    """Sample-to-sample noise of ``values`` (N, k), (k,): the robust standard deviation of the
+    differences of consecutive samples / sqrt 2, over the slowest tenth of the pairs (at least
+    50) in ``idx`` — a fast bar crosses a short-period error (cyclic error, a bump) between two
+    samples, which is structure, not noise. Zero with fewer than 10 pairs."""
     consecutive = idx[np.flatnonzero(np.diff(idx) == 1)]
-    white = np.zeros(len(obs.components))
-    if consecutive.size > 10:
-        diff = residual[consecutive + 1] - residual[consecutive]
-        mad = np.median(np.abs(diff - np.median(diff, axis=0)), axis=0)
-        white = (1.4826 * mad / np.sqrt(2.0)) ** 2
-    return np.sqrt(quant + white)
+    if consecutive.size <= 10:
+        return np.zeros(values.shape[1])
+    motion = np.max(np.abs(processed.cdf_lengths_m[consecutive + 1]
+                           - processed.cdf_lengths_m[consecutive]), axis=1)
+    keep = max(50, consecutive.size // 10)
+    if consecutive.size > keep:
+        consecutive = consecutive[np.argsort(motion, kind='stable')[:keep]]
+    diff = values[consecutive + 1] - values[consecutive]
+    ok = np.all(np.isfinite(diff), axis=1)
+    diff = diff[ok]
+    if diff.shape[0] < 10:
+        return np.zeros(values.shape[1])
+    mad = np.median(np.abs(diff - np.median(diff, axis=0)), axis=0)
+    return 1.4826 * mad / np.sqrt(2.0)
 
 
 def binned_r2(values: FloatArray, feature: FloatArray, n_bins: int = 20) -> float:
@@ -323,6 +369,11 @@ class FitContext:
     obs: Observation
     options: Any = None
     cache: dict[Any, Any] = field(default_factory=dict)
+    #: the residual of the model analysed, (N, k) [m, rad], NaN where not usable; its noise
+    #: floor (k,) and the training samples (for estimates that look at the residual itself)
+    residual: FloatArray | None = None
+    floor: FloatArray | None = None
+    train_idx: NDArray[np.int64] | None = None
 
     def cached(self, key: Any, make: Callable[[], Any]) -> Any:
         if key not in self.cache:
@@ -333,6 +384,14 @@ class FitContext:
         """Motion direction of each bar (the hysteresis term's play operator), (N, 6)."""
         return self.cached(('dir', travel_m), lambda: HysteresisTerm(np.ones(6), travel_m).directions(
             self.base.pre_lengths_m))
+
+    def friction(self, travel_m: float) -> FloatArray:
+        """Dahl friction state of each bar (the friction term's), (N, 6)."""
+        def make() -> FloatArray:
+            x = self.base.pre_lengths_m
+            pos = self.cached('play', lambda: play_positions(x, self.device.encoder_resolution_m, None))
+            return dahl_state(pos, travel_m, (x[0], np.zeros(6), x[0], np.zeros(6)))[0]
+        return self.cached(('friction', travel_m), make)
 
     def velocities(self) -> FloatArray:
         """Bar velocities (backward differences of the CDF lengths, the skew term's), (N, 6) [m/s]."""

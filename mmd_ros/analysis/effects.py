@@ -14,7 +14,7 @@ along the effect's own coordinate).
 
 | effect | term | signature per bar i (correction per unit parameter) |
 |---|---|---|
-| hysteresis | hysteresis (one per play) | -direction_i(t) of plays of half-width travel |
+| hysteresis | friction | -s_i(t), Dahl friction state turning over within a fitted travel |
 | thermal_gain | thermal_gain | -eps_i(t) (gain), d eps_i/dt (lag) |
 | thermal_interpolation | thermal_interpolation | (d_i - d_ref) eps(t), one coefficient |
 | plate_expansion | plate_scale | -dd_i/ds x (1, dT, -alpha_p d(dT)/dt) |
@@ -36,14 +36,16 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from mmd_ros.analysis.data import MOVING_M, FitContext
+from mmd_ros.analysis.data import DIRECTION_TRAVEL_M, MOVING_M, FitContext
 from mmd_ros.analysis.errors import AnalysisError
-from mmd_ros.core.model import HysteresisTerm, ModelTerm
+from mmd_ros.core.model import ModelTerm
 from mmd_ros.core.terms import (
-    DERIVATIVE_FILTER_S, CdfOffsetsTerm, CyclicErrorTerm, DriftTerm, GravitySagTerm, JointOffsetsTerm,
+    DERIVATIVE_FILTER_S, CdfOffsetsTerm, CyclicErrorTerm, DriftTerm, FrictionTerm, GravitySagTerm,
+    JointOffsetsTerm,
     PlateScaleTerm, SamplingSkewTerm, ScaleNonlinearityTerm, ThermalGainTerm,
     ThermalInterpolationTerm, ema, leg_geometry,
 )
+from mmd_ros.core.kinematics import jacobian
 from mmd_ros.core.units import M_PER_UM
 
 __all__ = ['CATALOGUE', 'Effect', 'Parameter', 'catalogue']
@@ -57,12 +59,16 @@ THERMAL_MIN_M = 0.5e-6
 INTERPOLATION_MIN_M = 10e-3
 #: A plate CTE or lag needs the temperature to change by at least this much [°C].
 PLATE_MIN_C = 0.2
-#: Standard signal periods of incremental optical scales [m] (cyclic error candidates).
-CYCLIC_PERIODS_M = (2e-6, 4e-6, 8e-6, 10e-6, 16e-6, 20e-6, 40e-6)
-#: Travels tried for the hysteresis play operator [m].
-HYSTERESIS_TRAVELS_M = (0.5e-6, 2e-6, 5e-6, 20e-6)
-#: Superpositions of plays tried for a friction state that turns over some travel [m].
-HYSTERESIS_PLAY_SETS_M = ((0.5e-6, 2e-6, 8e-6), (0.25e-6, 1e-6, 4e-6, 16e-6))
+#: Periods of a cyclic error searched in the residual's spectrum: from 4 counts up to this,
+#: and at most an eighth of a bar's travel (longer is scale nonlinearity) [m].
+CYCLIC_MAX_PERIOD_M = 2e-3
+#: A spectral peak counts when its power is this many times the local median of the spectrum
+#: (the largest of ~10^6 noise bins is about 20 times it).
+CYCLIC_PEAK_RATIO = 30.0
+#: Candidate periods taken from the spectrum.
+CYCLIC_CANDIDATES = 3
+#: Starting grid of the friction turn-over travel (Dahl), refined between neighbours [m].
+FRICTION_TRAVELS_M = tuple(0.1e-6 * 2.0 ** k for k in range(11))
 #: Harmonics of the scale error over the calibrated span.
 SCALE_HARMONICS = 3
 
@@ -105,6 +111,9 @@ class Effect:
     title = ''
     physics = ''
     needs_pose = False
+    #: Whose property the parameters are: 'device' (shared by every run), 'calibration' (they
+    #: belong to one calibration: fitted per calibration, re-analyse after a new one) or 'run'.
+    scope = 'device'
 
     def applicable(self, ctx: FitContext) -> str | None:
         """None when the effect can be tested on this log, else why not."""
@@ -113,11 +122,18 @@ class Effect:
                     'effect does not change them')
         return None
 
-    def hypers(self, ctx: FitContext) -> list[Any]:
+    def hypers(self, ctxs: list[FitContext]) -> list[Any]:
+        """Settings to try, given every run of the analysis."""
         return [None]
 
     def hyper_label(self, hyper: Any) -> str:
         return ''
+
+    def refine_bounds(self, hyper: Any, tried: list[Any], ctxs: list[FitContext]
+                      ) -> tuple[float, float] | None:
+        """For a continuous setting: the interval around the best one tried in which to refine
+        it (golden section in its logarithm); None when the setting is not refined."""
+        return None
 
     def parameters(self, ctx: FitContext, hyper: Any) -> list[Parameter]:
         raise NotImplementedError
@@ -158,51 +174,45 @@ def _moving_bars(ctx: FitContext) -> BoolArray:
 # -- the catalogue -----------------------------------------------------------------------------
 class Hysteresis(Effect):
     name = 'hysteresis'
-    term_type = 'hysteresis'
+    term_type = 'friction'
     title = 'friction hysteresis'
     physics = ('friction in the ball joints and guides makes a bar read differently when it '
-               'lengthens and when it shortens (section 5.3); the correction depends on the sign '
-               'of each bar\'s recent motion (play operator); a friction state that turns over '
-               'some travel is a sum of plays of several travels (Prandtl–Ishlinskii)')
+               'lengthens and when it shortens (section 5.3); the friction state turns over '
+               'gradually after a reversal (Dahl), within a travel estimated from the data')
+    def hypers(self, ctxs):
+        return list(FRICTION_TRAVELS_M)
 
-    def hypers(self, ctx: FitContext) -> list[Any]:
-        return [(w,) for w in HYSTERESIS_TRAVELS_M] + list(HYSTERESIS_PLAY_SETS_M)
+    def refine_bounds(self, hyper, tried, ctxs):
+        k = tried.index(hyper)
+        return tried[max(k - 1, 0)], tried[min(k + 1, len(tried) - 1)]
 
     def hyper_label(self, hyper: Any) -> str:
-        return 'travel ' + ' + '.join(f'{w / M_PER_UM:g}' for w in hyper) + ' µm'
+        return f'turn-over travel {hyper / M_PER_UM:.3g} µm'
 
     def parameters(self, ctx: FitContext, hyper: Any) -> list[Parameter]:
-        if len(hyper) == 1:
-            return _bar_names('amplitude', 'µm', 1 / M_PER_UM, 5e-6)
-        out = []
-        for w in hyper:
-            out += _bar_names(f'amplitude ({w / M_PER_UM:g} µm play)', 'µm', 1 / M_PER_UM, 5e-6)
-        return out
+        return _bar_names('amplitude', 'µm', 1 / M_PER_UM, 5e-6)
 
     def signature(self, ctx, hyper, idx):
-        return _per_bar([-ctx.directions(w)[idx] for w in hyper])
+        return _diag(-ctx.friction(hyper)[idx])
 
     def coverage(self, ctx, hyper, idx):
-        d = ctx.directions(hyper[-1])[idx]
+        d = ctx.directions(DIRECTION_TRAVEL_M)[idx]
         ok = (np.mean(d > 0, axis=0) > 0.01) & (np.mean(d < 0, axis=0) > 0.01)
-        return np.tile(ok, len(hyper)), '' if ok.all() else 'bars that do not move both ways: ' + _bars(~ok)
+        return ok, '' if ok.all() else 'bars that do not move both ways: ' + _bars(~ok)
 
-    def make_terms(self, ctx, hyper, theta):
-        t = np.asarray(theta).reshape(len(hyper), 6)
-        return [HysteresisTerm(t[k], w) for k, w in enumerate(hyper)]
+    def make_term(self, ctx, hyper, theta):
+        return FrictionTerm(np.asarray(theta), float(hyper), ctx.device.encoder_resolution_m)
 
     def diagnostics(self, ctx, hyper):
-        d = ctx.directions(hyper[0])
+        d = ctx.directions(DIRECTION_TRAVEL_M)
         return {f'bar{i + 1} direction': d[:, i] for i in np.flatnonzero(_moving_bars(ctx))}
 
     def interpret(self, ctx, hyper, theta, sigma):
-        total = np.asarray(theta).reshape(len(hyper), 6).sum(axis=0)
-        amp = np.abs(total) / M_PER_UM
-        sign = 'long' if np.mean(total) > 0 else 'short'
+        amp = np.abs(np.asarray(theta)) / M_PER_UM
+        sign = 'long' if np.mean(theta) > 0 else 'short'
         return [f'mean |amplitude| {amp.mean():.3f} µm (bars {amp.min():.3f} … {amp.max():.3f} µm): '
-                f'the bars read {sign} while lengthening; the direction turns over '
-                f'{2 * hyper[0] / M_PER_UM:g}' + (f' … {2 * hyper[-1] / M_PER_UM:g}' if len(hyper) > 1 else '')
-                + ' µm of reverse travel']
+                f'the bars read {sign} while lengthening; the friction state turns over within about '
+                f'{3 * hyper / M_PER_UM:.3g} µm of reverse travel (travel constant {hyper / M_PER_UM:.3g} µm)']
 
 
 class ThermalGain(Effect):
@@ -437,6 +447,7 @@ class ScaleNonlinearity(Effect):
 
 
 class CalibrationPoints(Effect):
+    scope = 'calibration'
     name = 'calibration_points'
     term_type = 'cdf_offsets'
     title = 'errors of the calibration points'
@@ -489,12 +500,25 @@ class CyclicError(Effect):
             origin.append(float(np.asarray(bar.counts)[order][0]))
         return channels, np.array(origin)
 
-    def hypers(self, ctx):
-        opts = getattr(ctx.options, 'cyclic_periods_m', None)
-        return list(opts) if opts else list(CYCLIC_PERIODS_M)
+    scope = 'calibration'   # the phase is counted from the calibration's first point
+
+    def hypers(self, ctxs):
+        opts = getattr(ctxs[0].options, 'cyclic_periods_m', None)
+        if opts:
+            return list(opts)
+        return [p for p, _ in cyclic_periods(ctxs, self._setup)]
 
     def hyper_label(self, hyper):
-        return f'period {hyper / M_PER_UM:g} µm'
+        return f'period {hyper / M_PER_UM:.5g} µm'
+
+    def refine_bounds(self, hyper, tried, ctxs):
+        # one bin of the spectrum either side: the phase drifts by a cycle over the travel
+        travel = max((float(np.max(np.ptp(self._phase_position(c, c.train_idx), axis=0)))
+                      for c in ctxs if c.train_idx is not None and c.train_idx.size), default=0.0)
+        if travel <= 0:
+            return None
+        step = hyper * hyper / travel
+        return max(hyper - step, 0.5 * hyper), hyper + step
 
     def parameters(self, ctx, hyper):
         return _bar_names('sin', 'nm', 1e9, 2e-6) + _bar_names('cos', 'nm', 1e9, 2e-6)
@@ -597,6 +621,7 @@ class GravitySag(Effect):
 
 
 class Drift(Effect):
+    scope = 'run'
     name = 'drift'
     term_type = 'drift'
     title = 'slow drift'
@@ -620,6 +645,93 @@ class Drift(Effect):
     def interpret(self, ctx, hyper, theta, sigma):
         rates = theta[6:] * 3600 / M_PER_UM
         return [f'rates {np.min(rates):+.2f} … {np.max(rates):+.2f} µm/h']
+
+
+def cyclic_periods(ctxs: list[FitContext], setup: Any) -> list[tuple[float, float]]:
+    """Periods of a cyclic error in the residual, estimated from its spectrum against each
+    bar's scale position (no list of standard periods: a scale of any signal period is found).
+
+    For each run and moving bar i, the training residual (weighted by the noise floor) is
+    projected onto the bar: g_i = sum_k r_k dp_k/dd_i (the column a length error of bar i
+    makes in the observation space). Counts are integers, so g_i binned by the bar's count is a
+    regular series along the scale; its periodogram |FFT|^2, divided by its running median over
+    a factor 1.3 of frequency (the background of other effects leaks to long periods), peaks at
+    the cyclic error's spatial frequency. Peaks above ``CYCLIC_PEAK_RATIO`` are refined by a
+    parabola through the log power of three bins and merged over bars and runs (a scale type
+    has one period).
+
+    returns : [(period [m], summed peak ratio)], strongest first, at most ``CYCLIC_CANDIDATES``
+    """
+    peaks: list[tuple[float, float]] = []
+    for ctx in ctxs:
+        if ctx.residual is None or ctx.train_idx is None or ctx.train_idx.size < 100:
+            continue
+        idx = ctx.train_idx
+        r = np.nan_to_num(ctx.residual[idx])
+        channels, origin = setup(ctx)
+        res_m = ctx.device.encoder_resolution_m
+        if ctx.obs.kind == 'pose':
+            jinv = np.linalg.inv(jacobian(ctx.device.geometry, ctx.base.poses[idx]))
+            cols = jinv[:, ctx.obs.components, :] / ctx.floor[None, :, None]   # (n, k, 6)
+            g = np.einsum('nk,nki->ni', r, cols)
+        else:
+            g = np.zeros((idx.size, 6))
+            for j, bar in enumerate(ctx.obs.components):
+                g[:, bar] = r[:, j] / ctx.floor[j]
+        q = np.rint(ctx.counts[np.ix_(idx, channels)] - origin).astype(np.int64)
+        for i in np.flatnonzero(_moving_bars(ctx)):
+            lo, span = int(q[:, i].min()), int(np.ptp(q[:, i])) + 1
+            longest = min(CYCLIC_MAX_PERIOD_M / res_m, span / 8.0)
+            if longest < 8 or not np.any(g[:, i]):
+                continue
+            series = np.bincount(q[:, i] - lo, weights=g[:, i], minlength=span)
+            nfft = 1 << int(math.ceil(math.log2(2 * span)))
+            power = np.abs(np.fft.rfft(series, nfft)) ** 2
+            freq = np.arange(power.size) / nfft                      # cycles per count
+            band = np.flatnonzero((freq >= 1.0 / longest) & (freq <= 0.25))
+            if band.size < 16:
+                continue
+            background = _running_median_log(freq[band], power[band], 1.3)
+            ratio = power[band] / np.maximum(background, 1e-300)
+            for j in _local_maxima(ratio, CYCLIC_CANDIDATES):
+                if ratio[j] < CYCLIC_PEAK_RATIO or j == 0 or j == band.size - 1:
+                    continue
+                k = band[j]
+                a, b, c = np.log(power[k - 1:k + 2] + 1e-300)
+                den = a - 2 * b + c
+                shift = 0.5 * (a - c) / den if den < 0 else 0.0
+                peaks.append((res_m / ((k + shift) / nfft), float(ratio[j])))
+    merged: list[list[float]] = []   # [period weighted sum, weight]
+    for period, weight in sorted(peaks, key=lambda t: -t[1]):
+        for m in merged:
+            if abs(period - m[0] / m[1]) <= 0.005 * period:
+                m[0] += period * weight
+                m[1] += weight
+                break
+        else:
+            merged.append([period * weight, weight])
+    out = sorted(((m[0] / m[1], m[1]) for m in merged), key=lambda t: -t[1])
+    return out[:CYCLIC_CANDIDATES]
+
+
+def _running_median_log(freq: FloatArray, power: FloatArray, factor: float) -> FloatArray:
+    """Median of ``power`` over frequencies within a factor ``factor`` of each frequency,
+    computed on 200 log-spaced bands and interpolated."""
+    edges = np.geomspace(freq[0], freq[-1], 201)
+    centres = np.sqrt(edges[:-1] * edges[1:])
+    med = np.empty(centres.size)
+    for k, c in enumerate(centres):
+        lo, hi = np.searchsorted(freq, [c / factor, c * factor])
+        med[k] = np.median(power[lo:max(hi, lo + 1)])
+    return np.interp(np.log(freq), np.log(centres), med)
+
+
+def _local_maxima(values: FloatArray, count: int) -> list[int]:
+    """Indices of the ``count`` largest local maxima of ``values``, largest first."""
+    if values.size < 3:
+        return []
+    inner = np.flatnonzero((values[1:-1] >= values[:-2]) & (values[1:-1] > values[2:])) + 1
+    return [int(i) for i in inner[np.argsort(-values[inner])][:count]]
 
 
 def _knots(ctx: FitContext) -> FloatArray:

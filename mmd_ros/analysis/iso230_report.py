@@ -21,7 +21,7 @@ from mmd_ros.core.model import Model
 from mmd_ros.core.units import M_PER_MM
 from mmd_ros.logs.layout import RunLog
 
-__all__ = ['INSTRUMENTS', 'Iso230Report', 'iso230_of_run', 'parse_targets']
+__all__ = ['INSTRUMENTS', 'Iso230Report', 'fitted_runs', 'iso230_of_run', 'parse_targets']
 
 INSTRUMENTS = ('mmd', 'reference', 'error')
 
@@ -34,13 +34,26 @@ class Iso230Report:
         rows of Tables 3–4
     source : what the results were read from ('mcap', or 'csv (... layout)')
     log_problem : what was lost reading the log (``LogProblem.as_dict``), or None
+    in_sample : label -> whether that model was fitted on this very run
     """
 
     def __init__(self, log: str, axis: str, results: dict[str, IsoResult], models: dict[str, str],
-                 source: str = 'mcap', log_problem: dict[str, Any] | None = None) -> None:
+                 source: str = 'mcap', log_problem: dict[str, Any] | None = None,
+                 in_sample: dict[str, bool] | None = None) -> None:
         self.log, self.axis, self.results, self.models = log, axis, results, models
         self.source = source
         self.log_problem = log_problem
+        self.in_sample = in_sample or {}
+
+    def sample_note(self) -> str:
+        """Whether the models were fitted on this run (then the figures are in-sample)."""
+        inside = [label for label, v in self.in_sample.items() if v]
+        if not inside:
+            return ''
+        return ('IN-SAMPLE: ' + ', '.join(inside) + (' was' if len(inside) == 1 else ' were')
+                + ' fitted on this very run (its model file names the run by the hash of its raw '
+                'counts); these figures do not show how the model does on other runs. Evaluate a '
+                'run the model was not fitted on.')
 
     @property
     def unit(self) -> str:
@@ -63,7 +76,7 @@ class Iso230Report:
     def as_dict(self) -> dict[str, Any]:
         return {'log': self.log, 'source': self.source, 'log_problem': self.log_problem,
                 'axis': self.axis, 'unit': self.unit,
-                'models': self.models,
+                'models': self.models, 'in_sample': self.in_sample, 'sample_note': self.sample_note(),
                 'results': {k: v.as_dict() for k, v in self.results.items()},
                 'table': [{'row': n, **{k: (None if not math.isfinite(v) else v) for k, v in f.items()}}
                           for n, f in self.rows()]}
@@ -74,6 +87,8 @@ class Iso230Report:
         lines = [f'# ISO 230-2 evaluation of axis {self.axis}', '', f'{what}: `{self.log}`{tail}', '']
         if self.log_problem:
             lines += [f'**The log was not read whole:** {self.log_problem["message"]}', '']
+        if self.sample_note():
+            lines += [f'**{self.sample_note()}**', '']
         for tag, text in self.models.items():
             lines.append(f'- {tag}: {text}')
         lines += ['', '## Axis figures (the paper\'s Tables 3–4)', '',
@@ -133,8 +148,22 @@ def iso230_of_run(run: RunLog, axis: str | None = None, models: dict[str, Model]
     results = evaluate_run(run.times_s, AXIS_NAMES[k], signals, detect, targets, min_dwell_s=min_dwell_s)
     texts = {label: f'{len(m.terms)} term(s): {", ".join(t.type_name for t in m.terms) or "CDF + thermal only"}'
              for label, m in models.items()}
-    return Iso230Report(str(run.path), AXIS_NAMES[k], results, texts,
+    ident = run.content_hash()
+    in_sample = {label: ident in fitted_runs(m) for label, m in models.items()}
+    for label, inside in in_sample.items():
+        texts[label] += ' (fitted on this run: in-sample)' if inside else (
+            ' (not fitted on this run)' if fitted_runs(models[label]) else '')
+    return Iso230Report(str(run.path), AXIS_NAMES[k], results, texts, in_sample=in_sample,
                         log_problem=run.problem.as_dict() if run.problem else None)
+
+
+def fitted_runs(model: Model) -> set[str]:
+    """Content hashes of the runs a model was fitted on (its ``validity`` record; empty for a
+    model that no analysis wrote)."""
+    validity = model.extra.get('validity')
+    if not isinstance(validity, dict):
+        return set()
+    return {str(r.get('ident')) for r in validity.get('runs') or [] if isinstance(r, dict) and r.get('ident')}
 
 
 def parse_targets(text: str | None, axis: str) -> np.ndarray | None:

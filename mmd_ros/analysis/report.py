@@ -93,9 +93,12 @@ def _markdown(a: Analysis, figs: dict[str, str], model_path: Path | None) -> str
           + (' (a constant offset per component removed: the instrument is zeroed)' if o.datum else '') + '  ',
           f'Samples: {a.times_s.size} over {a.times_s[-1]:.1f} s; {a.split.train_idx.size} for fitting, '
           f'{a.split.test_idx.size} held out ({a.split.n_blocks} time blocks, one of each pair held out)', '']
-    if a.log_problem:
-        L += [f'**The log was not read whole:** {a.log_problem["message"]}', '']
+    for run in a.runs:
+        if run.log_problem:
+            L += [f'**`{run.name}` was not read whole:** {run.log_problem["message"]}', '']
     L += ['## Conclusion', '', a.conclusion, '']
+    L += ['## Validation', '', f'{a.validation[0].upper()}{a.validation[1:]}.', '']
+    L += _runs_table(a) + ['']
     if model_path is not None:
         L += [f'Extended model: `{model_path.name}` (`mmd process --model {model_path.name}`, or the '
               'compensation node\'s `model_file` parameter).', '']
@@ -148,6 +151,17 @@ def _markdown(a: Analysis, figs: dict[str, str], model_path: Path | None) -> str
         L += _param_table(f) + ['']
     for f in a.not_claimed:
         L += [f'Not claimed: {f.title}: {f.reason}.', '']
+    if a.unchecked:
+        L += ['### Found but not written', '',
+              'These explain part of the residual, but what they would do to the pose components '
+              'no reference saw is not determined by these runs (or the pipeline with them makes '
+              'a component worse). They stay in the fit (so that they do not bend the others) and '
+              'are left out of the model; `--accept-unchecked` writes them.', '']
+        for f in a.unchecked:
+            setting = f', {f.hyper_label}' if f.hyper_label else ''
+            L += [f'- **{f.title}** (`{f.effect}`{setting}): {f.reason}.']
+            L += [f'  - {u.message()}' for u in f.unchecked[:6]]
+        L += ['']
     L += ['## 4. Error before and after (held-out blocks, pipeline re-run with the extended model)', '']
     L += _stats_table(a.stats_before, a.stats_after or [], a.stats_predicted) + ['']
     if a.per_bar_before and a.per_bar_after:
@@ -168,15 +182,43 @@ def _markdown(a: Analysis, figs: dict[str, str], model_path: Path | None) -> str
     return '\n'.join(L)
 
 
+def _fmt(stats: list[ComponentError] | None) -> str:
+    if not stats:
+        return '–'
+    return ', '.join(f'{s.name} {s.rms:.3g} {_u(s.unit)}' for s in stats)
+
+
+def _runs_table(a: Analysis) -> list[str]:
+    """Per log: reference, noise floor, RMS before and after (held-out blocks, and each log
+    predicted by the model fitted on the others)."""
+    lines = ['| log | reference | noise floor | held-out blocks: before → after | '
+             'leave-one-run-out: before → after |', '|---|---|---|---|---|']
+    for r in a.runs:
+        floor = ', '.join(f'{n} {v:.2g} {_u(u)}' for (n, v), u in zip(r.floor.items(), r.units))
+        loro = (f'{_fmt(r.loro_before)} → {_fmt(r.loro_after)}' if r.loro_before is not None
+                else '– (one log)')
+        if r.loro_note:
+            loro += f' ({r.loro_note})'
+        lines.append(f'| {Path(r.name).name} | {r.reference} | {floor} | {_fmt(r.before)} → '
+                     f'{_fmt(r.after)} | {loro} |')
+    return lines
+
+
 def format_summary(a: Analysis) -> str:
     """A few lines for the terminal."""
     lines = [f'residual of the current model ({a.obs.description}), held-out RMS: '
              + ', '.join(f'{s.name} {s.rms:.3g} {_u(s.unit)}' for s in a.stats_before)]
+    lines.append(f'validation: {a.validation}')
+    for r in a.runs:
+        if r.loro_before is not None:
+            lines.append(f'  {Path(r.name).name}: leave-one-run-out {_fmt(r.loro_before)} → {_fmt(r.loro_after)}')
     for f in a.found:
         lines.append(f'found {f.effect} ({f.title}{", " + f.hyper_label if f.hyper_label else ""}): '
                      + '; '.join(f.interpretation))
     for f in a.not_claimed:
         lines.append(f'not claimed {f.effect}: {f.reason}')
+    for f in a.unchecked:
+        lines.append(f'not written {f.effect}: {f.reason}')
     if a.stats_after:
         lines.append('after, held-out RMS: ' + ', '.join(f'{s.name} {s.rms:.3g} {_u(s.unit)}' for s in a.stats_after))
     lines.append(a.conclusion)

@@ -1,5 +1,6 @@
-"""``mmd analyze LOG.mcap --out DIR``: close the loop with measured data (residual → effect →
-extended model → error before and after)."""
+"""``mmd analyze LOG.mcap [LOG.mcap ...] --out DIR``: close the loop with measured data
+(residual → effect → extended model → error before and after), on one log or a session of logs
+of one device."""
 
 from __future__ import annotations
 
@@ -42,25 +43,28 @@ def _names(text: str | None) -> list[str] | None:
 def run_command(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     quiet = args.json or args.quiet
-    check_output_folder('--out', args.out, [args.log, args.model, args.calibration], OUTPUT_FILES)
+    check_output_folder('--out', args.out, [*args.logs, args.model, args.calibration], OUTPUT_FILES)
 
     def say(text: str) -> None:
         if not quiet:
             print(f'[{time.perf_counter() - started:6.1f} s] {text}', file=sys.stderr, flush=True)
 
-    say(f'reading {args.log}')
-    run = read_run(args.log, segment=args.segment)
-    if run.problem:
-        print(f'warning: {run.problem}', file=sys.stderr)
-    model = load_model(args.model) if args.model else (run.model or Model())
+    runs = []
+    for path in args.logs:
+        say(f'reading {path}')
+        run = read_run(path, segment=args.segment)
+        if run.problem:
+            print(f'warning: {path}: {run.problem}', file=sys.stderr)
+        runs.append(run)
+    model = load_model(args.model) if args.model else (runs[0].model or Model())
     calibration = load_calibration(args.calibration) if args.calibration else None
     periods = tuple(v * M_PER_UM for v in args.cyclic_period_um) if args.cyclic_period_um else None
     options = AnalysisOptions(
         effects=_names(args.effects), exclude=tuple(_names(args.exclude) or ()),
         n_blocks=args.blocks, max_samples=args.max_samples, min_gain=args.min_gain,
         max_effects=args.max_effects, datum='none' if args.absolute_reference else 'auto',
-        seed=args.seed, cyclic_periods_m=periods)
-    result = analyze(run, model, calibration, options, progress=say)
+        seed=args.seed, cyclic_periods_m=periods, accept_unchecked=args.accept_unchecked)
+    result = analyze(runs, model, calibration, options, progress=say)
     written = {}
     if args.out:
         say(f'writing the report to {args.out}')
@@ -86,7 +90,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         'residual significantly, write the extended model and report the error before and after '
         '(the pipeline re-run with the extended model).',
         epilog=f'Catalogue: {", ".join(CATALOGUE)}. See msg_docs/analysis.md.')
-    p.add_argument('log', help='MCAP log with raw counts and a reference (pose or bar lengths)')
+    p.add_argument('logs', nargs='+', metavar='LOG',
+                   help='MCAP logs of one device with raw counts and a reference (pose components or '
+                   'bar lengths): one run, or the session of runs (x, y, z, C...) analysed jointly')
     p.add_argument('--model', help='current model file (default: the log\'s, else CDF + thermal)')
     p.add_argument('--calibration', help='calibration file to use instead of the one in the log')
     p.add_argument('--out', help='folder for report.md, analysis.json, the figures and model.yaml')
@@ -102,11 +108,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help='smallest relative fall of the held-out RMS for an effect, in [0, 1) '
                    '(default 0.05)')
     p.add_argument('--max-effects', type=validate.arg_number(low=0, high=len(CATALOGUE), integer=True),
-                   default=4, dest='max_effects', help='most effects added (default 4)')
+                   default=6, dest='max_effects', help='most effects added (default 6)')
     p.add_argument('--cyclic-period-um', dest='cyclic_period_um',
                    type=validate.arg_numbers(low=0.0, low_open=True, high=MAX_PERIOD_UM),
-                   help='signal period(s) of the scales in µm, comma separated (default: tries '
-                   '2, 4, 8, 10, 16, 20, 40)')
+                   help='signal period(s) of the scales in µm, comma separated (default: estimated '
+                   'from the residual\'s spectrum against each bar\'s scale position)')
+    p.add_argument('--accept-unchecked', action='store_true', dest='accept_unchecked',
+                   help='also write effects whose consequence on pose components no reference saw '
+                   'is not determined by the data (default: reported, not written)')
     p.add_argument('--absolute-reference', action='store_true', dest='absolute_reference',
                    help='the reference pose is absolute in {L} (default: zeroed, an offset per '
                    'component is removed)')

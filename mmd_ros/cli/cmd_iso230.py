@@ -76,6 +76,8 @@ def run_command(args: argparse.Namespace) -> int:
         return 0
     print(f'ISO 230-2, axis {report.axis}, {"log" if report.source == "mcap" else report.source} '
           f'{args.log}')
+    if report.sample_note():
+        print(report.sample_note())
     for tag, text in report.models.items():
         print(f'  {tag}: {text}')
     print(figure_table(report.rows(), report.unit))

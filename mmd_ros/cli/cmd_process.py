@@ -36,7 +36,8 @@ def run_command(args: argparse.Namespace) -> int:
         progress = Progress('processing', max(run.n_samples, 1), enabled=not quiet)
         summary = process_log(run, out, chosen or run.model or Model(), calibration=cal,
                               with_covariance=args.covariance,
-                              csv=Path(args.csv) if args.csv else None, progress=progress)
+                              csv=Path(args.csv) if args.csv else None, progress=progress,
+                              absolute_reference=True if args.absolute_reference else None)
         progress.close()
         return summary
 
@@ -69,6 +70,11 @@ def run_command(args: argparse.Namespace) -> int:
         from mmd_ros.core.accuracy import ComponentStats
         print(format_stats([ComponentStats(**s) for s in summary['pose_error']],
                            'pose error against the reference (MMD - reference):'))
+    if 'uncertainty_coverage' in summary:
+        from mmd_ros.core.accuracy import format_coverage
+        print(format_coverage(summary['uncertainty_coverage']))
+        for note in summary.get('uncertainty_budget', {}).get('notes', []):
+            print(f'  not in the budget: {note}')
     if 'length_error' in summary:
         from mmd_ros.core.accuracy import ComponentStats
         print(format_stats([ComponentStats(**s) for s in summary['length_error']],
@@ -88,7 +94,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument('--out', help='output MCAP (default: LOG.processed.mcap)')
     p.add_argument('--csv', help='also write the poses and lengths as CSV to this file')
     p.add_argument('--covariance', action='store_true',
-                   help='also write /mmd/pose_with_covariance (propagated uncertainty)')
+                   help='also write /mmd/pose_with_covariance (the propagated uncertainty, '
+                   'msg_docs/frames.md); with a reference pose in the log it is always computed '
+                   'and compared with the error')
+    p.add_argument('--absolute-reference', action='store_true', dest='absolute_reference',
+                   help='the reference pose is absolute in {L} (default: what the log\'s metadata '
+                   'says, else zeroed at the start: an offset per component is removed)')
     add_segment_argument(p)
     p.add_argument('--force', action='store_true',
                    help='allow --out/--csv to replace an existing raw log (never the input)')

@@ -23,7 +23,7 @@ def run_command(args: argparse.Namespace) -> int:
         scenario=args.scenario, scenario_params=tuple(args.param), effects=args.effects,
         effect_params=tuple(args.effect), seed=args.seed, device=args.device, ambient=args.ambient,
         calibrate_at_s=args.calibrate_at, start_s=args.start, reference=args.reference,
-        sample_rate_hz=args.rate)
+        sample_rate_hz=args.rate, calibration_approaches=2 if args.two_sided else 1)
     out = Path(args.out)
     check_outputs([('--out', out)], spec_inputs(spec), force=args.force)
     started = time.perf_counter()
@@ -79,6 +79,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help='sample rate of the log [Hz], at most the terminal\'s maximum '
                    f'({MAX_SAMPLE_RATE_HZ} Hz); default the device\'s (1 kHz); a lower rate keeps '
                    'every k-th sample (for hours-long thermal soaks)')
+    p.add_argument('--two-sided-calibration', action='store_true', dest='two_sided',
+                   help='calibrate every bar on every pair from shorter and from longer and read '
+                   'the routine\'s temperature drift (what the pose uncertainty budget can then '
+                   'size: hysteresis, seating, drift; msg_docs/frames.md); default the paper\'s '
+                   'routine, one placement per pair')
     p.add_argument('--out', required=True, help='MCAP file to write')
     p.add_argument('--force', action='store_true', help='allow --out to replace an existing raw log')
     p.add_argument('--json', action='store_true', help='print a machine-readable summary on stdout')

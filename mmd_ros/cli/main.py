@@ -26,6 +26,7 @@ COMMAND_MODULES = [
     'mmd_ros.cli.cmd_workspace',
     'mmd_ros.cli.cmd_analyze',
     'mmd_ros.cli.cmd_iso230',
+    'mmd_ros.cli.cmd_machine',
 ]
 
 

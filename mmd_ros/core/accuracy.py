@@ -10,12 +10,13 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.stats import chi2
 
 from mmd_ros.core.units import arcsec, um
 
 __all__ = [
-    'ComponentStats', 'ErrorAccumulator', 'error_stats', 'format_stats', 'length_error',
-    'pose_error',
+    'ComponentStats', 'CoverageAccumulator', 'ErrorAccumulator', 'coverage', 'error_stats',
+    'format_coverage', 'format_stats', 'length_error', 'pose_error',
 ]
 
 FloatArray = NDArray[np.float64]
@@ -148,4 +149,120 @@ def format_stats(stats: list[ComponentStats], title: str) -> str:
     for s in stats:
         lines.append(f'  {s.name:<10} {s.unit:>7} {s.n:>9d} {s.mean:>10.4f} {s.std:>10.4f} '
                      f'{s.rms:>10.4f} {s.max_abs:>10.4f}')
+    return '\n'.join(lines)
+
+
+def coverage(errors: FloatArray, covariance: FloatArray, valid: NDArray[np.bool_], *,
+             absolute: bool, reference_sigma: FloatArray | None = None,
+             level: float = 0.95) -> dict[str, object] | None:
+    """Does the pose covariance cover the error against a reference? (msg_docs/frames.md)
+
+    Over the samples that are measurements and where the reference knows the components:
+
+    - observed sigma of a component: the RMS of its error (``absolute`` reference), or its
+      standard deviation (a reference zeroed at the start: its offset is unknown and removed);
+    - predicted sigma: sqrt of the mean of the covariance's diagonal, plus the reference's own
+      variance when the log states it (``reference_sigma``);
+    - coverage: the share of samples whose error lies in the ``level`` ellipsoid of the
+      marginal covariance of the known components (Mahalanobis distance^2 <= chi^2_m(level),
+      m known components), and per component in +-z sigma (z of ``level``, two-sided).
+
+    errors : (N, 6) MMD - reference [m, rad], NaN where unknown
+    covariance : (N, 6, 6) [m, rad]^2
+    reference_sigma : (6,) the reference's standard uncertainty [m, rad], NaN or None unknown
+    returns : a JSON-ready mapping, or None when no sample has a known component
+    """
+    e = np.asarray(errors, dtype=np.float64)
+    known = [k for k in range(6) if np.isfinite(e[:, k]).mean() >= 0.5]
+    if not known:
+        return None
+    use = np.asarray(valid, dtype=bool) & np.all(np.isfinite(e[:, known]), axis=1) \
+        & np.all(np.isfinite(covariance[:, known][:, :, known].reshape(len(e), -1)), axis=1)
+    if not use.any():
+        return None
+    err = e[use][:, known]
+    if not absolute:
+        err = err - err.mean(axis=0)
+    cov = covariance[use][:, known][:, :, known].astype(np.float64)
+    ref = np.zeros(len(known))
+    if reference_sigma is not None:
+        ref = np.nan_to_num(np.asarray(reference_sigma, dtype=np.float64)[known]) ** 2
+        cov = cov + np.diag(ref)
+    predicted = np.sqrt(np.mean(np.diagonal(cov, axis1=1, axis2=2), axis=0))
+    observed = np.sqrt(np.mean(err * err, axis=0))
+    d2 = np.einsum('ni,ni->n', err, np.linalg.solve(cov, err[:, :, None])[:, :, 0])
+    z = float(chi2.ppf(level, 1) ** 0.5)
+    per = np.mean(np.abs(err) <= z * np.sqrt(np.diagonal(cov, axis1=1, axis2=2)), axis=0)
+    rows = []
+    for j, k in enumerate(known):
+        to = um if k < 3 else arcsec
+        rows.append({'name': POSE_NAMES[k], 'unit': 'um' if k < 3 else 'arcsec',
+                     'predicted_sigma': float(to(predicted[j])),
+                     'observed_sigma': float(to(observed[j])),
+                     'ratio': float(predicted[j] / observed[j]) if observed[j] > 0 else None,
+                     'reference_sigma': float(to(np.sqrt(ref[j]))),
+                     'within_interval': float(per[j])})
+    return {'samples': int(use.sum()), 'components': [POSE_NAMES[k] for k in known],
+            'offset_removed': not absolute, 'level': level,
+            'ellipsoid_coverage': float(np.mean(d2 <= chi2.ppf(level, len(known)))),
+            'per_component': rows}
+
+
+class CoverageAccumulator:
+    """:func:`coverage` of a run given block by block, in bounded memory: the errors and
+    covariances of the measurements are kept, every sample up to ``max_samples``, then every
+    second, fourth... kept sample (a stride that doubles), so a long run is judged on samples
+    spread evenly over all of it. The report says the stride (``every``).
+    """
+
+    def __init__(self, max_samples: int = 100_000) -> None:
+        self.max_samples = max_samples
+        self.every = 1
+        self._seen = 0          # measurements offered so far (the stride counts from the first)
+        self._errors: list[FloatArray] = []
+        self._cov: list[FloatArray] = []
+        self._kept = 0
+
+    def add(self, errors: FloatArray, covariance: FloatArray, valid: NDArray[np.bool_]) -> None:
+        """errors (N, 6) [m, rad]; covariance (N, 6, 6); valid (N,): the measurements"""
+        v = np.asarray(valid, dtype=bool)
+        e, c = np.asarray(errors, dtype=np.float64)[v], np.asarray(covariance)[v]
+        index = self._seen + np.arange(e.shape[0])
+        self._seen += e.shape[0]
+        keep = index % self.every == 0
+        self._errors.append(e[keep])
+        self._cov.append(c[keep])
+        self._kept += int(keep.sum())
+        while self._kept > self.max_samples:
+            e_all, c_all = np.concatenate(self._errors), np.concatenate(self._cov)
+            self._errors, self._cov = [e_all[::2]], [c_all[::2]]
+            self.every *= 2
+            self._kept = self._errors[0].shape[0]
+
+    def report(self, *, absolute: bool, reference_sigma: FloatArray | None = None,
+               level: float = 0.95) -> dict[str, object] | None:
+        """What :func:`coverage` says of the kept samples, with ``every``."""
+        if not self._kept:
+            return None
+        e, c = np.concatenate(self._errors), np.concatenate(self._cov)
+        out = coverage(e, c, np.ones(e.shape[0], dtype=bool), absolute=absolute,
+                       reference_sigma=reference_sigma, level=level)
+        if out is not None:
+            out['every'] = self.every
+        return out
+
+
+def format_coverage(report: dict[str, object]) -> str:
+    """A fixed-width table of :func:`coverage`."""
+    level = 100 * float(report['level'])  # type: ignore[arg-type]
+    lines = [f'pose uncertainty against the reference ({report["samples"]} samples'
+             + (', offset removed' if report['offset_removed'] else '') + '):',
+             f'  {"component":<10} {"unit":>7} {"predicted":>10} {"observed":>10} {"ratio":>7} '
+             f'{"in ±" + format(level, ".0f") + "%":>9}']
+    for r in report['per_component']:  # type: ignore[attr-defined]
+        ratio = f'{r["ratio"]:.2f}' if r['ratio'] is not None else '–'
+        lines.append(f'  {r["name"]:<10} {r["unit"]:>7} {r["predicted_sigma"]:>10.4f} '
+                     f'{r["observed_sigma"]:>10.4f} {ratio:>7} {100 * r["within_interval"]:>8.1f}%')
+    lines.append(f'  {level:.0f} % ellipsoid of the known components covers '
+                 f'{100 * float(report["ellipsoid_coverage"]):.1f} % of the samples')  # type: ignore[arg-type]
     return '\n'.join(lines)

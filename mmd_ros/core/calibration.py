@@ -25,6 +25,7 @@ from numpy.typing import ArrayLike, NDArray
 from mmd_ros.core import validate
 from mmd_ros.core.compiled import fast, use_compiled
 from mmd_ros.core.errors import CalibrationError, ConfigError
+from mmd_ros.core.uncertainty import CalibrationUncertainty
 from mmd_ros.core.units import M_PER_MM
 from mmd_ros.core.yamlio import atomic_write_text, parse_yaml, read_yaml
 
@@ -106,8 +107,11 @@ class BarCalibration:
     counts: tuple[float, ...]
     distances_m: tuple[float, ...]
 
-    def cdf(self) -> CentreDistanceFunction:
-        return CentreDistanceFunction(self.counts, self.distances_m)
+    def cdf(self, growth: float = 1.0) -> CentreDistanceFunction:
+        """Eq. (10) of this bar; ``growth`` scales the reference distances (the reference plate's
+        expansion from the CMM's 20 °C to the temperature of the calibration, see
+        :func:`mmd_ros.core.thermal.reference_plate_growth`)."""
+        return CentreDistanceFunction(self.counts, np.asarray(self.distances_m) * growth)
 
 
 def channel_roles(channels: Any) -> dict[str, str]:
@@ -206,6 +210,8 @@ class Calibration:
     created : free text time stamp (ISO 8601)
     valid : False after a terminal counter reset until the bars are re-referenced
     terminal : the terminal and channel map it was made with, or None (not recorded)
+    uncertainty : what the routine measured about its own points (read noise, friction
+        hysteresis and seating repeatability of two-sided captures); empty for old files
     """
 
     device: str
@@ -216,12 +222,13 @@ class Calibration:
     valid: bool = True
     quality: dict[str, Any] = field(default_factory=dict)
     terminal: TerminalBinding | None = None
+    uncertainty: CalibrationUncertainty = field(default_factory=CalibrationUncertainty)
 
-    def cdfs(self, channels: list[str]) -> list[CentreDistanceFunction]:
+    def cdfs(self, channels: list[str], growth: float = 1.0) -> list[CentreDistanceFunction]:
         missing = [c for c in channels if c not in self.bars]
         if missing:
             raise CalibrationError(f'calibration of {self.device!r} has no points for {missing}')
-        return [self.bars[c].cdf() for c in channels]
+        return [self.bars[c].cdf(growth) for c in channels]
 
     # -- files ---------------------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
@@ -241,6 +248,7 @@ class Calibration:
             },
             'quality': self.quality,
             **({'terminal': self.terminal.to_dict()} if self.terminal is not None else {}),
+            'uncertainty': self.uncertainty.to_dict(),
         }
 
     def to_yaml(self) -> str:
@@ -285,6 +293,7 @@ class Calibration:
             quality=dict(f.mapping(data, 'quality') if quality else {}),
             terminal=(TerminalBinding.from_dict(data['terminal'], source)
                       if data.get('terminal') is not None else None),
+            uncertainty=CalibrationUncertainty.from_dict(data.get('uncertainty'), source),
         )
 
     @classmethod

@@ -30,7 +30,9 @@ current time as text, and persists the :class:`Calibration` that a capture retur
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, replace
+from datetime import datetime, timezone
 from typing import Any
 
 import numpy as np
@@ -40,16 +42,136 @@ from mmd_ros.core.calibration import BarCalibration, Calibration
 from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.errors import CalibrationError
 from mmd_ros.core.thermal import ReferenceBar, ThermalCompensation
+from mmd_ros.core.uncertainty import (
+    CalibrationUncertainty, capture_var, read_noise_from_dither, two_sided_figures,
+)
 from mmd_ros.core.units import M_PER_MM, M_PER_UM, PPM
 
 __all__ = [
-    'CalibrationRoutine', 'CaptureResult', 'RoutineSettings', 'Step', 'Window', 'bar_quality',
+    'APPROACHES', 'CalibrationRoutine', 'CaptureResult', 'CaptureStats', 'RoutineSettings', 'Step',
+    'Window', 'bar_quality', 'capture_uncertainty',
 ]
 
 FloatArray = NDArray[np.float64]
 
-KINDS = ('calibrate', 'thermal_zero', 're_reference')
+KINDS = ('calibrate', 'thermal_zero', 're_reference', 'drift')
 MODES = ('auto', 'full', 're_reference')
+#: How a bar is seated on a pair: from shorter (its guide lengthens into the sockets: friction
+#: state +1) or from longer (-1); '' when the routine does not say.
+APPROACHES = {'short': 1.0, 'long': -1.0}
+
+
+@dataclass(frozen=True)
+class CaptureStats:
+    """One capture of the calibration routine, as its uncertainty needs it.
+
+    channel, pair : the bar and the pair it sat on; approach : 'short', 'long' or ''
+    mean_counts : the averaged count; var_counts2 : the counts' variance in the window
+    samples : samples averaged
+    time_s : middle of the window on any clock of the routine [s], NaN when unknown
+    kind : 'point' (a calibration point or a thermal zero) or 'drift' (a reference bar on its
+        resting pair before the measuring bars, to see the temperature change over the routine)
+    """
+
+    channel: str
+    pair: str
+    approach: str
+    mean_counts: float
+    var_counts2: float
+    samples: int
+    time_s: float = math.nan
+    kind: str = 'point'
+
+
+def capture_uncertainty(device: DeviceDescription, captures: list[CaptureStats],
+                        cdfs: dict[str, Callable[[NDArray[np.float64]], Any]]
+                        ) -> CalibrationUncertainty:
+    """What a calibration's captures say about its own points (``msg_docs/frames.md``).
+
+    - read noise: the captures' mean variance is g(sigma) of a still, quantised reading over
+      its unknown position within a count (:func:`~mmd_ros.core.uncertainty.dither_var`),
+      solved for sigma;
+    - with two captures per pair, from shorter and from longer: each bar's friction hysteresis
+      h (half their mean difference, as CDF lengths) and the seating repeatability (their
+      scatter about h, pooled over bars);
+    - with a ``drift`` capture of a reference bar on its resting pair before the measuring bars
+      and its thermal zero after them: the temperature change over the routine dT (the change
+      of its reading over its sensitivity, Fig. 10), and the thermal error every point carries
+      from its capture time, -S(d_j) dT (t_ij - t_zero) / (t_zero - t_drift).
+
+    cdfs : per bar, what reads its counts as lengths: its new CDF (the points are the captures'
+        means) or anything that returns (lengths, ...) for an array of counts
+    """
+    resolution_m = device.encoder_resolution_m
+    drifts = [c for c in captures if c.kind == 'drift']
+    captures = [c for c in captures if c.kind != 'drift']
+    if not captures:
+        return CalibrationUncertainty()
+    var = float(np.mean([c.var_counts2 for c in captures])) * resolution_m ** 2
+    noise = read_noise_from_dither(resolution_m, var)
+    samples = int(np.median([c.samples for c in captures]))
+    by_bar: dict[str, dict[str, dict[str, float]]] = {}
+    for c in captures:
+        if c.approach in APPROACHES:
+            by_bar.setdefault(c.channel, {}).setdefault(c.pair, {})[c.approach] = c.mean_counts
+    short, long, names = [], [], []
+    for name, pairs in by_bar.items():
+        both = [p for p, v in pairs.items() if len(v) == 2]
+        if len(both) < 2 or name not in cdfs:
+            continue
+        f = cdfs[name]
+        short.append(f(np.array([pairs[p]['short'] for p in both]))[0])
+        long.append(f(np.array([pairs[p]['long'] for p in both]))[0])
+        names.append(name)
+    bias = capture_var(resolution_m, noise, samples)
+    if names:
+        h, seating, dof = two_sided_figures(short, long, bias)
+        hyst = dict(zip(names, (float(v) for v in h)))
+        seating_m = None if not math.isfinite(seating) else seating
+    else:
+        hyst, seating_m, dof = {}, None, 0
+    one = bias + (seating_m or 0.0) ** 2
+    temp, drift, temp_sigma = _routine_drift(device, captures, drifts, cdfs, one)
+    figures = CalibrationUncertainty(noise, samples, 2 if names else 1, hyst, seating_m, dof, temp,
+                                     drift, temp_sigma)
+    # at the precision the calibration file keeps, so that a saved calibration reads back equal
+    return CalibrationUncertainty.from_dict(figures.to_dict(), '<calibration>')
+
+
+def _routine_drift(device: DeviceDescription, points: list[CaptureStats], drifts: list[CaptureStats],
+                   cdfs: dict[str, Callable[[NDArray[np.float64]], Any]], capture_var_m2: float
+                   ) -> tuple[float | None, dict[str, list[float]], float | None]:
+    """The temperature change over the routine, each point's thermal error (see
+    :func:`capture_uncertainty`) and the change's standard uncertainty (two captures of
+    variance ``capture_var_m2`` each), from the first reference bar with a drift capture."""
+    for start in drifts:
+        ends = [c for c in points if c.channel == start.channel and c.pair == start.pair]
+        if not ends or start.channel not in cdfs or not math.isfinite(start.time_s):
+            continue
+        end = max(ends, key=lambda c: c.time_s)
+        span = end.time_s - start.time_s
+        if not span > 0:
+            continue
+        fixed = device.fixed_length_m
+
+        def sensitivity(d: float) -> float:
+            return -(device.rod_cte_per_c * fixed + device.scale_cte_per_c * (d - fixed))
+
+        f = cdfs[start.channel]
+        moved = float(f(np.array([end.mean_counts]))[0][0] - f(np.array([start.mean_counts]))[0][0])
+        d_ref = device.pair(start.pair).distance_m
+        temp = moved / sensitivity(d_ref)
+        times: dict[str, dict[str, list[float]]] = {}
+        for c in points:
+            if math.isfinite(c.time_s):
+                times.setdefault(c.channel, {}).setdefault(c.pair, []).append(c.time_s)
+        drift = {}
+        for name, by_pair in times.items():
+            pairs = [p for p in device.pairs if p.name in by_pair]
+            drift[name] = [float(-sensitivity(p.distance_m) * temp
+                                 * (np.mean(by_pair[p.name]) - end.time_s) / span) for p in pairs]
+        return temp, drift, math.sqrt(2.0 * capture_var_m2) / abs(sensitivity(d_ref))
+    return None, {}, None
 
 
 @dataclass(frozen=True)
@@ -64,6 +186,11 @@ class RoutineSettings:
         off by at least the 16 mm between two pairs
     thermal_mode : the model's thermal mode, used to re-reference measuring bars
     re_reference_pair : pair on which measuring bars are re-referenced; None: the middle one
+    approaches : 1 — each bar once on each pair (the paper's routine); 2 — each bar on each
+        pair twice, seated from shorter and from longer (the point is the mean: the friction
+        state cancels, and half the difference and its scatter measure the bar's friction
+        hysteresis and the seating repeatability), and first a reference bar on its resting
+        pair (with its thermal zero at the end: the temperature drift over the routine)
     """
 
     settle_std_m: float = 0.25e-6
@@ -72,6 +199,7 @@ class RoutineSettings:
     plausibility_m: float = 0.2e-3
     thermal_mode: str = 'auto'
     re_reference_pair: str | None = None
+    approaches: int = 1
 
     def __post_init__(self) -> None:
         for name in ('settle_std_m', 'settle_drift_m', 'plausibility_m'):
@@ -80,6 +208,8 @@ class RoutineSettings:
                 raise CalibrationError(f'{name} must be > 0, got {value}')
         if self.min_samples < 2:
             raise CalibrationError(f'min_samples must be >= 2, got {self.min_samples}')
+        if self.approaches not in (1, 2):
+            raise CalibrationError(f'approaches must be 1 or 2, got {self.approaches!r}')
 
 
 @dataclass(frozen=True)
@@ -87,19 +217,27 @@ class Step:
     """One placement: put ``channel`` (a bar) on reference ``pair``.
 
     kind : 'calibrate' (a calibration point), 'thermal_zero' (a reference bar back on its
-        resting pair to set Eq. 11's zero) or 're_reference' (one point restores the count offset)
+        resting pair to set Eq. 11's zero), 're_reference' (one point restores the count offset)
+        or 'drift' (a reference bar on its resting pair before the measuring bars)
+    approach : 'short' (seat it from shorter: the bar lengthens into the sockets), 'long' (from
+        longer) or '' (as it comes)
     """
 
     kind: str
     channel: str
     pair: str
+    approach: str = ''
 
     def describe(self, device: DeviceDescription) -> str:
         p = device.pair(self.pair)
         what = {'calibrate': '', 'thermal_zero': ' to set the thermal zero (Eq. 11)',
-                're_reference': ' to re-reference it'}[self.kind]
+                're_reference': ' to re-reference it',
+                'drift': ' to read the temperature before the measuring bars (it comes off '
+                         'again)'}[self.kind]
+        how = {'': '', 'short': ' from short (push it in, let it lengthen into the sockets)',
+               'long': ' from long (pull it out, let it shorten into the sockets)'}[self.approach]
         return (f'place {self.channel} on {self.pair} (sockets {p.sockets[0]}-{p.sockets[1]}, '
-                f'{p.distance_m / M_PER_MM:.4f} mm){what}')
+                f'{p.distance_m / M_PER_MM:.4f} mm){how}{what}')
 
 
 @dataclass(frozen=True)
@@ -144,8 +282,18 @@ class CaptureResult:
 
 @dataclass
 class _Point:
-    count: float
-    std_m: float
+    """A pair's capture(s) of one bar: per approach ('' , 'short', 'long') the mean count, the
+    counts' standard deviation [m], the samples and the time [s] (NaN unknown)."""
+
+    captures: dict[str, tuple[float, float, int, float]]
+
+    @property
+    def count(self) -> float:
+        return float(np.mean([c[0] for c in self.captures.values()]))
+
+    @property
+    def std_m(self) -> float:
+        return max(c[1] for c in self.captures.values())
 
 
 def bar_quality(bar: BarCalibration, resolution_m: float, noise_m: float | None = None
@@ -169,6 +317,17 @@ def bar_quality(bar: BarCalibration, resolution_m: float, noise_m: float | None 
     if noise_m is not None:
         out['noise_um'] = round(noise_m / M_PER_UM, 4)
     return out
+
+
+def _seconds(when: str) -> float:
+    """An ISO 8601 time as seconds since the epoch, NaN when it is not one."""
+    try:
+        stamp = datetime.fromisoformat(when)
+    except (TypeError, ValueError):
+        return math.nan
+    if stamp.tzinfo is None:
+        stamp = stamp.replace(tzinfo=timezone.utc)
+    return stamp.timestamp()
 
 
 class CalibrationRoutine:
@@ -198,6 +357,9 @@ class CalibrationRoutine:
         self._order: dict[str, list[str]] = {}
         self._completed: set[str] = set()
         self._needs_zero: set[str] = set()
+        self._captures: list[CaptureStats] = []
+        self._drift: CaptureStats | None = None
+        self._last_approach: dict[str, str] = {}
         self.calibration: Calibration | None = None
         self.pending: list[str] = []
         self.set_calibration(calibration)
@@ -225,6 +387,8 @@ class CalibrationRoutine:
         self._order.clear()
         self._completed.clear()
         self._needs_zero.clear()
+        self._captures.clear()
+        self._drift = None
 
     def session_points(self, channel: str) -> dict[str, float]:
         """Counts captured in this session for ``channel``, by pair."""
@@ -332,13 +496,23 @@ class CalibrationRoutine:
             channel = next((c for c in self.bar_channels if c not in self._completed), None)
             if channel is None:
                 return None
+            if self.settings.approaches == 2 and self._drift is None and self.references \
+                    and not self._completed and not self._points:
+                ref = self.references[0]
+                return Step('drift', ref, self._resting[ref])
         if channel in self._needs_zero and not pair:
             return Step('thermal_zero', channel, self._resting[channel])
         done = self._points.get(channel, {})
+        ways = ('short', 'long') if self.settings.approaches == 2 else ('',)
+
+        def missing(p: str) -> str | None:
+            have = done[p].captures if p in done else {}
+            return next((w for w in ways if w not in have), None)
+
         if pair:
-            return Step('calibrate', channel, pair)
-        remaining = [p for p in self._pairs_of(channel) if p not in done]
-        return Step('calibrate', channel, remaining[0]) if remaining else None
+            return Step('calibrate', channel, pair, missing(pair) or ways[0])
+        remaining = [p for p in self._pairs_of(channel) if missing(p) is not None]
+        return Step('calibrate', channel, remaining[0], missing(remaining[0]) or '') if remaining else None
 
     def _next_re_reference(self, bar: str, pair: str) -> Step | None:
         if bar:
@@ -446,20 +620,40 @@ class CalibrationRoutine:
             return self._re_reference(step, q, window, when, bar, pair, mode)
         if step.kind == 'thermal_zero':
             return self._thermal_zero(step, q, when, ambient_c, bar, pair, mode)
+        n = int(window.counts.shape[0])
+        res = self.device.encoder_resolution_m
+        if step.kind == 'drift':
+            if step.channel not in self._resting or step.pair != self._resting[step.channel]:
+                return self._refuse(step, f'the drift reading is taken with a reference bar on its '
+                                    'resting pair', bar, pair, mode)
+            self._drift = CaptureStats(step.channel, step.pair, '', q, (std_m / res) ** 2,
+                                       n, _seconds(when), 'drift')
+            nxt = self.next_step(bar, '', mode)
+            return CaptureResult(True, f'read {step.channel} on {step.pair} before the measuring '
+                                 f'bars: {q:.1f} counts (the routine\'s temperature drift is '
+                                 'its change until the thermal zero).'
+                                 + (f' Next: {nxt.describe(self.device)}.' if nxt else ''),
+                                 step, next_step=nxt)
         why = self._plausible(step.channel, step.pair, q)
         if why:
             return self._refuse(step, why, bar, pair, mode)
         points = self._points.setdefault(step.channel, {})
-        points[step.pair] = _Point(q, std_m)
+        point = points.setdefault(step.pair, _Point({}))
+        point.captures[step.approach] = (q, std_m, n, _seconds(when))
+        self._last_approach[step.channel] = step.approach
         self._order.setdefault(step.channel, [])
         if step.pair in self._order[step.channel]:
             self._order[step.channel].remove(step.pair)
         self._order[step.channel].append(step.pair)
         d = self.device.pair(step.pair)
-        head = (f'captured {step.channel} on {step.pair} ({d.distance_m / M_PER_MM:.4f} mm): '
+        ways = 2 if self.settings.approaches == 2 else 1
+        full = sum(len(v.captures) >= ways for v in points.values())
+        head = (f'captured {step.channel} on {step.pair}'
+                + (f' from {step.approach}' if step.approach else '')
+                + f' ({d.distance_m / M_PER_MM:.4f} mm): '
                 f'{q:.1f} counts, noise {std_m / M_PER_UM:.3f} µm over {window.duration_s:.2f} s '
-                f'({len(points)} of {len(self.pair_names)} points)')
-        if len(points) < len(self.pair_names):
+                f'({full} of {len(self.pair_names)} points)')
+        if full < len(self.pair_names):
             nxt = self.next_step(bar, '', mode)
             tail = f' Next: {nxt.describe(self.device)}.' if nxt else ''
             return CaptureResult(True, head + '.' + tail, step, next_step=nxt)
@@ -487,11 +681,22 @@ class CalibrationRoutine:
         quality = bar_quality(new_bar, self.device.encoder_resolution_m, noise)
         quality['captured'] = when
         cal = self._merged(channel, new_bar, when, quality)
+        # what the session's captures measured about their own points (read noise, from the
+        # dither of the still readings): msg_docs/frames.md
+        res = self.device.encoder_resolution_m
+        self._captures += [CaptureStats(channel, p, way, c[0], (c[1] / res) ** 2 * c[2]
+                                        / max(c[2] - 1, 1), c[2], c[3])
+                           for p, v in points.items() for way, c in v.captures.items() if c[2] > 1]
+        drift = [self._drift] if self._drift is not None else []
+        cal = replace(cal, uncertainty=capture_uncertainty(
+            self.device, self._captures + drift, {c: b.cdf() for c, b in cal.bars.items()}))
         last_pair = self._order[channel][-1]
         zero_text = ''
         if channel in self._resting:
             if last_pair == self._resting[channel]:
-                cal = self._with_zero(cal, channel, points[last_pair].count, when, ambient_c)
+                # the bar stays as it was seated last: its zero is that capture's reading
+                last = points[last_pair].captures[self._last_approach.get(channel, '')]
+                cal = self._with_zero(cal, channel, last[0], when, ambient_c)
                 self._needs_zero.discard(channel)
                 zero_text = (f' It rests on {last_pair}: thermal zero set there (Eq. 11), '
                              f'{cal.thermal_zero_m[channel] / M_PER_UM:+.3f} µm.')
@@ -538,7 +743,8 @@ class CalibrationRoutine:
         zero = dict(old.thermal_zero_m) if old is not None else {}
         return Calibration(device=self.device.name, bars=bars, thermal_zero_m=zero,
                            ambient_c=old.ambient_c if old is not None else None, created=when,
-                           valid=not pending, quality=q)
+                           valid=not pending, quality=q,
+                           uncertainty=old.uncertainty if old is not None else CalibrationUncertainty())
 
     def _with_zero(self, cal: Calibration, channel: str, q: float, when: str,
                    ambient_c: float | None) -> Calibration:

@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 from mmd_ros.core import validate
 from mmd_ros.core.errors import ConfigError
 from mmd_ros.core.kinematics import Geometry
-from mmd_ros.core.units import M_PER_MM, M_PER_NM, PPM
+from mmd_ros.core.units import M_PER_MM, M_PER_NM, M_PER_UM, PPM
 from mmd_ros.core.yamlio import read_yaml
 
 __all__ = [
@@ -44,6 +44,7 @@ class ReferencePair:
     design_m: float
     measured_m: float
     distance_m: float  # the one in use
+    sigma_m: float = 0.0  # standard uncertainty of distance_m (the CMM's), 0 when not stated
 
 
 @dataclass(frozen=True)
@@ -81,6 +82,9 @@ class DeviceDescription:
     counter_bits: int
     channels: tuple[Channel, ...]
     raw: dict[str, Any] = field(repr=False, compare=False)
+    #: sigma of a bar's thermal error left after Eqs. (12)/(13), as a fraction of the error
+    #: subtracted (bars do not behave exactly alike); None when the description does not say
+    thermal_mismatch_fraction: float | None = None
 
     @property
     def reference_distances_m(self) -> NDArray[np.float64]:
@@ -201,9 +205,16 @@ def parse_device(data: dict[str, Any], source: str = '<device>') -> DeviceDescri
         if abs(dm - mm) > 1e-3:
             raise r.fail(f'{path}.measured_mm', 'differs from design_mm by more than 1 mm')
         dist = mm if use_pairs == 'measured' else dm
+        sigma = 0.0
+        if use_pairs == 'measured':
+            if isinstance(item, dict) and 'uncertainty_um' in item:
+                sigma = r.number(item, 'uncertainty_um', path, low=0.0, high=1000.0) * M_PER_UM
+            elif isinstance(plate, dict) and 'distance_uncertainty_um' in plate:
+                sigma = r.number(plate, 'distance_uncertainty_um', 'reference_plate', low=0.0,
+                                 high=1000.0) * M_PER_UM
         if not (bar_range[0] - RANGE_SLACK_M <= dist <= bar_range[1] + RANGE_SLACK_M):
             raise r.fail(f'{path}', f'distance {dist / M_PER_MM:.4f} mm lies outside bars.range_mm')
-        pairs.append(ReferencePair(str(pname), (str(sockets[0]), str(sockets[1])), dm, mm, dist))
+        pairs.append(ReferencePair(str(pname), (str(sockets[0]), str(sockets[1])), dm, mm, dist, sigma))
     names = [p.name for p in pairs]
     if len(set(names)) != 7:
         raise r.fail('reference_plate.pairs', f'pair names must be unique, got {names}')
@@ -266,6 +277,9 @@ def parse_device(data: dict[str, Any], source: str = '<device>') -> DeviceDescri
         counter_bits=int(bits),
         channels=tuple(channels),
         raw=data,
+        thermal_mismatch_fraction=(r.number(bars, 'thermal_mismatch_fraction', 'bars', low=0.0, high=1.0)
+                                   if isinstance(bars, dict) and 'thermal_mismatch_fraction' in bars
+                                   else None),
     )
 
 

@@ -7,11 +7,18 @@ compensation node (parameter ``model_file``), so that both compute the same leng
     thermal:
       mode: auto              # auto | single (Eq. 13) | interpolate (Eq. 12) | off
       plate_expansion: true   # joint positions scaled by the estimated plate expansion
-    length_sigma_um: 0.4      # 1-sigma bar-length uncertainty for pose covariance
     terms:                    # optional corrections added to the compensated lengths
       - type: hysteresis      # section 5.3: direction-dependent mean correction
         amplitude_um: [0.3, 0.3, 0.3, 0.3, 0.3, 0.3]
         travel_um: 5.0
+    uncertainty:              # optional: the bar-length uncertainty (msg_docs/frames.md)
+      thermal_mismatch_fraction: 0.058   # default: the device description's
+      read_noise_nm: 5.0                 # default: estimated from the stream
+      fit: {...}                         # written by mmd analyze (see ModelUncertainty)
+
+Without an ``uncertainty`` section every source takes its documented default, computed from the
+device description and the calibration (:mod:`mmd_ros.core.budget`). ``length_sigma_um`` (a
+fixed bar-length sigma of model files before the uncertainty budget) is read and ignored.
 
 Every term is a :class:`ModelTerm`: given the samples of a run (consecutive, in time order),
 it returns a length correction per sample and bar, and carries whatever state it needs from
@@ -37,14 +44,17 @@ from mmd_ros.core.units import M_PER_UM
 from mmd_ros.core.yamlio import atomic_write_text, parse_yaml, read_yaml
 
 __all__ = [
-    'HysteresisTerm', 'Model', 'ModelTerm', 'TERM_TYPES', 'TermContext', 'load_model',
-    'register_term', 'six_values', 'term_from_dict',
+    'FIT_REPLACEABLE', 'FitUncertainty', 'HysteresisTerm', 'Model', 'ModelTerm',
+    'ModelUncertainty', 'TERM_TYPES', 'TermContext', 'load_model', 'register_term', 'six_values',
+    'term_from_dict',
 ]
 
 FloatArray = NDArray[np.float64]
 
-#: Keys of a model file. ``analysis`` is the history ``mmd analyze`` appends (free-form).
-MODEL_KEYS = ('format_version', 'thermal', 'length_sigma_um', 'terms', 'analysis')
+#: Keys of a model file. ``analysis`` is the history ``mmd analyze`` appends (free-form);
+#: ``validity`` is what it was fitted and validated on (read by :mod:`mmd_ros.core.validity`).
+RECORD_KEYS = ('analysis', 'validity')
+MODEL_KEYS = ('format_version', 'thermal', 'length_sigma_um', 'terms', 'uncertainty', *RECORD_KEYS)
 THERMAL_KEYS = ('mode', 'plate_expansion')
 THERMAL_MODES = ('auto', 'single', 'interpolate', 'off')
 #: Largest 1-sigma bar-length uncertainty a model may state [µm] (a bar that uncertain measures
@@ -190,28 +200,168 @@ class HysteresisTerm(ModelTerm):
                 'travel_um': self.travel_m / M_PER_UM}
 
 
+#: Sources of the uncertainty budget that a fit's measured residual may stand in for: the
+#: systematic errors derived from the calibration (msg_docs/frames.md).
+FIT_REPLACEABLE = ('calibration_points', 'calibration_drift', 'reference_distances', 'interpolation',
+                   'hysteresis')
+#: Keys of a model file's ``uncertainty.fit`` section.
+FIT_KEYS = ('residual_nm2', 'replaces', 'systematic_scale', 'mean_terms_nm2', 'directions', 'from')
+
+
+def _matrix6(value: Any, source: str, key: str) -> FloatArray:
+    """A symmetric positive semi-definite 6 x 6 matrix (nested lists)."""
+    what = 'a symmetric positive semi-definite 6 x 6 matrix'
+    arr = validate.floats(value, source, key, (6, 6), what=what)
+    size = max(float(np.max(np.abs(arr))), 1e-12)
+    # (a written matrix may have lost a little to rounding: nearly singular ones then dip below 0)
+    if np.max(np.abs(arr - arr.T)) > 1e-6 * size or np.min(np.linalg.eigvalsh(0.5 * (arr + arr.T))) < -1e-4 * size:
+        raise ConfigError(source, key, f'must be {what}, got {value!r}')
+    return 0.5 * (arr + arr.T)
+
+
+@dataclass
+class FitUncertainty:
+    """What ``mmd analyze`` measured about the uncertainty of the model it wrote.
+
+    residual_m2 : (6, 6) — covariance of the bar-length residual the fit left, beyond the
+        per-sample sources the budget keeps (read noise, quantisation, reference bar, thermal)
+        [m^2]; added to every sample
+    replaces : budget sources (of :data:`FIT_REPLACEABLE`) the residual stands in for: it
+        measured them, so they are not added again
+    systematic_scale : factor on the variance of the replaceable sources that are kept (a
+        reference that sees only some pose components sizes them in those components only)
+    directions : one sigma of the fitted correction along each principal direction of the
+        fitted parameters' covariance, each as the model term(s) that apply it (the sum of a
+        direction's corrections is c_k(t); sum_k c_k c_k^T per sample)
+    mean_terms_m2 : (6, 6) — the mean of sum_k c_k c_k^T over the fit's samples, for a stage
+        that cannot evaluate the terms (fk_node sees no counts) [m^2]
+    record : where the figures come from (log, reference, samples)
+    """
+
+    residual_m2: FloatArray = field(default_factory=lambda: np.zeros((6, 6)))
+    replaces: tuple[str, ...] = ()
+    systematic_scale: float = 1.0
+    directions: list[list[ModelTerm]] = field(default_factory=list)
+    mean_terms_m2: FloatArray = field(default_factory=lambda: np.zeros((6, 6)))
+    record: dict[str, Any] = field(default_factory=dict)
+
+    def reset(self) -> None:
+        for group in self.directions:
+            for term in group:
+                term.reset()
+
+    def to_dict(self) -> dict[str, Any]:
+        nm2 = 1e18
+        return {
+            'residual_nm2': (self.residual_m2 * nm2).tolist(),
+            'replaces': list(self.replaces),
+            'systematic_scale': float(self.systematic_scale),
+            'mean_terms_nm2': (self.mean_terms_m2 * nm2).tolist(),
+            'directions': [[{'type': t.type_name, **t.params()} for t in group]
+                           for group in self.directions],
+            'from': self.record,
+        }
+
+    @classmethod
+    def from_dict(cls, data: Any, source: str) -> FitUncertainty:
+        f = validate.Fields(source)
+        data = validate.mapping(data, source, 'uncertainty.fit')
+        path = 'uncertainty.fit'
+        f.known_keys(data, FIT_KEYS, path)
+        residual = _matrix6(data.get('residual_nm2', np.zeros((6, 6)).tolist()), source,
+                            f'{path}.residual_nm2') * 1e-18
+        mean_terms = _matrix6(data.get('mean_terms_nm2', np.zeros((6, 6)).tolist()), source,
+                              f'{path}.mean_terms_nm2') * 1e-18
+        replaces = f.get(data, 'replaces', path, default=None) or []
+        if not isinstance(replaces, list) or any(r not in FIT_REPLACEABLE for r in replaces):
+            raise ConfigError(source, f'{path}.replaces',
+                              f'must list some of {", ".join(FIT_REPLACEABLE)}, got {replaces!r}')
+        scale = f.number(data, 'systematic_scale', path, default=1.0, low=0.0, high=1e6)
+        groups = f.get(data, 'directions', path, default=None) or []
+        if not isinstance(groups, list) or not all(isinstance(g, list) for g in groups):
+            raise ConfigError(source, f'{path}.directions', 'must be a list of lists of terms')
+        directions = [[term_from_dict(item, source, f'{path}.directions[{k}][{j}]')
+                       for j, item in enumerate(g)] for k, g in enumerate(groups)]
+        record = data.get('from') or {}
+        return cls(residual, tuple(replaces), scale, directions, mean_terms,
+                   dict(record) if isinstance(record, dict) else {})
+
+
+@dataclass
+class ModelUncertainty:
+    """The model file's ``uncertainty`` section: numbers that override the budget's defaults
+    (the device description's, the calibration's, the stream's) and what a fit measured.
+
+    thermal_mismatch_fraction : sigma of a bar's thermal error left after Eqs. (12)/(13), as a
+        fraction of the error subtracted; None takes the device description's
+    read_noise_m : read noise of every channel [m]; None estimates it from the stream (the
+        calibration's figure until the stream has shown enough)
+    fit : what ``mmd analyze`` measured, or None
+    """
+
+    thermal_mismatch_fraction: float | None = None
+    read_noise_m: float | None = None
+    fit: FitUncertainty | None = None
+
+    def reset(self) -> None:
+        if self.fit is not None:
+            self.fit.reset()
+
+    def to_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        if self.thermal_mismatch_fraction is not None:
+            out['thermal_mismatch_fraction'] = float(self.thermal_mismatch_fraction)
+        if self.read_noise_m is not None:
+            out['read_noise_nm'] = float(self.read_noise_m / 1e-9)
+        if self.fit is not None:
+            out['fit'] = self.fit.to_dict()
+        return out
+
+    @classmethod
+    def from_dict(cls, data: Any, source: str) -> ModelUncertainty:
+        if data is None:
+            return cls()
+        f = validate.Fields(source)
+        data = validate.mapping(data, source, 'uncertainty')
+        f.known_keys(data, ('thermal_mismatch_fraction', 'read_noise_nm', 'fit'), 'uncertainty')
+        frac = (f.number(data, 'thermal_mismatch_fraction', 'uncertainty', low=0.0, high=1.0)
+                if data.get('thermal_mismatch_fraction') is not None else None)
+        noise = (f.number(data, 'read_noise_nm', 'uncertainty', low=0.0, high=1e4)
+                 if data.get('read_noise_nm') is not None else None)
+        fit = FitUncertainty.from_dict(data['fit'], source) if data.get('fit') is not None else None
+        return cls(frac, None if noise is None else noise * 1e-9, fit)
+
+
 @dataclass
 class Model:
-    """Which compensation terms are active, and their parameters."""
+    """Which compensation terms are active, and their parameters.
+
+    length_sigma_m : a fixed bar-length sigma of old model files; read, not used, not written
+    uncertainty : the model file's ``uncertainty`` section (defaults when absent)
+    """
 
     thermal_mode: str = 'auto'
     plate_expansion: bool = True
-    length_sigma_m: float = 0.4e-6
+    length_sigma_m: float | None = None
     terms: list[ModelTerm] = field(default_factory=list)
     extra: dict[str, Any] = field(default_factory=dict)
     source: str = '<default model>'
+    uncertainty: ModelUncertainty = field(default_factory=ModelUncertainty)
 
     def reset(self) -> None:
         for term in self.terms:
             term.reset()
+        self.uncertainty.reset()
 
     def to_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {
             'format_version': 1,
             'thermal': {'mode': self.thermal_mode, 'plate_expansion': self.plate_expansion},
-            'length_sigma_um': self.length_sigma_m / M_PER_UM,
             'terms': [{'type': t.type_name, **t.params()} for t in self.terms],
         }
+        unc = self.uncertainty.to_dict()
+        if unc:
+            out['uncertainty'] = unc
         out.update(self.extra)
         return out
 
@@ -234,14 +384,17 @@ class Model:
         f.known_keys(thermal, THERMAL_KEYS, 'thermal')
         mode = f.choice(thermal, 'mode', 'thermal', THERMAL_MODES, default='auto')
         plate = f.boolean(thermal, 'plate_expansion', 'thermal', default=True)
-        sigma = f.number(data, 'length_sigma_um', default=0.4, low=0.0, low_open=True,
-                         high=MAX_LENGTH_SIGMA_UM)
+        # the fixed bar-length sigma of older files: read (and checked), not used, not written
+        sigma = (f.number(data, 'length_sigma_um', low=0.0, low_open=True, high=MAX_LENGTH_SIGMA_UM)
+                 if 'length_sigma_um' in data else None)
         raw_terms = f.get(data, 'terms', default=None) or []
         if not isinstance(raw_terms, list):
             raise ConfigError(source, 'terms', f'must be a list of terms, got {raw_terms!r}')
         terms = [term_from_dict(item, source, f'terms[{k}]') for k, item in enumerate(raw_terms)]
-        extra = {'analysis': data['analysis']} if 'analysis' in data else {}
-        return cls(mode, plate, sigma * M_PER_UM, terms, extra, source)
+        uncertainty = ModelUncertainty.from_dict(data.get('uncertainty'), source)
+        extra = {k: data[k] for k in RECORD_KEYS if k in data}
+        return cls(mode, plate, None if sigma is None else sigma * M_PER_UM, terms, extra, source,
+                   uncertainty)
 
     @classmethod
     def from_yaml(cls, text: str, source: str = '<model>') -> Model:

@@ -3,23 +3,30 @@
 :class:`Pipeline` is the one implementation used by ``mmd process`` (batch) and by the ROS
 nodes (stream, :meth:`Pipeline.process_sample`). Plate expansion scales both plates' joints by
 ``s``; since |R s a + t - s b| = s |R a + t/s - b|, FK runs on d/s with the nominal geometry and
-the translation is multiplied by s.
+the translation is multiplied by s. The pose covariance is Sigma_p = J^-1 Sigma_d J^-T with the
+bar lengths' covariance Sigma_d of :class:`~mmd_ros.core.budget.LengthBudget`.
 """
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from mmd_ros.core.budget import LengthBudget, Observed
 from mmd_ros.core.calibration import Calibration, CdfBank
 from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.errors import CalibrationError
-from mmd_ros.core.kinematics import FkStatus, ForwardKinematics, propagate_covariance
+from mmd_ros.core.kinematics import FkStatus, ForwardKinematics
 from mmd_ros.core.model import Model, TermContext
-from mmd_ros.core.thermal import ReferenceBar, ThermalCompensation, ThermalState
+from mmd_ros.core.thermal import (
+    ReferenceBar, ThermalCompensation, ThermalState, reference_plate_growth,
+)
+from mmd_ros.core.uncertainty import pose_covariance
 
 __all__ = ['Compensated', 'Pipeline', 'ProcessResult', 'SampleResult']
 
@@ -34,12 +41,15 @@ class Compensated:
     lengths_m : ndarray, shape (N, 6) — after thermal compensation and model terms [m]
     out_of_range : ndarray, shape (N, 6) — count outside the calibrated span (extrapolated)
     thermal : :class:`ThermalState`
+    fit_columns_m : ndarray, shape (N, 6, r), or None — corrections of the one-sigma
+        perturbations of the model's fitted terms (their share of Sigma_d is C C^T)
     """
 
     cdf_lengths_m: FloatArray
     lengths_m: FloatArray
     out_of_range: NDArray[np.bool_]
     thermal: ThermalState
+    fit_columns_m: FloatArray | None = None
 
 
 @dataclass(frozen=True)
@@ -84,16 +94,25 @@ class SampleResult:
 
 
 class Pipeline:
-    """The compensation and kinematics of one calibrated device under one model."""
+    """The compensation and kinematics of one calibrated device under one model.
+
+    The pipeline owns a copy of the model: terms that carry state between calls (play
+    operators, filters, the previous sample) carry it for this pipeline's stream only, so two
+    pipelines built from one :class:`Model` (two runs, a calibration swapped live) never see
+    each other's state.
+    """
 
     def __init__(self, device: DeviceDescription, calibration: Calibration,
                  model: Model | None = None) -> None:
         self.device = device
         self.calibration = calibration
-        self.model = model or Model()
+        self.model = copy.deepcopy(model) if model is not None else Model()
+        self.model.reset()
         names = device.channel_names
         measuring = [names[k] for k in device.measuring_channels]
-        self.cdfs = CdfBank(calibration.cdfs(measuring))
+        # the reference distances at the temperature the bars were calibrated at
+        growth = reference_plate_growth(device, calibration.ambient_c)
+        self.cdfs = CdfBank(calibration.cdfs(measuring, growth))
         self.channels = np.array(device.measuring_channels)
         references = []
         if self.model.thermal_mode != 'off':
@@ -102,8 +121,8 @@ class Pipeline:
                     raise CalibrationError(
                         f'reference bar {ch.name!r} has no calibration points; calibrate it or '
                         'set thermal.mode: off in the model')
-                references.append(ReferenceBar(ch.index, device.pair(ch.pair).distance_m,
-                                               calibration.bars[ch.name].cdf(),
+                references.append(ReferenceBar(ch.index, device.pair(ch.pair).distance_m * growth,
+                                               calibration.bars[ch.name].cdf(growth),
                                                calibration.thermal_zero_m.get(ch.name, 0.0)))
         self.thermal = ThermalCompensation(
             device, references, mode=self.model.thermal_mode,
@@ -111,11 +130,28 @@ class Pipeline:
         self.fk = ForwardKinematics.for_device(device)
         self._pose_terms = [t for t in self.model.terms if t.needs_pose]
         self._length_terms = [t for t in self.model.terms if not t.needs_pose]
+        fit = self.model.uncertainty.fit
+        groups = fit.directions if fit is not None else []
+        self._n_fit = len(groups)
+        self._fit_pose_terms = [(g, t) for g, group in enumerate(groups) for t in group if t.needs_pose]
+        self._fit_length_terms = [(g, t) for g, group in enumerate(groups) for t in group
+                                  if not t.needs_pose]
+        self._budget: LengthBudget | None = None
+
+    @property
+    def budget(self) -> LengthBudget:
+        """The bar lengths' uncertainty budget (made when first asked for: it fits the
+        interpolation error to the calibration points)."""
+        if self._budget is None:
+            self._budget = LengthBudget(self.device, self.calibration, self.model)
+        return self._budget
 
     def reset(self) -> None:
-        """Start a new run: forget FK warm starts and term states."""
+        """Start a new run: forget FK warm starts, term states and the read-noise estimate."""
         self.fk.reset()
         self.model.reset()
+        if self._budget is not None:
+            self._budget.reset()
 
     # -- lengths -------------------------------------------------------------------------------
     def compensate(self, times_s: FloatArray, counts: FloatArray, *,
@@ -130,12 +166,14 @@ class Pipeline:
         cdf_lengths, out = self.cdfs(counts[:, self.channels], compiled=compiled)
         thermal = self.thermal.state(counts, cdf_lengths)
         lengths = cdf_lengths - thermal.bar_error_m
-        if self._length_terms:
+        columns = None
+        if self._length_terms or self._fit_length_terms:
             ctx = TermContext(np.asarray(times_s, dtype=np.float64), counts, lengths.copy(),
                               cdf_lengths, thermal.reference_error_m, thermal.temp_change_c)
             for term in self._length_terms:
                 lengths = lengths + term.correction(ctx)
-        return Compensated(cdf_lengths, lengths, out, thermal)
+            columns = self._columns(self._fit_length_terms, ctx, None)
+        return Compensated(cdf_lengths, lengths, out, thermal, columns)
 
     def add_pose_terms(self, comp: Compensated, times_s: FloatArray, counts: FloatArray,
                         poses: FloatArray) -> Compensated:
@@ -147,7 +185,27 @@ class Pipeline:
         lengths = comp.lengths_m
         for term in self._pose_terms:
             lengths = lengths + term.correction(ctx)
-        return Compensated(comp.cdf_lengths_m, lengths, comp.out_of_range, comp.thermal)
+        columns = comp.fit_columns_m
+        if self._fit_pose_terms:
+            columns = self._columns(self._fit_pose_terms, ctx, columns)
+        return Compensated(comp.cdf_lengths_m, lengths, comp.out_of_range, comp.thermal, columns)
+
+    def _columns(self, terms: list[tuple[int, Any]], ctx: TermContext,
+                 columns: FloatArray | None) -> FloatArray | None:
+        """Add the corrections of the fitted terms' perturbations to their direction's column,
+        (N, 6, directions); None when the model has none."""
+        if not self._n_fit:
+            return None
+        if columns is None:
+            columns = np.zeros(ctx.lengths_m.shape + (self._n_fit,))
+        for g, term in terms:
+            columns[:, :, g] += term.correction(ctx)
+        return columns
+
+    @property
+    def needs_pose(self) -> bool:
+        """The model (or its fitted terms' uncertainty) has terms that need a first-pass pose."""
+        return bool(self._pose_terms or self._fit_pose_terms)
 
     # -- batch ---------------------------------------------------------------------------------
     def process(self, times_s: FloatArray, counts: FloatArray, *,
@@ -160,15 +218,17 @@ class Pipeline:
         times_s = np.asarray(times_s, dtype=np.float64)
         comp = self.compensate(times_s, counts, compiled=compiled)
         sol = self._solve_batch(comp, with_covariance, compiled)
-        if self._pose_terms:
+        if self.needs_pose:
             comp = self.add_pose_terms(comp, times_s, counts, sol.poses)
-            sol = self._solve_batch(comp, with_covariance, compiled)
+            if self._pose_terms:
+                sol = self._solve_batch(comp, with_covariance, compiled)
         out_of_range = np.any(comp.out_of_range, axis=1)
         valid = sol.converged & ~out_of_range
         status = np.where(out_of_range, np.int8(FkStatus.OUT_OF_SPAN), sol.status)
         cov = None
-        if with_covariance:
-            cov = self._covariance(sol.jacobian_inverse, comp.thermal.plate_scale, compiled)
+        if with_covariance and sol.jacobian_inverse is not None:
+            observed = self.budget.observe(comp.cdf_lengths_m, comp.thermal.reference_error_m)
+            cov = self.covariance(sol.jacobian_inverse, comp, observed, compiled=compiled)
         return ProcessResult(times_s, comp, sol.poses, sol.converged, valid, status,
                              sol.iterations, sol.residual_m, sol.condition, cov)
 
@@ -180,11 +240,18 @@ class Pipeline:
         sol.poses[:, :3] *= scale[:, None]
         return sol
 
-    def _covariance(self, jinv: FloatArray, scale: FloatArray,
-                    compiled: bool | None = None) -> FloatArray:
-        """J^-1 (sigma^2 I) J^-T with the translation rows scaled back by the plate expansion."""
-        sigma = self.model.length_sigma_m
-        return propagate_covariance(jinv, sigma * sigma * np.eye(6), scale, compiled=compiled)
+    def covariance(self, jinv: FloatArray, comp: Compensated, observed: Observed | None = None,
+                   *, compiled: bool | None = None) -> FloatArray:
+        """Pose covariance of N samples, (N, 6, 6) [m, rad]^2: J^-1 Sigma_d J^-T with Sigma_d of
+        the budget, the translation rows and columns scaled by the plates' expansion.
+
+        jinv : ndarray, shape (N, 6, 6) — inverse Jacobians at the solutions (on d / s)
+        observed : what :meth:`LengthBudget.observe` returned for these samples, or None
+        """
+        th = comp.thermal
+        sigma_d = self.budget.covariance(comp.lengths_m, th.reference_error_m, th.temp_change_c,
+                                         th.bar_error_m, comp.fit_columns_m, observed)
+        return pose_covariance(jinv, sigma_d, th.plate_scale, compiled=compiled)
 
     # -- stream --------------------------------------------------------------------------------
     def process_sample(self, time_s: float, counts: FloatArray, *,
@@ -196,20 +263,23 @@ class Pipeline:
         scale = float(comp.thermal.plate_scale[0])
         sol = self.fk.solve(comp.lengths_m[0] / scale)
         pose = sol.pose.copy()
-        if self._pose_terms:
+        if self.needs_pose:
             first = pose.copy()
             first[:3] *= scale
             if not sol.converged:  # the terms still see the sample, so their state stays in step
                 first[:] = np.nan
             comp = self.add_pose_terms(comp, t, c, first[None])
-            sol = self.fk.solve(comp.lengths_m[0] / scale)
-            pose = sol.pose.copy()
+            if self._pose_terms:
+                sol = self.fk.solve(comp.lengths_m[0] / scale)
+                pose = sol.pose.copy()
         pose[:3] *= scale
         out = comp.out_of_range[0]
         cov = None
-        if with_covariance and sol.converged:
-            jinv = np.linalg.inv(sol.jacobian)
-            cov = self._covariance(jinv[None], comp.thermal.plate_scale)[0]
+        if with_covariance:
+            observed = self.budget.observe(comp.cdf_lengths_m, comp.thermal.reference_error_m)
+            if sol.converged:
+                jinv = np.linalg.inv(sol.jacobian)
+                cov = self.covariance(jinv[None], comp, observed)[0]
         status = FkStatus.OUT_OF_SPAN if out.any() else sol.status
         return SampleResult(comp.lengths_m[0], out, comp.thermal.reference_error_m[0],
                             float(comp.thermal.temp_change_c[0]), pose, sol.converged,

@@ -5,7 +5,8 @@ bar lengths with :meth:`Pipeline.compensate` (CDF Eq. 10, thermal Eqs. 11–13, 
 model terms that need a pose it solves a first-pass pose as :meth:`Pipeline.process` does.
 :class:`Kinematics` (``fk_node``, ``pose_node``) solves the pose of every sample whose six bars
 are within their calibrated span, warm-started from the previous poses, with the propagated
-covariance. Both keep the figures their diagnostics report.
+covariance J^-1 Sigma_d J^-T (Sigma_d of :class:`~mmd_ros.core.budget.LengthBudget`, from the
+lengths and the thermal state of each sample). Both keep the figures their diagnostics report.
 
 A bar out of its calibrated span gives NaN in the published lengths (the extrapolated value is
 not a measurement) and no pose; live, such samples are not solved. So does a bar whose encoder
@@ -26,12 +27,15 @@ from datetime import datetime, timezone
 import numpy as np
 from numpy.typing import NDArray
 
+from mmd_ros.core.budget import LengthBudget, Observed
 from mmd_ros.core.calibration import Calibration
 from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.errors import MmdError
 from mmd_ros.core.kinematics import FkStatus, ForwardKinematics
 from mmd_ros.core.model import Model
 from mmd_ros.core.pipeline import Pipeline
+from mmd_ros.core.uncertainty import pose_covariance
+from mmd_ros.core.validity import Validity
 
 __all__ = ['CompensationOut', 'Compensator', 'Kinematics', 'KinematicsOut', 'calibration_created_ns']
 
@@ -61,6 +65,8 @@ class CompensationOut:
     reference_error_m : (N, k) — Eq. (11) per reference bar [m]
     temp_change_c : (N,) — temperature change since the thermal zero [°C]
     plate_scale : (N,) — the plates' expansion factor applied to the joints
+    bar_error_m : (N, 6) — thermal error subtracted from each bar [m]
+    fit_columns_m : (N, 6, r) or None — the model's fitted terms' one-sigma perturbations
     """
 
     lengths_m: FloatArray
@@ -69,6 +75,8 @@ class CompensationOut:
     temp_change_c: FloatArray
     plate_scale: FloatArray
     no_signal: NDArray[np.bool_] | None = None
+    bar_error_m: FloatArray | None = None
+    fit_columns_m: FloatArray | None = None
 
     def thermal_values(self) -> FloatArray:
         """Values of /mmd/thermal: reference errors [m], temp_change [°C], plate_scale [1]."""
@@ -85,6 +93,9 @@ class _CompStats:
     held: int = 0
     no_signal: int = 0
     period_no_signal: NDArray[np.int64] = field(default_factory=lambda: np.zeros(6, np.int64))
+    #: samples outside the model's validated range since the last report: per bar, temperature
+    period_outside_bars: NDArray[np.int64] = field(default_factory=lambda: np.zeros(6, np.int64))
+    period_outside_temp: int = 0
 
 
 class Compensator:
@@ -96,7 +107,10 @@ class Compensator:
     def __init__(self, device: DeviceDescription, model: Model) -> None:
         self.device = device
         self.model = model
-        self.needs_pose = any(getattr(t, 'needs_pose', False) for t in model.terms)
+        self.validity = Validity.from_model(model)
+        fit = model.uncertainty.fit
+        fit_terms = [t for group in fit.directions for t in group] if fit is not None else []
+        self.needs_pose = any(getattr(t, 'needs_pose', False) for t in model.terms + fit_terms)
         self.reference_names = [c.name for c in device.reference_channels]
         self._measuring = list(device.measuring_channels)
         self._references = [c.index for c in device.reference_channels]
@@ -158,6 +172,12 @@ class Compensator:
     def ready(self) -> bool:
         return self._pipeline is not None
 
+    @property
+    def budget(self) -> LengthBudget | None:
+        """The uncertainty budget of the calibration in use, or None."""
+        pipeline = self._pipeline
+        return pipeline.budget if pipeline is not None else None
+
     def process(self, stamps_ns: NDArray[np.int64], counts: FloatArray,
                 status: NDArray[np.uint8] | None = None) -> CompensationOut | None:
         """Lengths of the samples of one transfer, or None when there is no usable calibration.
@@ -186,7 +206,8 @@ class Compensator:
             no_signal = bad[:, self._measuring] | bad[:, self._references].any(axis=1)[:, None]
             lengths[no_signal] = np.nan
         result = CompensationOut(lengths, out, comp.thermal.reference_error_m,
-                                 comp.thermal.temp_change_c, comp.thermal.plate_scale, no_signal)
+                                 comp.thermal.temp_change_c, comp.thermal.plate_scale, no_signal,
+                                 comp.thermal.bar_error_m, comp.fit_columns_m)
         st = self.stats
         if no_signal is not None:
             st.no_signal += int(np.count_nonzero(no_signal.any(axis=1)))
@@ -198,6 +219,14 @@ class Compensator:
         if result.reference_error_m.size:
             st.last_ref_error_m = result.reference_error_m[-1].copy()
         st.last_temp_change_c = float(result.temp_change_c[-1])
+        if self.validity is not None:
+            temp = result.temp_change_c
+            if self.validity.absolute:
+                ambient = self.calibration.ambient_c if self.calibration is not None else None
+                temp = None if ambient is None else temp + ambient
+            bars, t_out = self.validity.outside(comp.cdf_lengths_m, temp)
+            st.period_outside_bars += bars
+            st.period_outside_temp += t_out
         return result
 
 
@@ -205,8 +234,9 @@ class Compensator:
 class KinematicsOut:
     """Poses of N samples: poses (N, 6) [m, rad]; valid (N,): published as a measurement;
     converged, status (:class:`FkStatus`), iterations, residual_m and condition (NaN when not
-    solved); jacobians (N, 6, 6) and plate_scale (N,) of the solutions; sigma_m: the bar-length
-    uncertainty, or None when no covariance is wanted."""
+    solved); jacobians (N, 6, 6) and plate_scale (N,) of the solutions; what the covariance
+    needs (``uncertainty``: the budget and each sample's lengths and thermal state, or a fixed
+    bar-length sigma [m]), or None when no covariance is wanted."""
 
     poses: FloatArray
     valid: NDArray[np.bool_]
@@ -217,23 +247,30 @@ class KinematicsOut:
     condition: FloatArray
     jacobians: FloatArray
     plate_scale: FloatArray
-    sigma_m: float | None
+    uncertainty: _CovarianceInputs | float | None
 
     @functools.cached_property
     def covariance(self) -> FloatArray | None:
         """Covariance (M, 6, 6) [m, rad]^2 of the M valid samples, or None.
 
-        sigma^2 J^-1 J^-T, translation rows and columns times the plates' scale (as
+        J^-1 Sigma_d J^-T, translation rows and columns times the plates' scale (as
         :class:`Pipeline` does). Computed when first asked for, so that a node can publish the
         poses before it spends time on the inverses.
         """
-        if self.sigma_m is None or not self.valid.any():
+        unc = self.uncertainty
+        if unc is None or not self.valid.any():
             return None
-        jinv = np.linalg.inv(self.jacobians[self.valid])
-        cov = self.sigma_m ** 2 * (jinv @ np.swapaxes(jinv, -1, -2))
-        s = np.ones((jinv.shape[0], 6))
-        s[:, :3] = self.plate_scale[self.valid, None]
-        return cov * s[:, :, None] * s[:, None, :]
+        v = self.valid
+        jinv = np.linalg.inv(self.jacobians[v])
+        if isinstance(unc, float):
+            sigma_d = np.broadcast_to(unc * unc * np.eye(6), (jinv.shape[0], 6, 6))
+        else:
+            observed = unc.observe()
+            sigma_d = unc.budget.covariance(
+                unc.lengths_m[v], unc.reference_error_m[v], unc.temp_change_c[v],
+                unc.bar_error_m[v], None if unc.fit_columns_m is None else unc.fit_columns_m[v],
+                observed[v])
+        return pose_covariance(jinv, sigma_d, self.plate_scale[v])
 
     def status_values(self) -> FloatArray:
         """Values of /mmd/fk_status: converged, valid, iterations, residual [m], condition,
@@ -272,25 +309,70 @@ class _KinStats:
     period_t0: float = field(default_factory=time.monotonic)
 
 
+@dataclass
+class _CovarianceInputs:
+    """What the budget needs of N samples (see :meth:`LengthBudget.covariance`). The budget
+    observes them (read noise, motion directions) once, in the order of the transfers: when
+    their covariance is first asked for, or at the latest before the next transfer is solved,
+    so that the poses go out first."""
+
+    budget: LengthBudget
+    lengths_m: FloatArray
+    reference_error_m: FloatArray
+    temp_change_c: FloatArray
+    bar_error_m: FloatArray
+    fit_columns_m: FloatArray | None
+    observed: Observed | None = None
+
+    def observe(self) -> Observed:
+        if self.observed is None:
+            self.observed = self.budget.observe(self.lengths_m + self.bar_error_m,
+                                                self.reference_error_m)
+        return self.observed
+
+
 class Kinematics:
     """Forward kinematics of compensated lengths (see the module docstring).
 
-    sigma_m : 1-sigma bar-length uncertainty for the covariance [m] (model ``length_sigma_um``)
+    uncertainty : the bar lengths' uncertainty budget (:class:`LengthBudget` of the calibration
+        and model in use; set :attr:`budget` when they change), a fixed 1-sigma bar-length
+        uncertainty [m] for every bar (``fk_node``'s ``length_sigma_um``), or None: no
+        covariance until a budget is set
+    with_covariance : compute covariances at all
     """
 
-    def __init__(self, device: DeviceDescription, sigma_m: float, *,
-                 with_covariance: bool = True) -> None:
+    def __init__(self, device: DeviceDescription, uncertainty: LengthBudget | float | None = None,
+                 *, with_covariance: bool = True) -> None:
         self.fk = ForwardKinematics.for_device(device)
-        self.sigma_m = float(sigma_m)
+        self.budget: LengthBudget | None = uncertainty if isinstance(uncertainty, LengthBudget) else None
+        self.fixed_sigma_m: float | None = (float(uncertainty) if isinstance(uncertainty, (int, float))
+                                            and uncertainty else None)
         self.with_covariance = with_covariance
         self.stats = _KinStats()
+        self._last: _CovarianceInputs | None = None
         self._last_stamp_ns: int | None = None
 
     def solve(self, lengths_m: FloatArray, plate_scale: FloatArray,
+              reference_error_m: FloatArray | None = None, temp_change_c: FloatArray | None = None,
+              bar_error_m: FloatArray | None = None, fit_columns_m: FloatArray | None = None, *,
               stamps_ns: NDArray[np.int64] | None = None) -> KinematicsOut:
-        """Poses of N consecutive samples. stamps_ns (N,): their stamps, for the continuity
-        test at the measured rate (default: the device's sample period between samples)."""
+        """Poses of N consecutive samples.
+
+        lengths_m : (N, 6) compensated lengths, NaN where out of range [m]
+        plate_scale : (N,)
+        reference_error_m, temp_change_c : (N, k) and (N,), the thermal state of the samples
+            (for the budget; zeros when not given)
+        bar_error_m : (N, 6) thermal error subtracted from each bar; None computes it from the
+            reference errors as the compensation did
+        fit_columns_m : (N, 6, r) the fitted terms' perturbations, or None (their mean is used)
+        stamps_ns : (N,) the samples' stamps, for the continuity test at the measured rate
+            (default: the device's sample period between samples)
+        """
         plate_scale = np.asarray(plate_scale, dtype=np.float64)
+        if self._last is not None:      # the previous transfer, if its covariance was not asked for
+            if self._last.budget is self.budget:
+                self._last.observe()
+            self._last = None
         dt = None
         if stamps_ns is not None and len(stamps_ns):
             stamps = np.asarray(stamps_ns, dtype=np.int64)
@@ -326,6 +408,19 @@ class Kinematics:
             r = float(np.fmax.reduce(residual))
             if r > st.period_residual_max_m:
                 st.period_residual_max_m = r
+        unc: _CovarianceInputs | float | None = None
+        if self.with_covariance:
+            if self.fixed_sigma_m is not None:
+                unc = self.fixed_sigma_m
+            elif self.budget is not None:
+                b = self.budget
+                eps = (np.zeros((n, 0)) if reference_error_m is None
+                       else np.asarray(reference_error_m, dtype=np.float64).reshape(n, -1))
+                dtemp = (np.zeros(n) if temp_change_c is None
+                         else np.asarray(temp_change_c, dtype=np.float64))
+                if bar_error_m is None:
+                    bar_error_m = b.bar_error(lengths_m, eps)
+                unc = self._last = _CovarianceInputs(b, lengths_m, eps, dtemp, bar_error_m,
+                                                     fit_columns_m)
         return KinematicsOut(poses, valid, converged, sol.status, iterations, residual,
-                             sol.condition, sol.jacobians, plate_scale,
-                             self.sigma_m if self.with_covariance else None)
+                             sol.condition, sol.jacobians, plate_scale, unc)

@@ -30,6 +30,7 @@ starts again from the state it had before the first call, so the replay gives th
 from __future__ import annotations
 
 import copy
+import math
 from typing import Any
 
 import numpy as np
@@ -43,9 +44,9 @@ from mmd_ros.core.rotation import rotation_matrix
 from mmd_ros.core.units import M_PER_MM, M_PER_NM, M_PER_UM, PPM
 
 __all__ = [
-    'CdfOffsetsTerm', 'CyclicErrorTerm', 'DriftTerm', 'GravitySagTerm', 'HysteresisTerm', 'JointOffsetsTerm',
-    'PlateScaleTerm', 'SamplingSkewTerm', 'ScaleNonlinearityTerm', 'ThermalGainTerm',
-    'ThermalInterpolationTerm', 'ema', 'leg_geometry',
+    'CdfOffsetsTerm', 'CyclicErrorTerm', 'DriftTerm', 'FrictionTerm', 'GravitySagTerm', 'HysteresisTerm',
+    'JointOffsetsTerm', 'PlateScaleTerm', 'SamplingSkewTerm', 'ScaleNonlinearityTerm', 'ThermalGainTerm',
+    'ThermalInterpolationTerm', 'dahl_state', 'ema', 'friction_state', 'leg_geometry', 'play_positions',
 ]
 
 FloatArray = NDArray[np.float64]
@@ -162,6 +163,137 @@ class _Replayable(ModelTerm):
             self._state = copy.deepcopy(self._replay[1])
         else:
             self._replay = (key, copy.deepcopy(self._state))
+
+
+# -- friction ----------------------------------------------------------------------------------
+def play_positions(lengths_m: FloatArray, deadband_m: float, start: FloatArray | None
+                   ) -> FloatArray:
+    """Output of a play (backlash) of half-width ``deadband_m`` on each column, (N, M): it
+    follows the input only when the input is more than ``deadband_m`` away, so the rounding
+    flicker of a bar at rest does not move it. ``start``: the play's position before the
+    first sample (None: the first sample)."""
+    x = np.asarray(lengths_m, dtype=np.float64)
+    n, m = x.shape
+    out = np.empty_like(x)
+    if n == 0:
+        return out
+    p0 = x[0] if start is None else start
+    w = deadband_m
+    for j in range(m):   # a sequential recurrence: plain floats beat numpy rows here
+        p, column = float(p0[j]), x[:, j].tolist()
+        pos = [0.0] * n
+        for k, v in enumerate(column):
+            if v > p + w:
+                p = v - w
+            elif v < p - w:
+                p = v + w
+            pos[k] = p
+        out[:, j] = pos
+    return out
+
+
+def dahl_state(positions: FloatArray, travel_m: float,
+               state: tuple[FloatArray, FloatArray, FloatArray, FloatArray]
+               ) -> tuple[FloatArray, tuple[FloatArray, FloatArray, FloatArray, FloatArray]]:
+    """Dahl friction state along the play's output (see :func:`friction_state`).
+
+    positions : ndarray, shape (N, M) — output of :func:`play_positions` [m]
+    state : (position before the first sample, direction, anchor position, anchor state)
+    """
+    pos = np.asarray(positions, dtype=np.float64)
+    n, m = pos.shape
+    last, direction, anchor_x, anchor_s = (np.array(v, dtype=np.float64) for v in state)
+    out = np.empty_like(pos)
+    if n == 0:
+        return out, (last, direction, anchor_x, anchor_s)
+    for j in range(m):
+        pj = pos[:, j]
+        prev = np.concatenate(([last[j]], pj[:-1]))
+        step = np.sign(pj - prev)
+        fill = np.maximum.accumulate(np.where(step != 0, np.arange(n), -1))
+        dirs = np.where(fill >= 0, step[np.maximum(fill, 0)], direction[j])
+        before = np.concatenate(([direction[j]], dirs[:-1]))
+        turns = np.flatnonzero(dirs != before)
+        ax = np.empty(turns.size + 1)
+        as_ = np.empty(turns.size + 1)
+        ax[0], as_[0] = anchor_x[j], anchor_s[j]
+        for t, i in enumerate(turns):   # the state where each new direction begins
+            sigma = before[i]
+            as_[t + 1] = as_[t] if sigma == 0 else \
+                sigma - (sigma - as_[t]) * math.exp(-sigma * (prev[i] - ax[t]) / travel_m)
+            ax[t + 1] = prev[i]
+        seg = np.cumsum(dirs != before)
+        s = dirs - (dirs - as_[seg]) * np.exp(-dirs * (pj - ax[seg]) / travel_m)
+        out[:, j] = np.clip(np.where(dirs == 0, as_[seg], s), -1.0, 1.0)
+        last[j], direction[j], anchor_x[j], anchor_s[j] = pj[-1], dirs[-1], ax[-1], as_[-1]
+    return out, (last, direction, anchor_x, anchor_s)
+
+
+def friction_state(lengths_m: FloatArray, travel_m: float, deadband_m: float,
+                   state: tuple[FloatArray, FloatArray, FloatArray, FloatArray] | None
+                   ) -> tuple[FloatArray, tuple[FloatArray, FloatArray, FloatArray, FloatArray]]:
+    """Friction state s in [-1, 1] of each bar along its motion (Dahl's model of friction).
+
+    Friction does not flip when the motion reverses: it turns over gradually with the travel
+    since the reversal. Within a stretch of motion in direction sigma that began at position
+    x_a with state s_a, ds/dx = sigma (1 - sigma s) / travel, so
+
+        s(x) = sigma - (sigma - s_a) exp(-sigma (x - x_a) / travel),
+
+    which is a relay for travel -> 0 and a slow turn-over for a long travel (the transition's
+    shape is one parameter, fitted by the analysis). The motion is the bar's length seen through
+    a play of half-width ``deadband_m`` (one encoder count): the rounding flicker of a bar at
+    rest is not motion and does not wear the state down.
+
+    lengths_m : ndarray, shape (N, M) [m]
+    state : (play position, direction, anchor position, anchor state), each (M,), or None at
+        the start of a run (state 0, no direction yet)
+    returns : s, shape (N, M), and the state after the last sample
+    """
+    x = np.asarray(lengths_m, dtype=np.float64)
+    if state is None:
+        first = x[0] if x.shape[0] else np.zeros(x.shape[1])
+        state = (first.copy(), np.zeros(x.shape[1]), first.copy(), np.zeros(x.shape[1]))
+    positions = play_positions(x, deadband_m, state[0])
+    return dahl_state(positions, travel_m, state)
+
+
+@register_term
+class FrictionTerm(_Replayable):
+    """Friction hysteresis with a gradual turn-over (section 5.3; Dahl's friction model).
+
+    Friction in the ball joints and guides makes bar i read ``amplitude_i * s_i`` too long, with
+    s_i the friction state of :func:`friction_state` (+1 after a long lengthening, -1 after a
+    long shortening, turning over within about ``travel`` after a reversal). Correction:
+    ``-amplitude_i * s_i``, driven by the compensated lengths. Unlike the relay of
+    :class:`~mmd_ros.core.model.HysteresisTerm`, the transition has a shape, and its travel is
+    estimated from the data.
+    """
+
+    type_name = 'friction'
+
+    def __init__(self, amplitude_m: FloatArray, travel_m: float, deadband_m: float) -> None:
+        self.amplitude_m = np.asarray(amplitude_m, dtype=np.float64)
+        self.travel_m = float(travel_m)
+        self.deadband_m = float(deadband_m)
+        self.reset()
+
+    def correction(self, ctx: TermContext) -> FloatArray:
+        self._begin(ctx)
+        if ctx.lengths_m.shape[0] == 0:
+            return np.zeros_like(ctx.lengths_m)
+        s, self._state = friction_state(ctx.lengths_m, self.travel_m, self.deadband_m, self._state)
+        return -self.amplitude_m * s
+
+    @classmethod
+    def from_params(cls, params: dict[str, Any], source: str) -> FrictionTerm:
+        return cls(six_values(params, 'amplitude_um', source) * M_PER_UM,
+                   _number(params, 'travel_um', source, positive=True) * M_PER_UM,
+                   _number(params, 'deadband_um', source, 0.05) * M_PER_UM)
+
+    def params(self) -> dict[str, Any]:
+        return {'amplitude_um': (self.amplitude_m / M_PER_UM).tolist(),
+                'travel_um': self.travel_m / M_PER_UM, 'deadband_um': self.deadband_m / M_PER_UM}
 
 
 # -- thermal -----------------------------------------------------------------------------------

@@ -26,7 +26,8 @@ from mmd_ros.core.calibration import CdfBank, CentreDistanceFunction
 from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.errors import ModelError
 
-__all__ = ['CMM_TEMP_C', 'ReferenceBar', 'ThermalCompensation', 'ThermalState']
+__all__ = ['CMM_TEMP_C', 'ReferenceBar', 'ThermalCompensation', 'ThermalState',
+           'reference_plate_growth']
 
 FloatArray = NDArray[np.float64]
 
@@ -34,6 +35,21 @@ FloatArray = NDArray[np.float64]
 CMM_TEMP_C = 20.0
 
 MODES = ('auto', 'single', 'interpolate', 'off')
+
+
+def reference_plate_growth(device: DeviceDescription, ambient_c: float | None) -> float:
+    """1 + a_ref (T_cal - 20 °C): how much longer the reference pairs are at the calibration's
+    temperature than the CMM distances d_r^j of Table 2, measured at 20 °C.
+
+    The bars are calibrated at the room's temperature (section 3.2), so each CDF point is
+    (q^j, d_r^j at T_cal), not d_r^j. ZERODUR expands little (0.02 ppm/°C) but not nothing: at
+    24.2 °C every pair is 0.084 ppm longer, which a CDF through the 20 °C distances turns into
+    bars reading 21–32 nm short, an error of the pose that follows the bars' lengths. 1 when the
+    calibration does not say its temperature.
+    """
+    if ambient_c is None:
+        return 1.0
+    return 1.0 + device.reference_plate_cte_per_c * (ambient_c - CMM_TEMP_C)
 
 
 @dataclass(frozen=True)
@@ -92,6 +108,11 @@ class ThermalCompensation:
         self._sensitivity = np.array([
             -(device.rod_cte_per_c * fixed + device.scale_cte_per_c * (r.distance_m - fixed))
             for r in self.references])
+        # The pair under a reference bar grows with the reference plate: f_ref - d_r reads the
+        # bar's error eps plus d_r a_ref dT, and dT = eps / sensitivity, so
+        # eps = (f_ref - d_r) / (1 + d_r a_ref / sensitivity).
+        self._pair_factor = 1.0 + np.array([r.distance_m * device.reference_plate_cte_per_c
+                                            for r in self.references]) / self._sensitivity
         # Eq. (11) of every reference bar in one pass of their CDFs (when they have as many
         # points each, as the calibration routine makes them)
         self._channels = [r.channel for r in self.references]
@@ -110,9 +131,9 @@ class ThermalCompensation:
         returns : ndarray, shape (N, k) [m]
         """
         if self._bank is not None:
-            return self._bank(counts[:, self._channels])[0] - self._offsets_m
+            return (self._bank(counts[:, self._channels])[0] - self._offsets_m) / self._pair_factor
         cols = [r.cdf(counts[:, r.channel])[0] - r.distance_m - r.zero_m for r in self.references]
-        return np.stack(cols, axis=1) if cols else np.zeros((counts.shape[0], 0))
+        return np.stack(cols, axis=1) / self._pair_factor if cols else np.zeros((counts.shape[0], 0))
 
     def state(self, counts: FloatArray, lengths_m: FloatArray) -> ThermalState:
         """Thermal state of N samples.

@@ -43,6 +43,8 @@ __all__ = ['TwinSource']
 NS_PER_S = 1_000_000_000
 #: Length a bar lying in its case reads [m] (anything within the range).
 CASE_LENGTH_M = 0.3
+#: How a bar is seated on a pair: friction state and seating of the twin (''  its resting one).
+APPROACH_SEATS: dict[str, tuple[float | None, int]] = {'': (None, 0), 'short': (1.0, 1), 'long': (-1.0, 2)}
 #: Wobble of a bar seating in its sockets: amplitude [m] and frequency [Hz].
 SEAT_WOBBLE_M = 5e-6
 SEAT_WOBBLE_HZ = 3.0
@@ -165,12 +167,16 @@ class TwinSource:
         self._transitions[c] = _Transition(self._next, self._next + self.transition, float(self._last[c]))
         self._cache.pop(c, None)
 
-    def place(self, bar: str, pair: str) -> None:
-        """The operator puts ``bar`` on reference ``pair`` (taking it off the MMD if mounted)."""
+    def place(self, bar: str, pair: str, approach: str = '') -> None:
+        """The operator puts ``bar`` on reference ``pair`` (taking it off the MMD if mounted):
+        as it comes (its resting placement there), or seated from ``short`` or ``long`` (the
+        friction state of its guide +1 or -1, another seating)."""
         c = self._channel(bar)
         self.device.pair(pair)
+        if approach not in APPROACH_SEATS:
+            raise TwinError(f'approach must be short, long or empty, got {approach!r}')
         with self._lock:
-            self._move(c, pair)
+            self._move(c, f'{pair}@{approach}' if approach else pair)
 
     def hold(self, bar: str, length_m: float) -> None:
         """The operator holds ``bar`` at a centre distance of ``length_m`` (for example beside a
@@ -196,7 +202,8 @@ class TwinSource:
             for c in self._measuring:
                 self._move(c, 'mounted')
             for c, pair in self._resting.items():
-                self._move(c, pair)
+                if self._state.get(c, 'off').partition('@')[0] != pair:  # one already there stays
+                    self._move(c, pair)
 
     def disturb(self, bar: str, seconds: float = 3.0, amplitude_m: float = 20e-6) -> None:
         """Something moves ``bar`` for ``seconds``: its reading oscillates by ``amplitude_m``."""
@@ -288,7 +295,10 @@ class TwinSource:
             values = self.twin.counts_for_lengths(c, np.full(n, length), times,
                                                   self.ambient).astype(np.float64)
         else:
-            values = self.twin.counts_on_pair(c, state, times, self.ambient).astype(np.float64)
+            pair, _, approach = state.partition('@')
+            sign, seat = APPROACH_SEATS[approach]
+            values = self.twin.counts_on_pair(c, pair, times, self.ambient, approach=sign,
+                                              seat=seat).astype(np.float64)
         self._cache[c] = (k0, values)
         return values[:k1 - k0]
 
@@ -360,5 +370,6 @@ class TwinSource:
                                         bar.distances_m)
         return Calibration(device=cal.device, bars=bars, thermal_zero_m=dict(cal.thermal_zero_m),
                            ambient_c=cal.ambient_c, created=cal.created, valid=True,
+                           uncertainty=cal.uncertainty,
                            quality={'source': f'factory calibration of the digital twin '
                                               f'(seed {self.twin.seed}) at t = {at:.0f} s'})

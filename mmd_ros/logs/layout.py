@@ -8,6 +8,7 @@ one, the reference instrument's reading.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 from dataclasses import dataclass, field
@@ -32,7 +33,8 @@ __all__ = [
     'TOPIC_BAR_LENGTHS',
     'TOPIC_CALIBRATION', 'TOPIC_DEVICE', 'TOPIC_DIAGNOSTICS', 'TOPIC_FK_STATUS', 'TOPIC_MODEL',
     'TOPIC_POSE', 'TOPIC_POSE_COV', 'TOPIC_RAW', 'TOPIC_REF_LENGTHS', 'TOPIC_REF_POSE',
-    'TOPIC_THERMAL', 'RunStream', 'monotonic_runs', 'open_run', 'read_run', 'write_run',
+    'TOPIC_MACHINE_JOINTS', 'TOPIC_THERMAL', 'MachineJoints', 'RunStream', 'monotonic_runs',
+    'open_run', 'read_run', 'write_run',
 ]
 
 TOPIC_DEVICE = '/mmd/device_description'
@@ -49,6 +51,9 @@ TOPIC_FK_STATUS = '/mmd/fk_status'
 #: Names of /mmd/fk_status, live and in processed logs (msg_docs/topics.md).
 FK_STATUS_NAMES = ['converged', 'valid', 'iterations', 'residual', 'condition', 'status']
 TOPIC_DIAGNOSTICS = '/diagnostics'
+#: The machine tool's axis values beside the MMD (sensor_msgs/JointState: names X Y Z A C...,
+#: positions in m and rad), from its controller or the twin's machine session.
+TOPIC_MACHINE_JOINTS = '/mmd/machine/joint_states'
 
 FRAME_LOWER = 'mmd_lower'
 FRAME_UPPER = 'mmd_upper'
@@ -71,6 +76,19 @@ class RunBlock:
 
 
 @dataclass
+class MachineJoints:
+    """Axis values of the machine tool carrying the MMD, on their own time stamps.
+
+    stamps_ns : ndarray, shape (M,) [ns since the epoch]; names : axis names
+    positions : ndarray, shape (M, n_axes) [m, rad]
+    """
+
+    stamps_ns: NDArray[np.int64]
+    names: list[str]
+    positions: NDArray[np.float64]
+
+
+@dataclass
 class RunLog:
     """A recorded run, as read from a log.
 
@@ -81,6 +99,7 @@ class RunLog:
     metadata : the run's description (scenario, effects, seed...) if the log has one
     problem : what was lost reading the log (damage, an unclean end), or None
     segment : (k, n) — the k-th of the log's n segments of increasing stamps
+    machine_joints : the machine tool's axis values (``/mmd/machine/joint_states``), or None
     """
 
     path: Path
@@ -95,6 +114,17 @@ class RunLog:
     metadata: dict[str, Any] = field(default_factory=dict)
     problem: LogProblem | None = None
     segment: tuple[int, int] = (1, 1)
+    machine_joints: MachineJoints | None = None
+
+    def content_hash(self) -> str:
+        """Identity of the run: a hash of its raw counts and their stamps (16 hex digits).
+
+        Two logs of the same run (a copy, a renamed file, the log re-written by ``mmd process``)
+        have the same hash; a model file names the runs it was fitted on by it."""
+        h = hashlib.sha256()
+        h.update(np.ascontiguousarray(self.stamps_ns, dtype=np.int64).tobytes())
+        h.update(np.ascontiguousarray(self.counts, dtype=np.float64).tobytes())
+        return h.hexdigest()[:16]
 
     @property
     def times_s(self) -> NDArray[np.float64]:
@@ -106,6 +136,10 @@ class RunLog:
     @property
     def n_samples(self) -> int:
         return int(self.stamps_ns.size)
+
+    @property
+    def has_reference_pose(self) -> bool:
+        return self.reference_pose is not None
 
     def blocks(self, size: int) -> Iterator[RunBlock]:
         """The run in blocks of ``size`` samples, in time order."""
@@ -198,6 +232,11 @@ def read_run(path: str | os.PathLike[str], *, segment: int | None = None) -> Run
         if reader.has_topic(topic):
             ref = _segment_of(reader.joint_states(topic), len(runs), segment or 1, topic, source)
             setattr(run, attr, _aligned(ref, sel, names, source))
+    if reader.has_topic(TOPIC_MACHINE_JOINTS) and sel.stamps_ns.size:
+        js = reader.joint_states(TOPIC_MACHINE_JOINTS)
+        keep = (js.stamps_ns >= sel.stamps_ns[0] - 10**9) & (js.stamps_ns <= sel.stamps_ns[-1] + 10**9)
+        if keep.any():
+            run.machine_joints = MachineJoints(js.stamps_ns[keep], list(js.names), js.values[keep])
     run.metadata = _run_metadata(reader, source)
     return run
 
@@ -242,6 +281,11 @@ class RunStream:
     @property
     def problem(self) -> LogProblem | None:
         return self._reader.problem
+
+    @property
+    def has_reference_pose(self) -> bool:
+        """The log has a reference pose (its blocks carry one)."""
+        return self._reader.has_topic(TOPIC_REF_POSE)
 
     def close(self) -> None:
         self._reader.close()

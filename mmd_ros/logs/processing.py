@@ -24,7 +24,7 @@ from typing import IO, Any, Iterable, Iterator, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from mmd_ros.core.accuracy import ErrorAccumulator, length_error, pose_error
+from mmd_ros.core.accuracy import CoverageAccumulator, ErrorAccumulator, length_error, pose_error
 from mmd_ros.core.calibration import Calibration, load_calibration
 from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.errors import CalibrationError
@@ -61,8 +61,13 @@ class RunSource(Protocol):
     calibration: Calibration | None
     problem: str | None
 
+    metadata: dict[str, Any]
+
     @property
     def n_samples(self) -> int: ...
+
+    @property
+    def has_reference_pose(self) -> bool: ...
 
     def blocks(self, size: int) -> Iterator[RunBlock]: ...
 
@@ -84,14 +89,25 @@ class ProcessedRun:
     reference_error_m: NDArray[np.float64]
     temp_change_c: NDArray[np.float64]
     covariance: NDArray[np.float64] | None
+    #: the uncertainty budget's numbers and notes after these samples (with the covariance)
+    budget: dict[str, Any] | None = None
 
     @classmethod
     def concatenate(cls, parts: list[ProcessedRun]) -> ProcessedRun:
-        values = {}
+        values: dict[str, Any] = {}
         for f in fields(cls):
             items = [getattr(p, f.name) for p in parts]
-            values[f.name] = None if items[0] is None else np.concatenate(items)
+            if f.name == 'budget':
+                values[f.name] = items[-1]      # the budget as it stood after the last sample
+            else:
+                values[f.name] = None if items[0] is None else np.concatenate(items)
         return cls(**values)
+
+    def __getitem__(self, part: slice) -> ProcessedRun:
+        """The samples ``part`` (the budget as it is)."""
+        return ProcessedRun(**{f.name: getattr(self, f.name) if f.name == 'budget'
+                               or getattr(self, f.name) is None else getattr(self, f.name)[part]
+                               for f in fields(self)})
 
 
 def _resolve_calibration(source: RunSource, calibration: Calibration | str | None) -> Calibration:
@@ -126,7 +142,8 @@ def process_blocks(source: RunSource, model: Model, *, calibration: Calibration 
         yield part, ProcessedRun(
             part.stamps_ns, comp.lengths_m, res.poses, res.converged, res.valid, res.status,
             comp.out_of_range, res.iterations, res.residual_m, res.condition,
-            comp.thermal.reference_error_m, comp.thermal.temp_change_c, res.covariance)
+            comp.thermal.reference_error_m, comp.thermal.temp_change_c, res.covariance,
+            pipeline.budget.summary() if with_covariance else None)
 
 
 def process_run(run: RunLog, model: Model, *, calibration_path: str | None = None,
@@ -160,6 +177,8 @@ class RunSummary:
         self.status = np.zeros(len(FkStatus), dtype=np.int64)
         self.pose_error: ErrorAccumulator | None = None
         self.length_error: ErrorAccumulator | None = None
+        self.coverage: CoverageAccumulator | None = None
+        self.budget: dict[str, Any] | None = None
 
     def add(self, part: RunBlock, result: ProcessedRun) -> None:
         n = int(result.stamps_ns.size)
@@ -176,13 +195,27 @@ class RunSummary:
         self.last_ns = int(result.stamps_ns[-1])
         if part.reference_pose is not None:
             self.pose_error = self.pose_error or ErrorAccumulator('pose')
-            self.pose_error.add(pose_error(result.poses, part.reference_pose), result.valid)
+            errors = pose_error(result.poses, part.reference_pose)
+            self.pose_error.add(errors, result.valid)
+            if result.covariance is not None:
+                self.coverage = self.coverage or CoverageAccumulator()
+                self.coverage.add(errors, result.covariance, result.valid)
+        if result.budget is not None:
+            self.budget = result.budget
         if part.reference_lengths is not None:
             self.length_error = self.length_error or ErrorAccumulator('lengths')
             self.length_error.add(length_error(result.lengths_m, part.reference_lengths),
                                   result.valid)
 
-    def as_dict(self, source: RunSource) -> dict[str, Any]:
+    def as_dict(self, source: RunSource, *, absolute_reference: bool | None = None
+                ) -> dict[str, Any]:
+        """The summary; with a reference pose and the covariance, how well the covariance
+        covers the error (:func:`~mmd_ros.core.accuracy.coverage`).
+
+        absolute_reference : the reference pose is absolute in {L} (no offset removed); None
+            takes what the log's metadata says (``reference_absolute``), else False (the
+            reference was zeroed at the start, its offset is removed)
+        """
         summary: dict[str, Any] = {
             'log': str(source.path),
             'samples': self.samples,
@@ -200,27 +233,47 @@ class RunSummary:
             summary['segment'] = {'index': segment[0], 'of': segment[1]}
         if self.pose_error is not None:
             summary['pose_error'] = [s.as_dict() for s in self.pose_error.stats()]
+        if self.coverage is not None:
+            metadata = getattr(source, 'metadata', {}) or {}
+            absolute = absolute_reference
+            if absolute is None:
+                absolute = bool(metadata.get('reference_absolute', False))
+            sigma = metadata.get('reference_sigma')
+            ref_sigma = (np.array([np.nan if v is None else float(v) for v in sigma])
+                         if isinstance(sigma, list) and len(sigma) == 6 else None)
+            report = self.coverage.report(absolute=absolute, reference_sigma=ref_sigma)
+            if report is not None:
+                summary['uncertainty_coverage'] = report
+        if self.budget is not None:
+            summary['uncertainty_budget'] = self.budget
         if self.length_error is not None:
             summary['length_error'] = [s.as_dict() for s in self.length_error.stats()]
         return summary
 
 
-def summarize(run: RunLog, result: ProcessedRun) -> dict[str, Any]:
-    """Counts of samples and, with a reference in the log, the error statistics."""
+def summarize(run: RunLog, result: ProcessedRun, *, absolute_reference: bool | None = None
+              ) -> dict[str, Any]:
+    """Counts of samples and, with a reference in the log, the error statistics and, with the
+    covariance computed, its coverage (:meth:`RunSummary.as_dict`)."""
     summary = RunSummary()
     summary.add(RunBlock(run.stamps_ns, run.counts, run.reference_pose, run.reference_lengths),
                 result)
-    return summary.as_dict(run)
+    return summary.as_dict(run, absolute_reference=absolute_reference)
 
 
 class ProcessedLogWriter:
     """A processed log being written block by block: bar lengths, poses (NaN where not a
     measurement), thermal state, FK status and, with covariance, poses with covariance, in the
-    live pipeline's topics; the device, calibration and model first, as latched strings."""
+    live pipeline's topics; the device, calibration and model first, as latched strings.
+
+    with_covariance : write the poses with their covariance when a block has them (a
+        covariance computed only to report its coverage is not written)
+    """
 
     def __init__(self, path: Path, device: DeviceDescription, model: Model,
-                 calibration_text: str, stamp_ns: int) -> None:
+                 calibration_text: str, stamp_ns: int, *, with_covariance: bool = True) -> None:
         self.device = device
+        self.with_covariance = with_covariance
         self._log = LogWriter(path, level=FAST_ZSTD_LEVEL, chunk_size=PROCESSED_CHUNK_BYTES)
         try:
             self._log.write_string(TOPIC_DEVICE, stamp_ns, device.to_yaml())
@@ -249,7 +302,7 @@ class ProcessedLogWriter:
             (TOPIC_FK_STATUS, 'sensor_msgs/msg/JointState',
              log.joint_state_rows(FK_STATUS_NAMES, stamps, status)),
         ]
-        if result.covariance is not None:
+        if result.covariance is not None and self.with_covariance:
             streams.append((TOPIC_POSE_COV, 'geometry_msgs/msg/PoseWithCovarianceStamped',
                             log.pose_rows(FRAME_LOWER, stamps, poses, result.covariance)))
         log.write_rows(streams, stamps)
@@ -265,27 +318,32 @@ class ProcessedLogWriter:
 
 
 def write_processed(path: Path, run: RunLog, model: Model, result: ProcessedRun,
-                    calibration_text: str) -> None:
+                    calibration_text: str, *, with_covariance: bool = True) -> None:
     """Write a processed run held in memory (:class:`ProcessedLogWriter`), under a temporary
     name renamed to ``path`` once complete."""
     with replacing(path) as tmp, ProcessedLogWriter(tmp, run.device, model, calibration_text,
-                                                    int(result.stamps_ns[0])) as out:
+                                                    int(result.stamps_ns[0]),
+                                                    with_covariance=with_covariance) as out:
         for start in range(0, result.stamps_ns.size, BLOCK):
-            part = slice(start, start + BLOCK)
-            out.write(ProcessedRun(**{f.name: None if getattr(result, f.name) is None
-                                      else getattr(result, f.name)[part] for f in fields(result)}))
+            out.write(result[start:start + BLOCK])
 
 
 def process_log(source: RunSource, out: Path, model: Model, *,
                 calibration: Calibration | str | None = None, with_covariance: bool = False,
                 csv: Path | None = None, progress: Progress | None = None,
-                compiled: bool | None = None, block: int = BLOCK) -> dict[str, Any]:
+                compiled: bool | None = None, block: int = BLOCK,
+                absolute_reference: bool | None = None) -> dict[str, Any]:
     """``mmd process``: every sample of ``source`` through the pipeline into the processed log
     ``out`` (and ``csv``), block by block in bounded memory; returns the summary
     (:class:`RunSummary`). Reading, computing and writing overlap (module docstring). The
     outputs are written under temporary names and renamed when complete
     (:func:`~mmd_ros.logs.outputs.replacing`): a failure leaves none. An output that is the
-    log being read is refused."""
+    log being read is refused.
+
+    with_covariance : write the poses with their covariance. With a reference pose in the log
+        the covariance is computed anyway, to report how well it covers the error.
+    absolute_reference : see :meth:`RunSummary.as_dict`
+    """
     check_outputs([('out', out), ('csv', csv)], [source.path], force=True)
     if isinstance(calibration, str):
         calibration = load_calibration(calibration)
@@ -305,13 +363,13 @@ def process_log(source: RunSource, out: Path, model: Model, *,
     # the pool exits first: a block being written is finished before the files are closed
     with contextlib.ExitStack() as files, ThreadPoolExecutor(1, thread_name_prefix='mmd-write') as pool:
         for part, result in process_blocks(source, model, calibration=calibration,
-                                           with_covariance=with_covariance, compiled=compiled,
-                                           block=block):
+                                           with_covariance=with_covariance or source.has_reference_pose,
+                                           compiled=compiled, block=block):
             if writer is None:
                 cal = _resolve_calibration(source, calibration)
                 writer = files.enter_context(ProcessedLogWriter(
                     files.enter_context(replacing(out)), source.device, model, cal.to_yaml(),
-                    int(part.stamps_ns[0])))
+                    int(part.stamps_ns[0]), with_covariance=with_covariance))
                 if csv is not None:
                     handle = files.enter_context(open(files.enter_context(replacing(csv)), 'w',
                                                       encoding='utf-8'))
@@ -323,7 +381,7 @@ def process_log(source: RunSource, out: Path, model: Model, *,
             pending.result()
     if summary.samples == 0:
         raise CalibrationError(f'{source.path} has no samples')
-    return summary.as_dict(source)
+    return summary.as_dict(source, absolute_reference=absolute_reference)
 
 
 def _masked(poses: NDArray[np.float64], valid: NDArray[np.bool_]) -> NDArray[np.float64]:

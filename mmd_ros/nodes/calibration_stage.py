@@ -104,6 +104,10 @@ def calibration_params(device_name: str = 'mmd_prototype', terminal: str = '') -
         Param('ambient_c', math.nan, 'room temperature recorded with the thermal zero [°C]; NaN '
               'unknown (the plates\' expansion is then counted from the CMM\'s 20 °C)',
               low=-50.0, high=100.0),
+        Param('approaches', 1, '1: each bar once on each pair (the paper\'s routine); 2: twice, '
+              'seated from short and from long, and a reference bar read first on its resting '
+              'pair (measures hysteresis, seating repeatability and the routine\'s drift for the '
+              'uncertainty budget, msg_docs/frames.md)', low=1, high=2),
     ]
 
 
@@ -120,10 +124,11 @@ class CalibrationConfig:
     plausibility_mm: float
     re_reference_pair: str
     ambient_c: float
+    approaches: int = 1
 
     @classmethod
     def from_values(cls, v: dict[str, Any]) -> CalibrationConfig:
-        return cls(**{k: v[k] for k in cls.__dataclass_fields__})
+        return cls(**{k: v[k] for k in cls.__dataclass_fields__ if k in v})
 
 
 class SampleBuffer:
@@ -207,7 +212,7 @@ class CalibrationStage:
             settle_std_m=cfg.settle_std_um * 1e-6, settle_drift_m=cfg.settle_drift_um * 1e-6,
             min_samples=max(2, int(0.5 * cfg.settle_window_s * device.sample_rate_hz)),
             plausibility_m=cfg.plausibility_mm * 1e-3, thermal_mode=thermal_mode,
-            re_reference_pair=cfg.re_reference_pair or None)
+            re_reference_pair=cfg.re_reference_pair or None, approaches=int(cfg.approaches))
         self.routine = CalibrationRoutine(device, None, self.settings)
         self.buffer = SampleBuffer(max(2 * cfg.settle_window_s, cfg.settle_window_s + 2.0),
                                    device.sample_rate_hz)
@@ -226,7 +231,7 @@ class CalibrationStage:
                 and not self.foreign:
             cal = factory()
             cal = Calibration(cal.device, cal.bars, cal.thermal_zero_m, cal.ambient_c, now_iso(),
-                              True, cal.quality)
+                              True, cal.quality, uncertainty=cal.uncertainty)
             self.routine.set_calibration(cal)
             note = self._save(cal)
             self.log.info('simulation: factory calibration of the twin in use.' + note)

@@ -33,14 +33,17 @@ from mmd_ros.nodes.qos import DIAGNOSTICS, data_qos
 
 __all__ = ['CalibrationLog', 'MmdClient', 'guided_calibration', 'next_placement']
 
-_NEXT = re.compile(r'(?:Next: )?place (\S+) on (\S+)')
+_NEXT = re.compile(r'(?:Next: )?place (\S+) on (\S+)(?: \([^)]*\))?(?: from (short|long))?')
 
 
 def next_placement(message: str) -> tuple[str, str] | None:
     """(bar, pair) of the "Next: place <bar> on <pair>" in a calibrate_bar answer (or of a
-    diagnostics ``next_step``), or None."""
+    diagnostics ``next_step``), or None; the pair as "<pair> <short|long>" when the routine
+    asks for an approach (what the simulated operator's ``place`` command takes)."""
     m = _NEXT.search(message.split('Next:', 1)[1] if 'Next:' in message else message)
-    return (m.group(1), m.group(2)) if m else None
+    if not m:
+        return None
+    return (m.group(1), f'{m.group(2)} {m.group(3)}' if m.group(3) else m.group(2))
 
 
 class MmdClient:

@@ -47,7 +47,7 @@ COMMON_PARAMS = [
 ]
 
 MODEL_PARAMS = [
-    Param('model_file', '', 'model file (YAML: thermal mode, model terms, length_sigma_um); "" '
+    Param('model_file', '', 'model file (YAML: thermal mode, model terms, uncertainty); "" '
           'the default model (CDF + thermal compensation)'),
 ]
 

@@ -1,14 +1,16 @@
 """``fk_node``: compensated bar lengths → the pose of {U} in {L}.
 
-Pairs each ``bar_lengths`` sample with the ``thermal`` sample of the same stamp (for the
-plates' scale factor), solves the forward kinematics warm-started from the previous poses and
-publishes ``pose`` (``geometry_msgs/PoseStamped``, frame ``mmd_lower``, SI units, quaternion
-x y z w), ``pose_batch`` (``nav_msgs/Path``: the poses solved together, each with its own stamp,
-one message per batch), ``pose_with_covariance`` (the covariance propagated from the model's bar-length
-uncertainty) and ``fk_status`` for every sample. A sample whose forward kinematics gives no
-plausible pose (``fk_status`` ``status`` says why), or has a bar out of its calibrated range (NaN
-length), gets no pose and is counted in the diagnostics.
-Topics, parameters: ``msg_docs/nodes.md``.
+Pairs each ``bar_lengths`` sample with the ``thermal`` sample of the same stamp (the plates'
+scale factor, and the Eq. 11 errors and temperature change the uncertainty budget needs),
+solves the forward kinematics warm-started from the previous poses and publishes ``pose``
+(``geometry_msgs/PoseStamped``, frame ``mmd_lower``, SI units, quaternion x y z w),
+``pose_batch`` (``nav_msgs/Path``: the poses solved together, each with its own stamp, one
+message per batch), ``pose_with_covariance`` and ``fk_status`` for every sample. The covariance
+is J^-1 Sigma_d J^-T with the bar lengths' uncertainty budget of the calibration (latched
+``calibration`` topic) and the model (latched ``model`` topic): until both have arrived no
+covariance is published. A sample whose forward kinematics gives no plausible pose
+(``fk_status`` ``status`` says why), or has a bar out of its calibrated range (NaN length), gets
+no pose and is counted in the diagnostics. Topics, parameters: ``msg_docs/nodes.md``.
 """
 
 from __future__ import annotations
@@ -24,13 +26,15 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 
+from mmd_ros.core.budget import LengthBudget
+from mmd_ros.core.calibration import Calibration
 from mmd_ros.core.errors import MmdError
 from mmd_ros.core.model import Model
 from mmd_ros.logs.layout import BAR_NAMES
 from mmd_ros.nodes.common import COMMON_PARAMS, NAMESPACE, load_device_param, run
 from mmd_ros.core.streaming import Kinematics
 from mmd_ros.nodes.convert import DIAGNOSTIC_ARRAY, JS, PATH, POSE, POSE_COV, RawBatch, Rows
-from mmd_ros.nodes.diagnostics import Diagnostics
+from mmd_ros.nodes.diagnostics import WARN, Diagnostics
 from mmd_ros.nodes.outlets import Outlet
 from mmd_ros.nodes.params import Param, declare
 from mmd_ros.nodes.progress import CountedInputs, ProgressPublisher
@@ -41,9 +45,9 @@ __all__ = ['FkNode', 'main']
 
 PARAMS = [
     Param('publish_covariance', True, 'publish pose_with_covariance'),
-    Param('length_sigma_um', 0.0, '1-sigma bar-length uncertainty for the covariance [µm]; 0 '
-          'takes length_sigma_um of the model on the model topic', low=1e-6, high=1e6,
-          allow_zero=True),
+    Param('length_sigma_um', 0.0, 'a fixed 1-sigma bar-length uncertainty for the covariance, the '
+          'same for every bar [µm]; 0 takes the uncertainty budget of the calibration and model '
+          '(msg_docs/frames.md)', low=1e-6, high=1e6, allow_zero=True),
 ]
 #: Samples waiting for their partner (lengths or thermal) before they are given up.
 PENDING = 2000
@@ -61,9 +65,13 @@ class FkNode(Node):
         device = load_device_param(v['device_file'])
         refs = [c.name for c in device.reference_channels]
         self.rows = Rows(device.channel_names, refs)
+        self.device = device
         self.fixed_sigma = v['length_sigma_um'] * 1e-6
-        sigma = self.fixed_sigma or Model().length_sigma_m
-        self.kinematics = Kinematics(device, sigma, with_covariance=v['publish_covariance'])
+        self.model: Model | None = None
+        self.calibration: Calibration | None = None
+        self.budget_problem = 'waiting for the model and calibration topics'
+        self.kinematics = Kinematics(device, self.fixed_sigma or None,
+                                     with_covariance=v['publish_covariance'])
         qos = data_qos(v['qos'], v['qos_depth'])
         kind = 'sensor' if v['qos'] == 'sensor' else 'reliable'
         self.out_pose = Outlet(self, 'pose', PoseStamped, POSE, qos, kind)
@@ -75,27 +83,48 @@ class FkNode(Node):
         self.in_lengths = RawBatch(BAR_NAMES)
         self.in_thermal = RawBatch(self.rows.thermal_names)
         self.scale_column = self.rows.thermal_names.index('plate_scale')
+        self.temp_column = self.rows.thermal_names.index('temp_change')
+        self.n_refs = len(refs)
         self._lengths: OrderedDict[int, np.ndarray] = OrderedDict()
-        self._scales: OrderedDict[int, float] = OrderedDict()
+        self._thermal: OrderedDict[int, np.ndarray] = OrderedDict()
         self.unpaired = 0
         self.inputs = CountedInputs(self)
         self.inputs.subscribe(JointState, 'bar_lengths', self._on_lengths, qos)
         self.inputs.subscribe(JointState, 'thermal', self._on_thermal, qos)
         self.create_subscription(String, 'model', self._on_model, LATCHED)
+        self.create_subscription(String, 'calibration', self._on_calibration, LATCHED)
         self.create_timer(FLUSH_PERIOD_S, self._flush)
         self.diagnostics = Diagnostics(self, self.out_diag, [self._report], v['diagnostics_period_s'])
         self.progress = ProgressPublisher(self, self.inputs, [self.out_pose, self.out_pose_cov,
                                                               self.out_status], v['qos_depth'])
 
     def _on_model(self, msg: String) -> None:
-        if self.fixed_sigma:
-            return
         try:
-            model = Model.from_yaml(msg.data, 'the model topic')
+            self.model = Model.from_yaml(msg.data, 'the model topic')
         except MmdError as exc:
             self.get_logger().error(f'model message refused: {exc}')
             return
-        self.kinematics.sigma_m = model.length_sigma_m
+        self._update_budget()
+
+    def _on_calibration(self, msg: String) -> None:
+        try:
+            self.calibration = Calibration.from_yaml(msg.data, 'the calibration topic')
+        except MmdError as exc:
+            self.get_logger().error(f'calibration message refused: {exc}')
+            return
+        self._update_budget()
+
+    def _update_budget(self) -> None:
+        """The uncertainty budget of the calibration and model now in use."""
+        if self.fixed_sigma or self.model is None or self.calibration is None:
+            return
+        try:
+            self.kinematics.budget = LengthBudget(self.device, self.calibration, self.model)
+            self.budget_problem = ''
+        except (MmdError, ValueError) as exc:
+            self.kinematics.budget = None
+            self.budget_problem = f'no covariance: the calibration and model give no budget ({exc})'
+            self.get_logger().error(self.budget_problem)
 
     def _on_lengths(self, payload: bytes) -> None:
         if self.in_lengths.add(payload) >= BATCH and len(self.in_thermal) >= BATCH:
@@ -111,26 +140,28 @@ class FkNode(Node):
                 self._lengths[int(stamp)] = row
         if len(self.in_thermal):
             for stamp, row in zip(*self.in_thermal.take()):
-                self._scales[int(stamp)] = float(row[self.scale_column])
-        if not self._lengths or not self._scales:
+                self._thermal[int(stamp)] = row
+        if not self._lengths or not self._thermal:
             self._trim()
             return
-        both = sorted(s for s in self._lengths if s in self._scales)
+        both = sorted(s for s in self._lengths if s in self._thermal)
         if both:
             stamps = np.array(both, dtype=np.int64)
             lengths = np.array([self._lengths.pop(s) for s in both])
-            scales = np.array([self._scales.pop(s) for s in both])
-            self._solve(stamps, lengths, scales)
+            thermal = np.array([self._thermal.pop(s) for s in both])
+            self._solve(stamps, lengths, thermal)
         self._trim()
 
     def _trim(self) -> None:
-        for pending in (self._lengths, self._scales):
+        for pending in (self._lengths, self._thermal):
             while len(pending) > PENDING:
                 pending.popitem(last=False)
                 self.unpaired += 1
 
-    def _solve(self, stamps: np.ndarray, lengths: np.ndarray, scales: np.ndarray) -> None:
-        kin = self.kinematics.solve(lengths, scales, stamps)
+    def _solve(self, stamps: np.ndarray, lengths: np.ndarray, thermal: np.ndarray) -> None:
+        kin = self.kinematics.solve(lengths, thermal[:, self.scale_column],
+                                    thermal[:, :self.n_refs], thermal[:, self.temp_column],
+                                    stamps_ns=stamps)
         # poses first (what CNC tooling waits for); the covariance is computed after them
         if kin.valid.any():
             s = stamps[kin.valid]
@@ -143,6 +174,8 @@ class FkNode(Node):
 
     def _report(self) -> list:
         r = kinematics_report(self.kinematics)
+        if self.kinematics.with_covariance and not self.fixed_sigma and self.budget_problem:
+            r.worse(WARN, self.budget_problem)
         r.values['unpaired_samples'] = self.unpaired
         r.values['foreign_messages'] = self.in_lengths.foreign + self.in_thermal.foreign
         self.inputs.report(r)

@@ -28,6 +28,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 
 from mmd_ros.core.calibration import Calibration, TerminalBinding
+from mmd_ros.core.errors import MmdError
 from mmd_ros.nodes.calibration_stage import (
     CalibrationConfig, CalibrationService, CalibrationStage, calibration_params,
 )
@@ -42,7 +43,7 @@ from mmd_ros.nodes.diagnostics import Diagnostics
 from mmd_ros.nodes.outlets import Outlet
 from mmd_ros.nodes.params import Param, declare
 from mmd_ros.nodes.qos import DIAGNOSTICS, LATCHED, data_qos
-from mmd_ros.nodes.recorder_stage import RECORDER_PARAMS, RecorderConfig, RecorderStage
+from mmd_ros.nodes.recorder_stage import RECORDER_PARAMS, RecorderConfig, RecorderStage, raw_writer
 from mmd_ros.nodes.reports import compensation_report, kinematics_report
 from mmd_ros.nodes.terminal import TERMINAL_PARAMS, TerminalConfig, TerminalStage
 
@@ -100,12 +101,18 @@ class PoseNode(CalibrationService, Node):
         # recorded: the same poses are in pose)
         self.out_pose_batch = Outlet(self, 'pose_batch', Path, PATH, qos, log_qos)
         self.out_diag = outlet('/diagnostics', DiagnosticArray, DIAGNOSTIC_ARRAY, DIAGNOSTICS, 'reliable')
+        if rec is not None:
+            # the machine tool's axis positions beside the poses (mmd machine), when a controller
+            # publishes them: recorded as received
+            self.create_subscription(
+                JointState, 'machine/joint_states',
+                raw_writer(rec, self.get_clock(), self.resolve_topic_name('machine/joint_states'),
+                           JS, log_qos, True), qos, raw=True)
         self.publish_covariance = v['publish_covariance']
         self.thermal_warn_c = v['thermal_warn_c']
 
         self.compensator = Compensator(device, self.model)
-        self.kinematics = Kinematics(device, self.model.length_sigma_m,
-                                     with_covariance=self.publish_covariance)
+        self.kinematics = Kinematics(device, None, with_covariance=self.publish_covariance)
         tcfg = TerminalConfig.from_values(v)
         self.terminal = TerminalStage(tcfg, device, self.rows, self.out_raw, self.out_reference,
                                       self.get_logger(), alive=self.context.ok, raw_last=True)
@@ -139,6 +146,13 @@ class PoseNode(CalibrationService, Node):
     def _publish_calibration(self, cal: Calibration) -> None:
         self.compensator.set_calibration(cal, str(self.calibration.path)
                                          if hasattr(self, 'calibration') else 'calibration file')
+        if self.publish_covariance:
+            # the uncertainty budget of this calibration (it fits the interpolation error)
+            try:
+                self.kinematics.budget = self.compensator.budget
+            except MmdError as exc:
+                self.kinematics.budget = None
+                self.get_logger().error(f'no covariance with this calibration: {exc}')
         self.out_calibration.payload(string_bytes(cal.to_yaml()), self.get_clock().now().nanoseconds)
 
     def _on_open(self, binding: TerminalBinding) -> None:
@@ -157,7 +171,9 @@ class PoseNode(CalibrationService, Node):
         # covariance (computed only now) and the rest of the transfer's topics
         comp = self.compensator.process(stamps, counts, status)
         if comp is not None:
-            kin = self.kinematics.solve(comp.lengths_m, comp.plate_scale, stamps)
+            kin = self.kinematics.solve(comp.lengths_m, comp.plate_scale, comp.reference_error_m,
+                                        comp.temp_change_c, comp.bar_error_m, comp.fit_columns_m,
+                                        stamps_ns=stamps)
             valid = kin.valid if kin.valid.any() else None
             if valid is not None:
                 s = stamps[valid]

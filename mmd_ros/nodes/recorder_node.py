@@ -11,7 +11,6 @@ the recording with an error in ``/diagnostics`` and keeps what was written.
 
 from __future__ import annotations
 
-import struct
 import sys
 
 from diagnostic_msgs.msg import DiagnosticArray
@@ -27,7 +26,7 @@ from mmd_ros.nodes.outlets import Outlet
 from mmd_ros.nodes.params import Param, ParameterError, declare
 from mmd_ros.nodes.progress import CountedInputs, ProgressPublisher
 from mmd_ros.nodes.qos import DIAGNOSTICS, LATCHED, data_qos
-from mmd_ros.nodes.recorder_stage import RECORDER_PARAMS, RecorderConfig, RecorderStage
+from mmd_ros.nodes.recorder_stage import RECORDER_PARAMS, RecorderConfig, RecorderStage, raw_writer
 
 __all__ = ['RecorderNode', 'TOPICS', 'main']
 
@@ -46,6 +45,7 @@ TOPICS: dict[str, tuple[type, str, str]] = {
     'fk_status': (JointState, JS, 'data'),
     'pose': (PoseStamped, POSE, 'data'),
     'pose_with_covariance': (PoseWithCovarianceStamped, POSE_COV, 'data'),
+    'machine/joint_states': (JointState, JS, 'data'),
     '/diagnostics': (DiagnosticArray, DIAGNOSTIC_ARRAY, 'diagnostics'),
 }
 
@@ -74,8 +74,8 @@ class RecorderNode(Node):
             cls, type_name, kind = TOPICS[topic]
             qos = {'latched': LATCHED, 'data': data, 'diagnostics': DIAGNOSTICS}[kind]
             log_qos = {'latched': 'latched', 'data': data_kind, 'diagnostics': 'reliable'}[kind]
-            callback = self._writer(self.resolve_topic_name(topic), type_name, log_qos,
-                                    cls is not String)
+            callback = raw_writer(self.stage.queue, self.get_clock(), self.resolve_topic_name(topic),
+                                  type_name, log_qos, cls is not String, self._count)
             if kind == 'data':  # per-sample topics: losses counted, progress published
                 self.inputs.subscribe(cls, topic, callback, qos)
             else:
@@ -89,19 +89,8 @@ class RecorderNode(Node):
         self.inputs.report(r)
         return [r]
 
-    def _writer(self, topic: str, type_name: str, log_qos: str, stamped: bool):
-        put = self.stage.queue.put_message
-        clock = self.get_clock()
-
-        def write(payload: bytes) -> None:
-            self.received += 1
-            if stamped and len(payload) >= 12:  # header.stamp right after the encapsulation
-                sec, nsec = struct.unpack_from('<iI', payload, 4)
-                stamp = sec * 1_000_000_000 + nsec
-            else:
-                stamp = clock.now().nanoseconds
-            put(topic, type_name, stamp, payload, log_qos)
-        return write
+    def _count(self) -> None:
+        self.received += 1
 
     def destroy_node(self) -> None:
         self.stage.close()

@@ -6,17 +6,18 @@ Used by ``recorder_node`` (fed by raw subscriptions) and ``pose_node`` (fed by i
 from __future__ import annotations
 
 import math
+import struct
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 from mmd_ros.logs.recorder import QueuedRecorder, Recorder
 from mmd_ros.nodes.calibration_stage import ros_home
 from mmd_ros.nodes.diagnostics import ERROR, OK, WARN, Report
 from mmd_ros.nodes.params import Param
 
-__all__ = ['RECORDER_PARAMS', 'RecorderConfig', 'RecorderStage']
+__all__ = ['RECORDER_PARAMS', 'RecorderConfig', 'RecorderStage', 'raw_writer']
 
 RECORDER_PARAMS = [
     Param('output', '', 'MCAP file to record into; "" makes mmd_<UTC date>_<time>.mcap in '
@@ -31,6 +32,24 @@ RECORDER_PARAMS = [
           'log reads back up to the last flush [s]', low=0.05, high=60.0),
     Param('compression', 'zstd', 'chunk compression', choices=('zstd', 'lz4', 'none')),
 ]
+
+
+def raw_writer(queue: QueuedRecorder, clock: Any, topic: str, type_name: str, log_qos: str,
+               stamped: bool, counter: Callable[[], None] | None = None) -> Callable[[bytes], None]:
+    """A raw subscription's callback that records the CDR bytes as received: log time is the
+    message's ``header.stamp`` (right after the 4-byte encapsulation), else the receive time."""
+    put = queue.put_message
+
+    def write(payload: bytes) -> None:
+        if counter is not None:
+            counter()
+        if stamped and len(payload) >= 12:
+            sec, nsec = struct.unpack_from('<iI', payload, 4)
+            stamp = sec * 1_000_000_000 + nsec
+        else:
+            stamp = clock.now().nanoseconds
+        put(topic, type_name, stamp, payload, log_qos)
+    return write
 
 
 @dataclass(frozen=True)

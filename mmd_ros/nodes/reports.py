@@ -45,6 +45,14 @@ def compensation_report(comp: Compensator, thermal_warn_c: float, model_source: 
                     'with bar length (Eq. 12); fit a second reference bar or set a new thermal zero')
         else:
             r.worse(OK, f'thermal drift {dt:+.2f} °C since the thermal zero (Eq. 12)')
+    if comp.validity is not None:
+        text = comp.validity.describe(st.period_outside_bars, st.period_outside_temp)
+        if text:
+            r.worse(WARN, text)
+        r.values['model_validated_runs'] = len(comp.validity.runs)
+        r.values['outside_validated_range'] = int(st.period_outside_bars.sum() + st.period_outside_temp)
+        st.period_outside_bars = np.zeros(6, np.int64)
+        st.period_outside_temp = 0
     out = st.period_out
     if out.any():
         bars = [f'bar{i + 1} ({int(v)})' for i, v in enumerate(out) if v]

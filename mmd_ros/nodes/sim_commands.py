@@ -71,12 +71,16 @@ def run_command(words: list[str], source: TwinSource, terminal: SimTerminal) -> 
     if cmd == 'move':
         if not 1 <= len(args) <= 3:
             raise SimCommandError('usage: move <bar> [seconds] [amplitude_um]')
+    elif cmd == 'place':
+        if len(args) not in (2, 3):
+            raise SimCommandError(f'place takes 2 arguments, <bar> <pair>, and optionally short or '
+                                  f'long; got {args}')
     elif len(args) != need[cmd]:
         raise SimCommandError(f'{cmd} takes {need[cmd]} argument(s), got {args}')
     try:
         if cmd == 'place':
-            source.place(args[0], args[1])
-            return f'{args[0]} placed on {args[1]}'
+            source.place(args[0], args[1], args[2] if len(args) > 2 else '')
+            return f'{args[0]} placed on {args[1]}' + (f' from {args[2]}' if len(args) > 2 else '')
         if cmd == 'remove':
             source.remove(args[0])
             return f'{args[0]} removed'

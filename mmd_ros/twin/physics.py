@@ -60,6 +60,9 @@ COUNT_OFFSET_SPAN = 1_000_000
 COUNT_OFFSET_BASE = 4_000_000
 #: A length step below this is no motion for the friction state (rounding, thermal creep) [m].
 STILL_M = 1e-12
+#: Further seatings of a bar on a pair with their own seating offsets (seat 0 is the bar's
+#: resting placement, ``seating_m``).
+RESEATS = 4
 
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 _M1 = np.uint64(0xBF58476D1CE4E5B9)
@@ -191,6 +194,7 @@ class BarPhysics:
     skew_s: FloatArray = field(init=False, repr=False)
     drift_m_per_s: FloatArray = field(init=False, repr=False)
     seating_m: FloatArray = field(init=False, repr=False)  # (8, 7)
+    reseating_m: FloatArray = field(init=False, repr=False)  # (8, 7, RESEATS): seats 1, 2...
 
     def __post_init__(self) -> None:
         eff, dev = self.effects, self.device
@@ -232,6 +236,18 @@ class BarPhysics:
         put('skew_s', eff.sampling_skew_s * rng(STREAM_SKEW).uniform(0.0, 1.0, n))
         put('drift_m_per_s', eff.drift_m_per_s * rng(STREAM_DRIFT).uniform(-1.0, 1.0, n))
         put('seating_m', eff.placement_repeatability_m * rng(STREAM_SEATING).standard_normal((n, n_pairs)))
+        put('reseating_m', eff.placement_repeatability_m * np.random.default_rng(
+            [self.seed, STREAM_SEATING, 1]).standard_normal((n, n_pairs, RESEATS)))
+
+    def seating(self, channels: ArrayLike, pairs: ArrayLike, seat: int = 0) -> FloatArray:
+        """Seating offsets [m] of bars on pairs (index arrays of one shape) at seating ``seat``:
+        0 is the bar's resting placement, 1..RESEATS further placements."""
+        ch, j = np.asarray(channels, dtype=np.intp), np.asarray(pairs, dtype=np.intp)
+        if seat == 0:
+            return self.seating_m[ch, j]
+        if not 1 <= seat <= RESEATS:
+            raise ValueError(f'seat must be in 0..{RESEATS}, got {seat}')
+        return self.reseating_m[ch, j, seat - 1]
 
     @property
     def stroke_m(self) -> float:

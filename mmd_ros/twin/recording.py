@@ -18,7 +18,7 @@ from mmd_ros.core.progress import Progress
 from mmd_ros.core.yamlio import read_yaml
 from mmd_ros.logs.layout import (
     BAR_NAMES, FRAME_LOWER, REFERENCE_POSE_NAMES, RUN_METADATA, TOPIC_CALIBRATION, TOPIC_DEVICE,
-    TOPIC_RAW, TOPIC_REF_LENGTHS, TOPIC_REF_POSE,
+    TOPIC_MACHINE_JOINTS, TOPIC_RAW, TOPIC_REF_LENGTHS, TOPIC_REF_POSE,
 )
 from mmd_ros.logs.outputs import replacing
 from mmd_ros.logs.writer import LogWriter
@@ -52,6 +52,9 @@ class SimulationSpec:
     reference: str | None = None
     sample_rate_hz: float | None = None
     epoch_s: int = EPOCH_S
+    #: 1: the paper's calibration routine; 2: every pair seated from both sides and the
+    #: routine's drift read (TwinDevice.calibrate): what the uncertainty budget can size
+    calibration_approaches: int = 1
 
     def __post_init__(self) -> None:
         if self.ambient is None:
@@ -103,7 +106,7 @@ def simulate_to_log(spec: SimulationSpec, out: Path, *, progress: bool = True
     effects = Effects.preset(spec.effects).with_assignments(spec.effect_params)
     twin = TwinDevice(device, effects, seed=spec.seed)
     room = ambient_profile(spec.ambient)
-    calibration = twin.calibrate(spec.calibrate_at_s, room)
+    calibration = twin.calibrate(spec.calibrate_at_s, room, approaches=spec.calibration_approaches)
     scenario = make_scenario(spec.scenario, spec.scenario_params)
     chunks = twin.stream(scenario, room, start_s=spec.start_s, reference=spec.reference,
                          sample_rate_hz=spec.sample_rate_hz, chunk_samples=CHUNK)
@@ -138,6 +141,10 @@ def simulate_to_log(spec: SimulationSpec, out: Path, *, progress: bool = True
                 streams.append((TOPIC_REF_POSE, 'sensor_msgs/msg/JointState',
                                 log.joint_state_rows(REFERENCE_POSE_NAMES, stamps, chunk.reference,
                                                      FRAME_LOWER)))
+            if chunk.machine_joints is not None:
+                streams.append((TOPIC_MACHINE_JOINTS, 'sensor_msgs/msg/JointState',
+                                log.joint_state_rows(chunk.machine_joint_names, stamps,
+                                                     chunk.machine_joints)))
             log.write_rows(streams, stamps)
             total += chunk.n_samples
             if bar:

@@ -9,7 +9,10 @@ each channel. Move durations follow from speed and acceleration limits: the quin
 
 The poses are the machine's ACTUAL poses: :class:`MachineErrors` turns a commanded target
 into where the machine really stops (positioning, reversal, repeatability, straightness,
-angular errors), as a machine under ISO 230-2 test does.
+angular errors), as a machine under ISO 230-2 test does. This is the one-axis machine of the
+runs that evaluate the MMD itself (the paper's sections 5.2-5.3); the five-axis machine tool
+with every error motion, squareness and rotary-axis errors, whose errors a machine session
+evaluates, is :mod:`mmd_ros.twin.machine`.
 """
 
 from __future__ import annotations

@@ -7,9 +7,12 @@ which it can be calibrated on the reference plate (section 3.2) and then run sce
 
 Physical truth inside the twin: the CMM-measured joints (Table 1) and reference distances
 (Table 2), whatever the device description tells the software to use; plates expand from
-20 °C; the reference plate lies horizontally. A bar seated on a reference pair always sits with
-the same seating offset and friction state (fixed per bar and pair), so a reference bar left on
-its pair after calibration simply continues its last calibration placement.
+20 °C; the reference plate lies horizontally. A bar resting on a reference pair (seat 0) sits
+with its own seating offset and friction state (fixed per bar and pair). The calibration places
+each bar once on each pair as it rests there (the paper's routine), or, with ``approaches=2``,
+seats it twice, once from shorter and once from longer (friction state +1 and -1, further
+seatings with their own offsets); either way it leaves a reference bar on its resting pair in
+its resting placement, so that it simply continues it afterwards.
 """
 
 from __future__ import annotations
@@ -23,16 +26,17 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from mmd_ros.core.calibration import BarCalibration, Calibration
+from mmd_ros.core.calibration_routine import CaptureStats, capture_uncertainty
 from mmd_ros.core.device import DeviceDescription
 from mmd_ros.hardware.protocol import MAX_SAMPLE_RATE_HZ
 from mmd_ros.twin.effects import Effects
 from mmd_ros.twin.errors import TwinError
+from mmd_ros.twin.machine import MachineTrajectory
 from mmd_ros.twin.mechanism import bar_legs, check_workspace, rotation_matrices
-from mmd_ros.twin.physics import BarPhysics, DahlState, dahl
-from mmd_ros.twin.reference import reference_names, reference_values
+from mmd_ros.twin.physics import RESEATS, BarPhysics, DahlState, dahl
+from mmd_ros.twin.reference import POSE_NOISE, reference_names, reference_values
 from mmd_ros.twin.scenarios import MAX_DURATION_S, RestingBars, Scenario
 from mmd_ros.twin.thermal import REFERENCE_TEMP_C, AmbientProfile
-from mmd_ros.twin.trajectories import Trajectory
 
 __all__ = ['MAX_CLOCK_S', 'MAX_SAMPLES', 'IsoTargets', 'Placement', 'SimulatedRun', 'TwinDevice',
            'check_clock']
@@ -61,12 +65,16 @@ def check_clock(t_s: float, what: str) -> None:
 @dataclass(frozen=True)
 class Placement:
     """A bar on a socket pair during calibration: seated ``settle_s`` before ``start_s``, its
-    counts averaged over [start_s, end_s) on the twin's clock [s]."""
+    counts averaged over [start_s, end_s) on the twin's clock [s]; ``approach`` +1 seated from
+    shorter (its guide lengthened into the sockets), -1 from longer, None as it rests there
+    (its own friction state); ``seat`` 0 its resting placement, 1.. further seatings."""
 
     channel: int
     pair: str
     start_s: float
     end_s: float
+    approach: float | None = None
+    seat: int = 0
 
 
 @dataclass
@@ -111,6 +119,9 @@ class SimulatedRun:
     targets : IsoTargets of an ISO 230-2 run, else None
     start_s : the twin's clock at the run's start [s]
     start_sample : index of the first sample in the whole run
+    machine_joints : ndarray, shape (N, n_axes), or None — commanded axis values of the machine
+        tool carrying the MMD (a machine session) [m, rad]
+    machine_joint_names : their names (X Y Z A C ...)
     """
 
     times_s: FloatArray
@@ -128,6 +139,8 @@ class SimulatedRun:
     targets: IsoTargets | None
     start_s: float
     start_sample: int = 0
+    machine_joints: FloatArray | None = None
+    machine_joint_names: list[str] | None = None
 
     #: Per-sample fields of a run and of its targets (what chunks concatenate along).
     ARRAY_FIELDS: ClassVar[tuple[str, ...]] = (
@@ -152,10 +165,14 @@ class SimulatedRun:
                 first.targets.axis, first.targets.positions, first.targets.commanded_poses,
                 **{name: np.concatenate([getattr(r.targets, name) for r in runs])
                    for name in cls.TARGET_ARRAY_FIELDS})
+        joints = None
+        if first.machine_joints is not None:
+            joints = np.concatenate([r.machine_joints for r in runs])
         return cls(**arrays, reference_kind=first.reference_kind,
                    reference_names=first.reference_names, channel_names=first.channel_names,
                    metadata=first.metadata, targets=targets, start_s=first.start_s,
-                   start_sample=first.start_sample)
+                   start_sample=first.start_sample, machine_joints=joints,
+                   machine_joint_names=first.machine_joint_names)
 
 
 class TwinDevice:
@@ -207,13 +224,17 @@ class TwinDevice:
 
     def _on_pairs(self, channels: list[int], pairs: list[str], times_s: FloatArray,
                   sample_index: NDArray[np.int64], bar_temp_c: FloatArray,
-                  plate_temp_c: FloatArray) -> tuple[FloatArray, FloatArray]:
-        """Readings [m] and true lengths [m] of bars lying on reference pairs, (N, M) each."""
+                  plate_temp_c: FloatArray, approach: float | None = None,
+                  seat: int = 0) -> tuple[FloatArray, FloatArray]:
+        """Readings [m] and true lengths [m] of bars lying on reference pairs, (N, M) each
+        (``approach``, ``seat``: see :class:`Placement`)."""
         j = [self._pair(p) for p in pairs]
         growth = self._plate_growth(plate_temp_c, self.device.reference_plate_cte_per_c)
         true = growth[:, None] * np.array([self.device.pairs[k].measured_m for k in j])
-        seated = true + self.physics.seating_m[channels, j]
-        state = np.broadcast_to(self.physics.pair_state[channels, j], true.shape)
+        seated = true + self.physics.seating(channels, j, seat)
+        own = self.physics.pair_state[channels, j]
+        state = np.broadcast_to(own if approach is None else np.full(len(j), float(approach)),
+                                true.shape)
         reading = self.physics.scale_reading_m(channels, seated, bar_temp_c, state, times_s,
                                                sample_index)
         return reading, seated
@@ -222,16 +243,19 @@ class TwinDevice:
         return np.rint(times_s * self.device.sample_rate_hz).astype(np.int64)
 
     def counts_on_pair(self, channel: int, pair: str, times_s: ArrayLike,
-                       ambient: AmbientProfile) -> NDArray[np.int64]:
+                       ambient: AmbientProfile, *, approach: float | None = None,
+                       seat: int = 0) -> NDArray[np.int64]:
         """Counts of the bar on ``channel`` resting on reference ``pair``.
 
         times_s : array_like, shape (N,) — on the twin's clock [s]
+        approach, seat : how it was seated (:class:`Placement`); default its resting placement
         returns : ndarray of int64, shape (N,)
         """
         ch = self._bar_channel(channel)
         t = np.atleast_1d(np.asarray(times_s, dtype=np.float64))
         temps = self._temperatures(t, ambient)
-        reading, _ = self._on_pairs([ch], [pair], t, self._sample_index(t), temps[:, [ch]], temps[:, -1])
+        reading, _ = self._on_pairs([ch], [pair], t, self._sample_index(t), temps[:, [ch]],
+                                    temps[:, -1], approach, seat)
         return self.physics.counts([ch], reading)[:, 0]
 
     def counts_for_lengths(self, channel: int, lengths_m: ArrayLike, times_s: ArrayLike,
@@ -262,54 +286,104 @@ class TwinDevice:
 
     # -- calibration (section 3.2) -------------------------------------------------------------
     def calibration_schedule(self, at_s: float, settle_s: float = 3.0,
-                             average_s: float = 2.0) -> list[Placement]:
+                             average_s: float = 2.0, approaches: int = 1) -> list[Placement]:
         """The order of the calibration routine starting at ``at_s``: each measuring bar (bar
         order), then each reference bar, on the seven pairs in turn; a reference bar visits
         its resting pair last and stays there. A placement takes ``settle_s`` to seat the bar,
-        then counts are averaged for ``average_s``."""
+        then counts are averaged for ``average_s``.
+
+        approaches : 1 — one placement per pair, as the bar lies there (the paper's routine);
+            2 — two placements per pair, seated once from shorter and once from longer (a
+            reference bar's last one on its resting pair is its resting placement), and before
+            the measuring bars each reference bar once on its resting pair (the routine's
+            temperature drift, seen against its thermal zero at the end)
+        """
         if settle_s < 0 or not average_s > 0:
             raise TwinError(f'need settle_s >= 0 and average_s > 0, got {settle_s} and {average_s}')
+        if approaches not in (1, 2):
+            raise TwinError(f'approaches must be 1 or 2, got {approaches!r}')
         names = [p.name for p in self.device.pairs]
+        resting = {c.index: c.pair for c in self.device.reference_channels}
         visits = [(c, names) for c in self.device.measuring_channels]
         for ref in self.device.reference_channels:
             visits.append((ref.index, [p for p in names if p != ref.pair] + [ref.pair]))
         out, t = [], float(at_s)
+        if approaches == 2:
+            # each reference bar first on its resting pair: the routine's temperature drift
+            for ref in self.device.reference_channels:
+                out.append(Placement(ref.index, ref.pair, t + settle_s, t + settle_s + average_s,
+                                     None, RESEATS))
+                t += settle_s + average_s
         for channel, pairs in visits:
             for pair in pairs:
-                out.append(Placement(channel, pair, t + settle_s, t + settle_s + average_s))
-                t += settle_s + average_s
+                if approaches == 1:
+                    ways: list[tuple[float | None, int]] = [(None, 0)]
+                elif resting.get(channel) == pair:
+                    own = float(self.physics.pair_state[channel, self._pair(pair)])
+                    ways = [(-own, 1), (None, 0)]
+                else:
+                    ways = [(1.0, 1), (-1.0, 2)]
+                for approach, seat in ways:
+                    out.append(Placement(channel, pair, t + settle_s, t + settle_s + average_s,
+                                         approach, seat))
+                    t += settle_s + average_s
         return out
 
     def calibrate(self, at_s: float, ambient: AmbientProfile, settle_s: float = 3.0,
-                  average_s: float = 2.0) -> Calibration:
+                  average_s: float = 2.0, approaches: int = 1) -> Calibration:
         """Run the calibration routine of section 3.2 (see :meth:`calibration_schedule`).
 
-        Each calibration point is the mean count over its averaging window, kept as a float
-        (sub-count resolution from the read noise). ``thermal_zero_m`` is 0 for every
-        reference bar: it rests, without being moved, on the pair it was last calibrated on,
-        so Eq. (11) computed from its own CDF reads 0 at that moment. ``ambient_c`` is the room
-        temperature at ``at_s``. No time stamp or quality figures are invented: ``created`` is
-        empty and ``quality`` is empty.
+        Each calibration point is the mean count over its averaging window (of both
+        placements with ``approaches=2``), kept as a float (sub-count resolution from the read
+        noise). A reference bar's thermal zero is what its CDF reads at its last placement,
+        on its resting pair, minus that pair's distance (0 with one placement per pair): it
+        rests there afterwards without being moved. ``ambient_c`` is the room temperature at
+        ``at_s``. The ``uncertainty`` section holds what the captures measured (read noise;
+        with two approaches the friction hysteresis and the seating repeatability,
+        :func:`~mmd_ros.core.calibration_routine.capture_uncertainty`). No time stamp or
+        quality figures are invented: ``created`` is empty and ``quality`` is empty.
         """
         check_clock(at_s, 'the calibration time')
         rate = self.device.sample_rate_hz
-        counts: dict[int, dict[str, float]] = {}
-        for p in self.calibration_schedule(at_s, settle_s, average_s):
-            times = p.start_s + np.arange(max(1, int(round((p.end_s - p.start_s) * rate)))) / rate
-            counts.setdefault(p.channel, {})[p.pair] = float(
-                np.mean(self.counts_on_pair(p.channel, p.pair, times, ambient)))
+        counts: dict[int, dict[str, list[float]]] = {}
+        captures, last = [], {}
         names = self.device.channel_names
+        way = {1.0: 'short', -1.0: 'long'}
+        schedule = self.calibration_schedule(at_s, settle_s, average_s, approaches)
+        n_drift = len(self.device.reference_channels) if approaches == 2 else 0
+        for k, p in enumerate(schedule):
+            times = p.start_s + np.arange(max(1, int(round((p.end_s - p.start_s) * rate)))) / rate
+            c = self.counts_on_pair(p.channel, p.pair, times, ambient, approach=p.approach,
+                                    seat=p.seat).astype(np.float64)
+            state = p.approach if p.approach is not None else float(
+                self.physics.pair_state[p.channel, self._pair(p.pair)])
+            captures.append(CaptureStats(
+                names[p.channel], p.pair, way[state] if approaches == 2 else '', float(np.mean(c)),
+                float(np.var(c, ddof=1)) if c.size > 1 else 0.0, int(c.size),
+                float(0.5 * (p.start_s + p.end_s)), 'drift' if k < n_drift else 'point'))
+            if k < n_drift:
+                continue
+            counts.setdefault(p.channel, {}).setdefault(p.pair, []).append(float(np.mean(c)))
+            last[p.channel] = (p.pair, float(np.mean(c)))
         bars = {}
         for channel, by_pair in counts.items():
             pairs = [p for p in self.device.pairs if p.name in by_pair]
             bars[names[channel]] = BarCalibration(
                 channel=names[channel], pairs=tuple(p.name for p in pairs),
-                counts=tuple(by_pair[p.name] for p in pairs),
+                counts=tuple(float(np.mean(by_pair[p.name])) for p in pairs),
                 distances_m=tuple(p.distance_m for p in pairs))
+        readers = {name: _linear_reader(b.counts, b.distances_m) for name, b in bars.items()}
+        zero = {}
+        for c in self.device.reference_channels:
+            pair, q = last[c.index]
+            reading = float(readers[c.name](np.array([q]))[0][0])
+            offset = 0.0 if approaches == 1 else reading - self.device.pair(pair).distance_m
+            zero[c.name] = float(offset / 1e-6) * 1e-6   # as the calibration file keeps it
+        uncertainty = capture_uncertainty(self.device, captures, readers)
         return Calibration(
-            device=self.device.name, bars=bars,
-            thermal_zero_m={c.name: 0.0 for c in self.device.reference_channels},
-            ambient_c=float(ambient(at_s)), created='', valid=True, quality={})
+            device=self.device.name, bars=bars, thermal_zero_m=zero,
+            ambient_c=float(ambient(at_s)), created='', valid=True, quality={},
+            uncertainty=uncertainty)
 
     # -- runs ----------------------------------------------------------------------------------
     def simulate(self, scenario: Scenario, ambient: AmbientProfile, *, start_s: float = 0.0,
@@ -344,6 +418,23 @@ class TwinDevice:
         return chunks()
 
 
+def _linear_reader(counts: tuple[float, ...], distances_m: tuple[float, ...]):
+    """Counts read as lengths by linear interpolation between a bar's calibration points (the
+    routine's own arithmetic, written here so that the twin shares no code with the
+    compensation), as (lengths, None)."""
+    q = np.asarray(counts, dtype=np.float64)
+    d = np.asarray(distances_m, dtype=np.float64)
+    order = np.argsort(q)
+    q, d = q[order], d[order]
+
+    def read(values: NDArray[np.float64]) -> tuple[NDArray[np.float64], None]:
+        v = np.asarray(values, dtype=np.float64)
+        k = np.clip(np.searchsorted(q, v, side='right') - 1, 0, q.size - 2)
+        return d[k] + (v - q[k]) * (d[k + 1] - d[k]) / (q[k + 1] - q[k]), None
+
+    return read
+
+
 class _Plan:
     """A scenario prepared for simulation on one twin: motion built, workspace checked."""
 
@@ -371,7 +462,7 @@ class _Plan:
             raise TwinError(f'{scenario.kind}: {self.n_samples:.3g} samples ({self.motion.duration_s:g} s '
                             f'at {self.rate:g} Hz); at most {MAX_SAMPLES:.0e} can be simulated in one '
                             'run: lower the sample rate')
-        if isinstance(self.motion, Trajectory):
+        if not isinstance(self.motion, RestingBars):
             times = self.motion.check_times(min(self.rate, CHECK_RATE_HZ))
             poses = self.motion.pose(times)
             rot = rotation_matrices(poses)
@@ -388,6 +479,9 @@ class _Plan:
             'sample_rate_hz': self.rate,
             'n_samples': self.n_samples,
             'reference': self.reference,
+            # the twin reads the actual pose, not zeroed, with the instrument's noise
+            'reference_absolute': True,
+            'reference_sigma': None if self.reference == 'bar_lengths' else POSE_NOISE.tolist(),
         }
 
     def initial_state(self) -> DahlState:
@@ -405,9 +499,13 @@ class _Plan:
         if spec is not None:
             targets = IsoTargets(spec.axis, spec.positions, spec.commanded_poses,
                                  **{k: arrays.pop(k) for k in SimulatedRun.TARGET_ARRAY_FIELDS})
+        joint_names = None
+        if 'machine_joints' in arrays:
+            joint_names = list(self.motion.machine.names)
         run = SimulatedRun(**arrays, reference_kind=self.reference, reference_names=self.names,
                            channel_names=self.twin.device.channel_names, metadata=self.metadata,
-                           targets=targets, start_s=self.start_s, start_sample=k0)
+                           targets=targets, start_s=self.start_s, start_sample=k0,
+                           machine_joint_names=joint_names)
         return run, state
 
     def _block(self, k0: int, k1: int, state: DahlState) -> tuple[dict[str, NDArray], DahlState]:
@@ -421,7 +519,7 @@ class _Plan:
         counts = np.empty((t.size, len(dev.channels)), dtype=np.int64)
         out: dict[str, NDArray] = {}
 
-        if isinstance(self.motion, Trajectory):
+        if not isinstance(self.motion, RestingBars):
             poses = self.motion.pose(t)
             rot = rotation_matrices(poses)
             geo = dev.measured_geometry
@@ -446,6 +544,8 @@ class _Plan:
                                            legs[:, :, 2] / lengths)
             if self.motion.targets is not None:
                 out.update(self.motion.labels(t))
+            if isinstance(self.motion, MachineTrajectory):
+                out['machine_joints'] = self.motion.joints(t)
         else:
             poses = np.full((t.size, 6), np.nan)
             reading, lengths = twin._on_pairs(meas, list(self.motion.pairs), clock, index,

@@ -1,0 +1,145 @@
+"""How well the pose covariance covers the twin's true pose (issue 10, section 2).
+
+For each case, several independent calibrations of the twin (seeds 1.., calibrated 211 s apart
+on the room's temperature course, so that each sees another draw of every systematic error)
+run a scenario; the pipeline's poses and covariances are compared with the twin's true pose
+(not its reference instrument, which has noise of its own). Printed per case: predicted /
+observed sigma per axis (x y z roll pitch yaw; observed = RMS of the error, the twin's pose is
+absolute), the share of samples in the 95 % ellipsoid (Mahalanobis distance^2 <= chi^2_6(0.95))
+pooled and per run, and a JSON line.
+
+Usage: ``python bench/bench_uncertainty.py [--cases ideal,noeffect,realistic,realistic_noskew]
+[--scenario random|iso_y|rotary|thermal] [--runs 6] [--seconds 8] [--after] [--approaches 2]``. ``--after``
+first runs ``mmd analyze`` (full pose reference, absolute) on a 60 s random run of each case's
+first twin and judges the extended model on new runs of that twin.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import numpy as np
+from scipy.stats import chi2
+
+from mmd_ros.core.accuracy import pose_error
+from mmd_ros.core.device import find_config, load_device
+from mmd_ros.core.model import Model
+from mmd_ros.core.pipeline import Pipeline
+from mmd_ros.twin import Effects, TwinDevice, make_scenario
+from mmd_ros.twin.recording import ambient_profile
+
+LIMIT = chi2.ppf(0.95, 6)
+CASES = {
+    'ideal': ('ideal', (), 'section_4_1'),
+    'noeffect': ('ideal', ('read_noise_m=0',), 'constant:20'),
+    'realistic': ('realistic', (), 'section_4_1'),
+    'realistic_noskew': ('realistic', ('sampling_skew_s=0',), 'section_4_1'),
+}
+SCENARIOS = {   # name: (scenario, parameters, sample rate)
+    'random': ('random_motion', ('duration_s={seconds}', 'seed={k}'), None),
+    'iso_y': ('iso_linear', ('axis=y', 'n_targets=6', 'n_cycles=2'), None),
+    'rotary': ('iso_rotary', ('axis=psi', 'n_targets=6', 'n_cycles=2'), None),
+    'thermal': ('random_motion', ('duration_s=7200', 'dwell_s=2', 'seed={k}'), 1.0),
+}
+
+
+def judge(errors: list[np.ndarray], covs: list[np.ndarray]) -> dict:
+    e, c = np.concatenate(errors), np.concatenate(covs)
+    pred = np.sqrt(np.mean(np.diagonal(c, axis1=1, axis2=2), axis=0))
+    obs = np.sqrt(np.mean(e * e, axis=0))
+
+    def inside(ee: np.ndarray, cc: np.ndarray) -> float:
+        d2 = np.einsum('ni,ni->n', ee, np.linalg.solve(cc, ee[:, :, None])[:, :, 0])
+        return float(np.mean(d2 <= LIMIT))
+
+    return {'ratio': np.round(pred / obs, 3).tolist(), 'coverage': round(inside(e, c), 4),
+            'coverage_per_run': [round(inside(a, b), 4) for a, b in zip(errors, covs)],
+            'observed_um_urad': np.round(obs * 1e6, 4).tolist(),
+            'predicted_um_urad': np.round(pred * 1e6, 4).tolist(), 'samples': int(e.shape[0])}
+
+
+def run_case(device, name: str, scenario: str, runs: int, seconds: float, after: bool,
+             approaches: int = 2) -> dict:
+    preset, effect_params, ambient = CASES[name]
+    kind, params, rate = SCENARIOS[scenario]
+    room = ambient_profile(ambient)
+    errors, covs = [], []
+    model, note = Model(), ''
+    for k in range(runs):
+        twin = TwinDevice(device, Effects.preset(preset).with_assignments(effect_params), seed=k + 1)
+        calibration = twin.calibrate(-211.0 * k, room, approaches=approaches)
+        start = 600.0
+        if after and k == 0:
+            model, note, start = fit(device, twin, room, calibration)
+        p = [v.format(seconds=seconds, k=k) for v in params]
+        run = twin.simulate(make_scenario(kind, p), room, start_s=start, reference='pose6',
+                            sample_rate_hz=rate)
+        res = Pipeline(device, calibration, model if after else Model()).process(
+            run.times_s, run.counts, with_covariance=True)
+        ok = res.valid & np.all(np.isfinite(run.true_poses), axis=1)
+        errors.append(pose_error(res.poses, run.true_poses)[ok])
+        covs.append(res.covariance[ok])
+        if after:
+            # the extended model belongs to the first twin: judge it there, on new motion
+            for j in range(1, runs):
+                run = twin.simulate(make_scenario(kind, [v.format(seconds=seconds, k=j) for v in params]),
+                                    room, start_s=start + j * (seconds + 30), reference='pose6',
+                                    sample_rate_hz=rate)
+                res = Pipeline(device, calibration, model).process(run.times_s, run.counts,
+                                                                   with_covariance=True)
+                ok = res.valid & np.all(np.isfinite(run.true_poses), axis=1)
+                errors.append(pose_error(res.poses, run.true_poses)[ok])
+                covs.append(res.covariance[ok])
+            break
+    out = {'case': name, 'scenario': scenario, 'runs': runs, 'after_analysis': after,
+           'calibration_approaches': approaches, **judge(errors, covs)}
+    if note:
+        out['analysis'] = note
+    return out
+
+
+def fit(device, twin, room, calibration):
+    """mmd analyze on a 60 s random run with the full (absolute) pose reference."""
+    from pathlib import Path
+
+    from mmd_ros.analysis.identify import AnalysisOptions, analyze
+    from mmd_ros.logs.layout import RunLog
+    run = twin.simulate(make_scenario('random_motion', ['duration_s=60', 'seed=100']), room,
+                        start_s=600.0, reference='pose6')
+    stamps = np.round((600.0 + run.times_s) * 1e9).astype(np.int64)
+    log = RunLog(Path('twin'), device, calibration, None, stamps, run.counts.astype(np.float64),
+                 device.channel_names, run.reference)
+    result = analyze(log, options=AnalysisOptions(datum='none'))
+    found = ', '.join(f.effect for f in result.found) or 'nothing'
+    return result.model or Model(), f'found {found}', 700.0
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--cases', default='ideal,noeffect,realistic,realistic_noskew')
+    parser.add_argument('--scenario', default='random', choices=sorted(SCENARIOS))
+    parser.add_argument('--runs', type=int, default=6)
+    parser.add_argument('--seconds', type=float, default=8.0)
+    parser.add_argument('--after', action='store_true')
+    parser.add_argument('--approaches', type=int, default=2, choices=(1, 2),
+                        help='the twin\'s calibration: 2 two-sided with the drift read (default), 1 '
+                        'the paper\'s routine')
+    args = parser.parse_args()
+    device = load_device(find_config('mmd_prototype.yaml'))
+    results = []
+    for name in args.cases.split(','):
+        t0 = time.perf_counter()
+        r = run_case(device, name, args.scenario, args.runs, args.seconds, args.after, args.approaches)
+        r['seconds'] = round(time.perf_counter() - t0, 1)
+        results.append(r)
+        print(f'{name:17s} {args.scenario:8s} ratio ' + ' '.join(f'{v:.2f}' for v in r['ratio'])
+              + f'   ellipsoid {100 * r["coverage"]:.1f} % (runs '
+              + ' '.join(f'{100 * v:.0f}' for v in r['coverage_per_run']) + ')'
+              + (f'   [{r["analysis"]}]' if 'analysis' in r else ''), flush=True)
+    print(json.dumps({'benchmark': 'uncertainty', 'results': results}))
+
+
+if __name__ == '__main__':
+    main()

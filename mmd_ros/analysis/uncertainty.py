@@ -1,0 +1,242 @@
+"""What the model file of ``mmd analyze`` must carry about its own uncertainty.
+
+A fit changes what the bar lengths' uncertainty budget (:mod:`mmd_ros.core.budget`) should
+claim in two ways (``msg_docs/frames.md``):
+
+- **fitted terms**: their parameters theta have a covariance Sigma_theta, and a term changes
+  the lengths by S theta (its signature S, the same ``features`` the pipeline applies), so each
+  sample gains S Sigma_theta S^T. Sigma_theta = V Lambda V^T; each principal direction
+  sqrt(lambda_k) v_k is written as the model term(s) that apply it (their correction is
+  c_k = S sqrt(lambda_k) v_k), and the pipeline adds sum_k c_k c_k^T per sample. The
+  directions that carry least (at most 1 % of the mean trace together) are left out of the
+  per-sample sum and enter, with all others, as their mean over the fit's samples
+  (``mean_terms_nm2``, for a stage without counts);
+- **the residual**: with a reference that determines every bar (a full pose, or bar lengths)
+  the bar-length residual, J dp, has a covariance R. With several logs it is each log's error
+  under the model fitted on the others (leave-one-run-out): data the fit never saw. The
+  budget keeps its per-sample sources (quantisation, read noise, reference bar, thermal,
+  fitted terms); what R holds beyond their mean over the same samples is the residual source
+  (PSD part), and it replaces the calibration-derived systematic sources it measured
+  (:data:`~mmd_ros.core.model.FIT_REPLACEABLE`). With one log, R comes from its held-out
+  blocks, which interleave with the training blocks: the calibration-derived sources stay and
+  R adds what exceeds them. A reference that sees only some pose components cannot tell the
+  bars apart: the calibration-derived sources stay, scaled by the factor k that makes the
+  observed components' predicted variance match what was observed, never below 1 (what the
+  reference did not see is not claimed better than before).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mmd_ros.analysis.data import FitContext, Observation, Processed
+from mmd_ros.core.budget import LengthBudget
+from mmd_ros.core.kinematics import jacobian
+from mmd_ros.core.model import FIT_REPLACEABLE, FitUncertainty, Model, ModelTerm, ModelUncertainty
+from mmd_ros.core.uncertainty import pose_covariance
+
+__all__ = ['FittedEffect', 'MAX_DIRECTIONS', 'ResidualRun', 'fit_uncertainty', 'fitted_effects',
+           'with_fit_uncertainty']
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+#: Most principal directions of the fitted parameters evaluated per sample.
+MAX_DIRECTIONS = 8
+#: Share of the fitted terms' mean variance the per-sample directions must carry.
+DIRECTION_SHARE = 0.99
+
+
+@dataclass
+class FittedEffect:
+    """One effect the written model applies, as :func:`fit_uncertainty` needs it: the effect,
+    its setting, and the covariance (P, P) of the parameters the model applies [SI]."""
+
+    effect: Any
+    hyper: Any
+    covariance: FloatArray
+
+
+@dataclass
+class ResidualRun:
+    """A log's residual after the fit: its context, the pipeline over it (the model it is
+    judged with), the residual in its observation space (N, k) [m, rad] (NaN where not usable)
+    and the samples to judge on."""
+
+    ctx: FitContext
+    after: Processed
+    residual: FloatArray
+    idx: IntArray
+
+
+def _term_directions(ctx: FitContext, found: list[FittedEffect], idx: IntArray
+                     ) -> tuple[list[list[ModelTerm]], FloatArray]:
+    """Principal directions of the fitted parameters as model terms, and the mean over the
+    samples ``idx`` of S Sigma_theta S^T of all of them, (6, 6) [m^2]."""
+    candidates: list[tuple[float, list[ModelTerm]]] = []
+    mean_total = np.zeros((6, 6))
+    for f in found:
+        cov = f.covariance
+        if cov is None or not np.any(cov):
+            continue
+        w, v = np.linalg.eigh(0.5 * (cov + cov.T))
+        keep = w > max(float(w.max()), 0.0) * 1e-12
+        if not keep.any():
+            continue
+        dirs = v[:, keep] * np.sqrt(w[keep])                      # (P, r): one sigma each
+        sig = f.effect.signature(ctx, f.hyper, idx)               # (n, 6, P)
+        cols = sig @ dirs                                          # (n, 6, r)
+        mean_total += np.einsum('nir,njr->ij', cols, cols) / max(idx.size, 1)
+        size = np.mean(np.sum(cols * cols, axis=1), axis=0)       # mean |c_k|^2
+        for k in range(dirs.shape[1]):
+            candidates.append((float(size[k]), f.effect.make_terms(ctx, f.hyper, dirs[:, k])))
+    candidates.sort(key=lambda c: -c[0])
+    total = sum(c[0] for c in candidates)
+    chosen: list[list[ModelTerm]] = []
+    carried = 0.0
+    for size, terms in candidates:
+        if len(chosen) >= MAX_DIRECTIONS or (total > 0 and carried >= DIRECTION_SHARE * total):
+            break
+        chosen.append(terms)
+        carried += size
+    return chosen, mean_total
+
+
+def _psd(matrix: FloatArray) -> FloatArray:
+    w, v = np.linalg.eigh(0.5 * (matrix + matrix.T))
+    return (v * np.maximum(w, 0.0)) @ v.T
+
+
+def _predicted(run: ResidualRun, model: Model, fit: FitUncertainty, idx: IntArray
+               ) -> tuple[FloatArray, FloatArray]:
+    """The budget's sources at ``idx`` of a run, (n, 6, 6) each: those it keeps after a fit
+    and those a measured residual may replace."""
+    trial = Model(model.thermal_mode, model.plate_expansion, None, list(model.terms), {},
+                  model.source, ModelUncertainty(fit=fit))
+    budget = LengthBudget(run.ctx.device, run.ctx.calibration, trial)
+    a = run.after
+    observed = budget.observe(a.cdf_lengths_m, a.reference_error_m)
+    cov, bias = budget.sources(a.lengths_m[idx], a.reference_error_m[idx], a.temp_change_c[idx],
+                               a.bar_error_m[idx], None, observed[idx])
+    zero = np.zeros((idx.size, 6, 6))
+    kept = sum((np.asarray(c) for name, c in cov.items() if name not in FIT_REPLACEABLE), zero)
+    replaceable = sum((np.asarray(c) for name, c in cov.items() if name in FIT_REPLACEABLE), zero)
+    for into_kept, names in ((True, [k for k in bias if k not in FIT_REPLACEABLE]),
+                             (False, [k for k in bias if k in FIT_REPLACEABLE])):
+        if names:
+            b = sum(bias[k] for k in names)
+            if into_kept:
+                kept = kept + b[:, :, None] * b[:, None, :]
+            else:
+                replaceable = replaceable + b[:, :, None] * b[:, None, :]
+    return kept, replaceable
+
+
+def fit_uncertainty(ctx: FitContext, found: list[FittedEffect], runs: list[ResidualRun],
+                    model: Model, *, unseen: bool = False) -> FitUncertainty:
+    """The ``uncertainty.fit`` section of the model a fit writes (see the module docstring).
+
+    ctx : the context of the log whose parameters the model applies (signatures, terms)
+    found : the effects the model applies, with their parameters' covariance
+    runs : the logs the residual is measured on
+    model : the extended model (its terms; its uncertainty section is not used)
+    unseen : the residuals come from data the fit never saw (leave-one-run-out: each log
+        predicted by the model fitted on the others). Only then may they replace the
+        calibration-derived sources: held-out blocks of a fitted run interleave with the
+        training blocks and show how well the model fits that run, not how it does on another
+        motion, so otherwise the calibration-derived sources stay and the residual adds only
+        what exceeds them
+    """
+    ref = runs[0] if runs else None
+    idx0 = ref.idx if ref is not None else np.zeros(0, np.int64)
+    directions, mean_terms = _term_directions(ctx, found, idx0[:4000])
+    fit = FitUncertainty(np.zeros((6, 6)), (), 1.0, directions, mean_terms,
+                         {'residual_from': ('logs the fit did not see (leave-one-run-out)' if unseen
+                                            else 'held-out blocks of the fitted logs')})
+    full, partial = [], []
+    for run in runs:
+        obs: Observation = run.ctx.obs
+        ok = np.all(np.isfinite(run.residual[run.idx]), axis=1) & run.after.measured(obs.kind)[run.idx]
+        idx = run.idx[ok]
+        if idx.size < 10:
+            continue
+        (full if obs.kind == 'lengths' or len(obs.components) == 6 else partial).append((run, idx))
+    if full:
+        observed_cov = np.zeros((6, 6))
+        predicted = np.zeros((6, 6))
+        seen = np.zeros(6, dtype=bool)
+        n = 0
+        for run, idx in full:
+            obs = run.ctx.obs
+            r = run.residual[idx]
+            if obs.kind == 'pose':
+                dd = np.einsum('nij,nj->ni', jacobian(run.ctx.device.geometry, run.after.poses[idx]), r)
+                seen[:] = True
+            else:
+                dd = np.zeros((idx.size, 6))
+                dd[:, obs.components] = r
+                seen[obs.components] = True
+            kept, replaceable = _predicted(run, model, fit, idx)
+            observed_cov += dd.T @ dd
+            predicted += np.sum(kept if unseen else kept + replaceable, axis=0)
+            n += idx.size
+        excess = _psd(observed_cov / n - predicted / n)
+        excess[~seen, :] = 0.0
+        excess[:, ~seen] = 0.0
+        fit.residual_m2 = excess
+        fit.replaces = tuple(FIT_REPLACEABLE) if unseen and seen.all() else ()
+        fit.record['samples'] = int(n)
+        fit.record['residual_rms_nm'] = [round(float(math.sqrt(max(v, 0.0) / n)) * 1e9, 3)
+                                         for v in np.diag(observed_cov)]
+        return fit
+    if partial:
+        # some pose components: scale what the reference cannot attribute to bars
+        num = den = 0.0
+        for run, idx in partial:
+            comp = run.ctx.obs.components
+            kept, replaceable = _predicted(run, model, fit, idx)
+            jinv = np.linalg.inv(jacobian(run.ctx.device.geometry, run.after.poses[idx]))
+            scale = run.after.plate_scale[idx]
+            kept_p = np.mean(np.diagonal(pose_covariance(jinv, kept, scale), axis1=1, axis2=2)[:, comp], axis=0)
+            repl_p = np.mean(np.diagonal(pose_covariance(jinv, replaceable, scale), axis1=1,
+                                         axis2=2)[:, comp], axis=0)
+            seen_var = np.mean(run.residual[idx] ** 2, axis=0)
+            num += float(np.sum((seen_var - kept_p) * repl_p))
+            den += float(np.sum(repl_p * repl_p))
+        estimate = num / den if den > 0 else 1.0
+        fit.systematic_scale = max(estimate, 1.0)
+        fit.record['scale_estimate'] = round(estimate, 4)
+        return fit
+    fit.record['note'] = 'no usable residual: the calibration-derived sources stay as they are'
+    return fit
+
+
+def fitted_effects(sel: Any, chosen: list[tuple[Any, FloatArray]], found: list[Any],
+                   run: Any) -> list[FittedEffect]:
+    """The effects a model written for ``run`` applies, with the covariance of their
+    parameters for its group (a selector of :mod:`mmd_ros.analysis.identify`)."""
+    out = []
+    for (a, theta), f in zip(chosen, found):
+        g = sel.group_index(a.effect, run)
+        cov = getattr(f, 'covariance', None)
+        if g is None or cov is None:
+            continue
+        n_p = theta.size // sel.n_groups(a.effect)
+        out.append(FittedEffect(a.effect, a.hyper, cov[g * n_p:(g + 1) * n_p, g * n_p:(g + 1) * n_p]))
+    return out
+
+
+def with_fit_uncertainty(model: Model, ctx: FitContext, found: list[FittedEffect],
+                         runs: list[ResidualRun], *, unseen: bool = False) -> Model:
+    """``model`` with its ``uncertainty.fit`` section measured by the fit (the overrides of the
+    model it started from are kept); see :func:`fit_uncertainty`."""
+    previous = model.uncertainty
+    model.uncertainty = ModelUncertainty(
+        previous.thermal_mismatch_fraction, previous.read_noise_m,
+        fit_uncertainty(ctx, found, runs, model, unseen=unseen))
+    return model

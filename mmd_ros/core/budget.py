@@ -1,0 +1,600 @@
+"""The uncertainty budget of the compensated bar lengths: Sigma_d (6 x 6) of every sample.
+
+One :class:`LengthBudget` belongs to one device, calibration and model (as a
+:class:`~mmd_ros.core.pipeline.Pipeline` does). What it needs per sample is what every stage of
+the live pipeline has: the compensated lengths, the thermal state (Eq. 11 error of each
+reference bar, the temperature change) and, when the model carries fitted terms, the
+corrections of their one-sigma perturbations. The sources, their formulas and defaults are
+listed in :mod:`mmd_ros.core.uncertainty` and documented in ``msg_docs/frames.md``.
+
+Where the numbers come from:
+
+- the device description: the encoder resolution, the scale CTE (Eq. 13's approximation), the
+  reference distances' standard uncertainty (``reference_plate.distance_uncertainty_um``, when
+  stated), the bars' thermal mismatch (``bars.thermal_mismatch_fraction``);
+- the calibration: its points (hat functions of Eq. 10, the interpolation error fitted to
+  them) and what the routine measured (read noise, hysteresis, seating repeatability);
+- the stream: each channel's read noise where it stands still (:class:`NoiseEstimator`);
+- the model file's ``uncertainty`` section: overrides, and what ``mmd analyze`` measured.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mmd_ros.core.calibration import Calibration
+from mmd_ros.core.device import DeviceDescription
+from mmd_ros.core.errors import CalibrationError
+from mmd_ros.core.model import Model
+from mmd_ros.core.uncertainty import (
+    InterpolationError, NoiseEstimator, capture_var, fit_interpolation_error,
+    quantisation_cross_weights,
+)
+
+__all__ = ['DIRECTION_TRAVEL_M', 'FRICTION_TURNOVER_M', 'LengthBudget', 'Observed', 'SOURCES']
+
+FloatArray = NDArray[np.float64]
+
+#: Half-width of the play operator that tells a bar's motion direction for the hysteresis
+#: source: it flips after 2 um of reverse travel [m].
+DIRECTION_TRAVEL_M = 1e-6
+#: Model terms that compensate the bars' friction hysteresis (the budget's hysteresis source
+#: is then off: the fit's uncertainty and residual stand for what is left of it).
+FRICTION_TERMS = ('hysteresis', 'friction')
+#: Travel after a reversal by which a bar's friction state has turned over (an assumption:
+#: rolling guides turn within a few um; the calibration does not measure it) [m].
+FRICTION_TURNOVER_M = 20e-6
+
+
+@dataclass
+class _Terms:
+    """The sources of N samples by form: per-bar variances (N, 6), a variance common to every
+    bar (N,) (Eq. 13's reference bar) or per reference bar with weights (Eq. 12), full
+    matrices (N, 6, 6), constant matrices (6, 6), and known errors (N, 6)."""
+
+    diag: dict[str, FloatArray] = field(default_factory=dict)
+    common: FloatArray | None = None
+    weights: FloatArray | None = None
+    weight_var: FloatArray | None = None
+    full: dict[str, FloatArray] = field(default_factory=dict)
+    constant: dict[str, FloatArray] = field(default_factory=dict)
+    bias: dict[str, FloatArray] = field(default_factory=dict)
+
+    def reference(self, n: int) -> FloatArray | None:
+        """The reference bar's share as (N, 6, 6), or None."""
+        if self.common is not None:
+            return np.broadcast_to(self.common[:, None, None], (n, 6, 6)).copy()
+        if self.weights is not None:
+            return np.einsum('nik,nk,njk->nij', self.weights, self.weight_var, self.weights)
+        return None
+
+
+@dataclass(frozen=True)
+class Observed:
+    """What the budget learned from N samples (:meth:`LengthBudget.observe`).
+
+    read_noise_m : (N, 6 + k) — read noise in force per column (measuring bars, reference bars)
+    directions : (N, 6) — each bar's friction state as far as its motion tells: its direction
+        (+1 lengthening, -1 shortening, 0 before its first move) times how far the state has
+        turned since the last reversal, min(1, travel / FRICTION_TURNOVER_M)
+    """
+
+    read_noise_m: FloatArray
+    directions: FloatArray
+
+    def __getitem__(self, index: Any) -> Observed:
+        return Observed(self.read_noise_m[index], self.directions[index])
+
+
+class _Friction:
+    """Each bar's direction (a play operator of half-width ``w``) and the travel since its last
+    reversal, carried from call to call."""
+
+    def __init__(self, w: float, turnover: float) -> None:
+        self.w, self.turnover = float(w), float(turnover)
+        self.reset()
+
+    def reset(self) -> None:
+        self._state: list[tuple[float, float, float]] | None = None   # play, direction, flip at
+
+    def __call__(self, x: FloatArray) -> FloatArray:
+        n = x.shape[0]
+        out = np.zeros((n, 6))
+        if n == 0:
+            return out
+        if self._state is None:
+            self._state = [(math.nan, 0.0, math.nan)] * 6
+        w, turn = self.w, self.turnover
+        for bar in range(6):  # a sequential recurrence: plain floats beat numpy rows here
+            p, d, f = self._state[bar]
+            col = x[:, bar].tolist()
+            res = [0.0] * n
+            for k, v in enumerate(col):
+                if v != v:      # NaN: out of range, the state stays
+                    res[k] = d * min(1.0, abs(p - f) / turn) if d else 0.0
+                    continue
+                if p != p:
+                    p = f = v
+                if p < v - w:
+                    p = v - w
+                    if d != 1.0:
+                        d, f = 1.0, p
+                elif p > v + w:
+                    p = v + w
+                    if d != -1.0:
+                        d, f = -1.0, p
+                if d:
+                    res[k] = d * min(1.0, abs(p - f) / turn)
+            out[:, bar] = res
+            self._state[bar] = (p, d, f)
+        return out
+
+#: The budget's sources, in the order reports list them.
+SOURCES = ('quantisation', 'read_noise', 'reference_bar', 'calibration_points',
+           'calibration_drift', 'reference_distances', 'interpolation', 'thermal_approximation',
+           'thermal_mismatch', 'hysteresis', 'fitted_terms', 'residual')
+
+
+class LengthBudget:
+    """Sigma_d of N samples for one device, calibration and model (see the module docstring).
+
+    device, calibration, model : what the pipeline uses
+    """
+
+    def __init__(self, device: DeviceDescription, calibration: Calibration, model: Model) -> None:
+        self.device = device
+        self.resolution_m = res = device.encoder_resolution_m
+        names = device.channel_names
+        measuring = [names[k] for k in device.measuring_channels]
+        self.reference_names = [c.name for c in device.reference_channels]
+        figures = calibration.uncertainty
+        self.figures = figures
+        unc = model.uncertainty
+        fit = unc.fit
+        self.fit = fit
+        self.notes: list[str] = []
+
+        # -- the thermal compensation in use
+        mode = model.thermal_mode
+        refs = [c for c in device.reference_channels if c.name in calibration.bars]
+        if mode == 'auto':
+            mode = 'interpolate' if len(refs) >= 2 else 'single'
+        if not refs:
+            mode = 'off'
+        self.thermal_mode = mode
+        self.ref_distances_m = np.array([device.pair(c.pair).distance_m for c in refs])
+        self.scale_cte = device.scale_cte_per_c
+
+        # -- read noise: the model's figure, else the stream's, else the calibration's
+        self.fixed_noise_m = unc.read_noise_m
+        self.calibration_noise_m = figures.read_noise_m
+        if self.fixed_noise_m is None and self.calibration_noise_m is None:
+            self.notes.append('read noise: the calibration does not give it; estimated from the '
+                              'stream where bars stand still, 0 until then')
+        self.noise = NoiseEstimator(6 + len(refs), res)
+
+        # -- calibration points (Eq. 10 hat functions), per measuring bar
+        calibration.cdfs(measuring)  # every measuring bar has points (else CalibrationError)
+        bars = [calibration.bars[m] for m in measuring]
+        if len({len(b.distances_m) for b in bars}) != 1:
+            raise CalibrationError('all bars need the same number of calibration points')
+        knots, pair_idx, devs, drift = [], [], [], []
+        pair_names = [p.name for p in device.pairs]
+        for name, b in zip(measuring, bars):
+            d = np.asarray(b.distances_m)
+            order = np.argsort(d)
+            knots.append(d[order])
+            pair_idx.append([pair_names.index(b.pairs[k]) if b.pairs[k] in pair_names else -1
+                             for k in order])
+            beta = figures.drift_m.get(name)
+            drift.append(np.asarray(beta)[order] if beta is not None and len(beta) == d.size
+                         else np.zeros(d.size))
+        self.knots_m = np.array(knots)                         # (6, n) increasing
+        self.pair_index = np.array(pair_idx, dtype=np.intp)     # (6, n)
+        self.drift_m = np.array(drift)                         # (6, n) each point's thermal error
+        # the measured change is noisy: scale the profile to the unbiased estimate of its square
+        temp, temp_sigma = figures.routine_temp_change_c, figures.routine_temp_sigma_c or 0.0
+        if temp:
+            self.drift_m *= math.sqrt(max(temp * temp - temp_sigma ** 2, 0.0)) / abs(temp)
+        if figures.routine_temp_change_c is None:
+            self.notes.append('calibration drift: the routine did not measure the temperature '
+                              'change over its course (a reference bar on its resting pair first)')
+        self.point_var_m2 = figures.point_var(res)
+        if figures.read_noise_m is None:
+            self.notes.append('calibration points: the calibration does not give its read noise; '
+                              'each point taken as quantised without dither (Delta^2/12)')
+        if figures.approaches < 2:
+            self.notes.append('calibration points: one placement per pair; the friction state '
+                              'and seating of each placement are not measured (a two-sided '
+                              'calibration measures them)')
+        pair_sigma = np.array([p.sigma_m for p in device.pairs])
+        self.pair_var_m2 = pair_sigma ** 2
+        if not np.any(pair_sigma > 0):
+            self.notes.append('reference distances: the device description states no uncertainty '
+                              'of the reference plate (reference_plate.distance_uncertainty_um)')
+
+        # -- interpolation between the points: a smooth scale error fitted to all bars' points
+        all_bars = bars + [calibration.bars[c.name] for c in refs]
+        all_bars = [b for b in all_bars if len(b.distances_m) == self.knots_m.shape[1]]
+        for b in all_bars:
+            cdf = b.cdf()
+            d = np.asarray(cdf.distances_m)
+            q = np.asarray(cdf.counts)
+            sign = 1.0 if (d[-1] - d[0]) * (q[-1] - q[0]) > 0 else -1.0
+            order = np.argsort(d)
+            devs.append((sign * q * res - d)[order])
+        all_knots = np.array([np.sort(b.distances_m) for b in all_bars])
+        self.interpolation: InterpolationError = fit_interpolation_error(
+            all_knots, np.array(devs), np.full(all_knots.shape, self.point_var_m2))
+
+        # -- thermal
+        frac = unc.thermal_mismatch_fraction
+        if frac is None:
+            frac = device.thermal_mismatch_fraction
+        if frac is None:
+            self.notes.append('thermal mismatch: the device description does not state '
+                              'bars.thermal_mismatch_fraction')
+        self.mismatch_fraction = float(frac or 0.0) if mode != 'off' else 0.0
+
+        # -- the reference bar(s): live reading and the thermal zero (one capture)
+        s_cal = figures.read_noise_m or 0.0
+        self.zero_noise_m = s_cal
+        self.zero_var_m2 = capture_var(res, s_cal, int(figures.capture_samples or 1))
+
+        # -- friction hysteresis measured by a two-sided calibration, unless compensated: a bar
+        # that last lengthened reads short by h (the sign from its motion, a play operator)
+        compensated = any(t.type_name in FRICTION_TERMS for t in model.terms)
+        h = np.array([figures.hysteresis_m.get(m, 0.0) for m in measuring])
+        self.hysteresis_m = np.zeros(6) if compensated else np.abs(h)
+        self._direction = _Friction(DIRECTION_TRAVEL_M, FRICTION_TURNOVER_M)
+
+        # -- what a fit replaced, and how much of the rest it kept
+        self.replaced = set(fit.replaces) if fit is not None else set()
+        self.systematic_scale = fit.systematic_scale if fit is not None else 1.0
+        self.residual_m2 = fit.residual_m2 if fit is not None else np.zeros((6, 6))
+        self.mean_terms_m2 = fit.mean_terms_m2 if fit is not None else np.zeros((6, 6))
+        # what the per-sample path needs, decided once
+        self._has_drift = bool(np.any(self.drift_m))
+        self._has_pairs = bool(np.any(self.pair_var_m2 > 0))
+        self._has_hysteresis = bool(np.any(self.hysteresis_m > 0))
+        self._has_mean_terms = bool(np.any(self.mean_terms_m2))
+        self._has_residual = bool(np.any(self.residual_m2))
+        self._cross_key: tuple[float, ...] | None = None
+        self._tab: dict[str, FloatArray] | None = None
+        self._fast_parts: dict[str, Any] | None = None
+        self._resolved: tuple[FloatArray, FloatArray] | None = None
+        self._cross_w: FloatArray = np.zeros((0, 0))
+
+    def reset(self) -> None:
+        """A new run: the stream's read-noise estimate and the bars' motion directions start
+        again."""
+        self.noise.reset()
+        self._direction.reset()
+
+    # -- per-sample inputs ---------------------------------------------------------------------
+    def bar_error(self, lengths_m: FloatArray, reference_error_m: FloatArray) -> FloatArray:
+        """The thermal error the pipeline subtracted from each bar (Eq. 13 or Eq. 12), (N, 6) [m],
+        from the compensated lengths and the Eq. (11) errors (for a stage that has only those)."""
+        n = lengths_m.shape[0]
+        eps = np.asarray(reference_error_m, dtype=np.float64).reshape(n, -1)
+        if self.thermal_mode == 'off' or eps.shape[1] == 0:
+            return np.zeros((n, 6))
+        if self.thermal_mode == 'single':
+            return np.repeat(eps[:, :1], 6, axis=1)
+        lo, hi = self.ref_distances_m[0], self.ref_distances_m[-1]
+        frac = (lengths_m - lo) / (hi - lo)
+        return eps[:, :1] + frac * (eps[:, -1:] - eps[:, :1])
+
+    def observe(self, cdf_lengths_m: FloatArray, reference_error_m: FloatArray) -> Observed:
+        """What the budget learns from N consecutive samples (call once per sample, in time
+        order): the read-noise estimate from the CDF lengths (or the lengths plus the thermal
+        error subtracted, which differ by terms that do not change while a bar stands still)
+        and the reference bars' Eq. (11) errors, and each bar's motion direction.
+
+        returns : what :meth:`covariance` needs of these samples
+        """
+        n = cdf_lengths_m.shape[0]
+        k = self.noise.columns - 6
+        values = np.empty((n, 6 + k))
+        values[:, :6] = cdf_lengths_m
+        if k:
+            values[:, 6:] = np.asarray(reference_error_m, dtype=np.float64).reshape(n, -1)[:, :k]
+        est = self.noise.feed(values)
+        directions = (self._direction(np.asarray(cdf_lengths_m, dtype=np.float64))
+                      if self._has_hysteresis else np.zeros((n, 6)))
+        return Observed(self._resolve(est), directions)
+
+    def _resolve(self, estimate: FloatArray) -> FloatArray:
+        if self.fixed_noise_m is not None:
+            return np.full(estimate.shape, self.fixed_noise_m)
+        if estimate.strides[0] == 0:     # one estimate for every sample (a stream's transfer)
+            row = estimate[0]
+            if self._resolved is None or self._resolved[0] is not row:
+                self._resolved = (row, np.where(np.isfinite(row), row, self.calibration_noise_m or 0.0))
+            return np.broadcast_to(self._resolved[1], estimate.shape)
+        return np.where(np.isfinite(estimate), estimate, self.calibration_noise_m or 0.0)
+
+    def read_noise_m(self) -> FloatArray:
+        """Read noise in force now per column (six measuring bars, then the reference bars) [m]."""
+        return self._resolve(self.noise.sigma_m())
+
+    # -- the budget ----------------------------------------------------------------------------
+    def _kept(self, source: str) -> float:
+        """Factor on a replaceable source: 0 when a fit measured it, else the fit's scale."""
+        return 0.0 if source in self.replaced else self.systematic_scale
+
+    def _terms(self, lengths_m: FloatArray, reference_error_m: FloatArray,
+               temp_change_c: FloatArray, bar_error_m: FloatArray | None,
+               fit_columns_m: FloatArray | None, observed: Observed | None) -> _Terms:
+        """Every source of N samples, in the form that is cheapest to add up."""
+        x = np.asarray(lengths_m, dtype=np.float64)
+        n = x.shape[0]
+        res2 = self.resolution_m ** 2
+        eps = np.asarray(reference_error_m, dtype=np.float64).reshape(n, -1)
+        if bar_error_m is None:
+            bar_error_m = self.bar_error(x, eps)
+        noise = (np.broadcast_to(self.read_noise_m(), (n, self.noise.columns))
+                 if observed is None else observed.read_noise_m)
+        t = _Terms()
+        t.diag['quantisation'] = np.full((n, 6), res2 / 12.0)
+        t.diag['read_noise'] = noise[:, :6] ** 2
+        if self.thermal_mode != 'off':
+            # live reading and thermal zero: their quantisation biases are correlated when the
+            # reading is within a count of its zero (delta ~ eps, Eq. 11)
+            cross = self._cross(noise[-1, 6:], eps)
+            ref_var = np.maximum(res2 / 12.0 + noise[:, 6:] ** 2 + self.zero_var_m2 - 2.0 * cross,
+                                 0.0)                                                  # (N, k)
+            if self.thermal_mode == 'single':
+                t.common = ref_var[:, 0]
+            else:
+                lo, hi = self.ref_distances_m[0], self.ref_distances_m[-1]
+                frac = (x - lo) / (hi - lo)
+                t.weights = np.stack([1.0 - frac, frac], axis=2)
+                t.weight_var = ref_var[:, [0, -1]]
+        # what depends on a bar's length only, through the hat functions of Eq. (10):
+        # tabulated once per bar on a fine grid, read by linear interpolation
+        tables = self._tables()
+        pos = (x - self._grid_lo) / self._grid_step
+        i0 = np.clip(pos.astype(np.intp), 0, self._grid_n - 2)
+        f = pos - i0
+        rows = np.arange(6)[None, :]
+        for name, tab in tables.items():
+            value = tab[rows, i0] * (1.0 - f) + tab[rows, i0 + 1] * f
+            if name == 'calibration_drift':
+                t.bias[name] = value
+            else:
+                t.diag[name] = value
+        if self._has_pairs and self._kept('reference_distances'):
+            k = self.knots_m
+            seg = np.clip(np.sum(x[:, :, None] >= k[None], axis=2) - 1, 0, k.shape[1] - 2)
+            u = (x - k[rows, seg]) / (k[rows, seg + 1] - k[rows, seg])
+            h = np.zeros((n, 6, self.pair_var_m2.size))
+            pj0, pj1 = self.pair_index[rows, seg], self.pair_index[rows, seg + 1]
+            nn = np.arange(n)[:, None]
+            h[nn, rows, pj0] += 1.0 - u
+            h[nn, rows, pj1] += u
+            t.full['reference_distances'] = self._kept('reference_distances') * np.einsum(
+                'nip,p,njp->nij', h, self.pair_var_m2, h)
+        if self.thermal_mode == 'single':
+            t.bias['thermal_approximation'] = -(x - self.ref_distances_m[0]) * self.scale_cte \
+                * np.asarray(temp_change_c)[:, None]
+        if self.mismatch_fraction:
+            t.diag['thermal_mismatch'] = (self.mismatch_fraction * bar_error_m) ** 2
+        if self._has_hysteresis and self._kept('hysteresis'):
+            s_dir = np.zeros((n, 6)) if observed is None else observed.directions
+            kept = self._kept('hysteresis')
+            t.bias['hysteresis'] = -math.sqrt(kept) * self.hysteresis_m * s_dir
+            t.diag['hysteresis'] = kept * self.hysteresis_m ** 2 * (1.0 - s_dir ** 2)
+        if fit_columns_m is not None and fit_columns_m.shape[-1]:
+            t.full['fitted_terms'] = fit_columns_m @ np.swapaxes(fit_columns_m, 1, 2)
+        elif self._has_mean_terms:
+            t.constant['fitted_terms'] = self.mean_terms_m2
+        if self._has_residual:
+            t.constant['residual'] = self.residual_m2
+        return t
+
+    def _tables(self) -> dict[str, FloatArray]:
+        """Per bar, on a grid of lengths (G,) over the calibrated span and 10 mm beyond: the
+        calibration points' and the interpolation's variance and the routine drift's error,
+        (6, G) each, as the fit keeps them."""
+        if self._tab is not None:
+            return self._tab
+        k = self.knots_m
+        lo, hi = float(k.min()) - 0.01, float(k.max()) + 0.01
+        self._grid_n = 8192
+        self._grid_lo = lo
+        self._grid_step = (hi - lo) / (self._grid_n - 1)
+        grid = np.linspace(lo, hi, self._grid_n)
+        x = np.repeat(grid[:, None], 6, axis=1)
+        rows = np.arange(6)[None, :]
+        seg = np.clip(np.sum(x[:, :, None] >= k[None], axis=2) - 1, 0, k.shape[1] - 2)
+        u = (x - k[rows, seg]) / (k[rows, seg + 1] - k[rows, seg])
+        tab: dict[str, FloatArray] = {}
+        if self._kept('calibration_points'):
+            tab['calibration_points'] = (self._kept('calibration_points') * self.point_var_m2
+                                         * ((1.0 - u) ** 2 + u ** 2)).T
+        if self._has_drift and self._kept('calibration_drift'):
+            e = self.drift_m[rows, seg] * (1.0 - u) + self.drift_m[rows, seg + 1] * u
+            tab['calibration_drift'] = (math.sqrt(self._kept('calibration_drift')) * e).T
+        if self.interpolation.sigma_m > 0 and self._kept('interpolation'):
+            tab['interpolation'] = (self._kept('interpolation')
+                                    * self.interpolation.variance(x, k)).T
+        self._tab = {name: np.ascontiguousarray(v) for name, v in tab.items()}
+        return self._tab
+
+    def _cross(self, noise_ref_m: FloatArray, eps: FloatArray) -> FloatArray:
+        """quantisation_cross_cov of each reference bar's live reading and its zero at the
+        distance eps, (N, k) [m^2]; the harmonics' weights are kept while the noise stays."""
+        key = tuple(np.round(noise_ref_m * 1e12))
+        if key != self._cross_key:
+            self._cross_key = key
+            w = np.stack([quantisation_cross_weights(self.resolution_m, float(v), self.zero_noise_m)
+                          for v in noise_ref_m], axis=1) if len(key) else np.zeros((0, 0))
+            # harmonics that no longer matter (read noise damps them) are left out
+            keep = np.flatnonzero(np.max(w, axis=1) > 1e-6 * max(float(w.max()), 1e-300)) \
+                if w.size else np.zeros(0, int)
+            self._cross_w = w[:keep[-1] + 1] if keep.size else w[:1]
+        if not len(key):
+            return np.zeros((eps.shape[0], 0))
+        k = np.arange(1, self._cross_w.shape[0] + 1)
+        phase = np.cos((2.0 * math.pi / self.resolution_m) * eps[:, None, :len(key)] * k[None, :, None])
+        return np.einsum('nkr,kr->nr', phase, self._cross_w)
+
+    def sources(self, lengths_m: FloatArray, reference_error_m: FloatArray,
+                temp_change_c: FloatArray, bar_error_m: FloatArray | None = None,
+                fit_columns_m: FloatArray | None = None, observed: Observed | None = None
+                ) -> tuple[dict[str, FloatArray], dict[str, FloatArray]]:
+        """Each source of N samples: the random ones as covariances (N, 6, 6) [m^2], and the
+        errors whose size and sign the device knows but the compensation does not correct as
+        signed vectors (N, 6) [m] (their sum b enters Sigma_d as b b^T).
+
+        lengths_m : (N, 6) compensated lengths [m]
+        reference_error_m : (N, k) Eq. (11) errors [m]; temp_change_c : (N,) [°C]
+        bar_error_m : (N, 6) thermal error subtracted; None computes it (:meth:`bar_error`)
+        fit_columns_m : (N, 6, r) corrections of the fitted terms' one-sigma perturbations, or
+            None (then their mean over the fit's samples is used)
+        observed : what :meth:`observe` returned for these samples, or None: the read-noise
+            estimate in force now, no motion direction known
+        """
+        t = self._terms(lengths_m, reference_error_m, temp_change_c, bar_error_m, fit_columns_m,
+                        observed)
+        n = np.asarray(lengths_m).shape[0]
+        eye = np.eye(6)
+        cov: dict[str, FloatArray] = {name: v[:, :, None] * eye for name, v in t.diag.items()}
+        ref = t.reference(n)
+        if ref is not None:
+            cov['reference_bar'] = ref
+        cov.update(t.full)
+        for name, m in t.constant.items():
+            cov[name] = np.broadcast_to(m, (n, 6, 6))
+        return cov, dict(t.bias)
+
+    def variances(self, lengths_m: FloatArray, reference_error_m: FloatArray,
+                  temp_change_c: FloatArray, bar_error_m: FloatArray | None = None,
+                  fit_columns_m: FloatArray | None = None,
+                  observed: Observed | None = None) -> dict[str, FloatArray]:
+        """Each source's share of Sigma_d of N samples, (N, 6, 6) each [m^2] (a known error b_s
+        as b_s b_s^T: the shares of the known errors do not add up to their joint b b^T)."""
+        cov, bias = self.sources(lengths_m, reference_error_m, temp_change_c, bar_error_m,
+                                 fit_columns_m, observed)
+        for name, b in bias.items():
+            cov[name] = cov.get(name, 0.0) + b[:, :, None] * b[:, None, :]
+        return {name: cov[name] for name in SOURCES if name in cov}
+
+    def covariance(self, lengths_m: FloatArray, reference_error_m: FloatArray,
+                   temp_change_c: FloatArray, bar_error_m: FloatArray | None = None,
+                   fit_columns_m: FloatArray | None = None,
+                   observed: Observed | None = None) -> FloatArray:
+        """Sigma_d of N samples, (N, 6, 6) [m^2]: the random sources' covariances plus b b^T
+        of the sum b of the known errors (what :meth:`sources` lists, added up in as few array
+        operations as the streaming nodes can afford for every transfer)."""
+        x = np.asarray(lengths_m, dtype=np.float64)
+        n = x.shape[0]
+        if self._has_pairs and self._kept('reference_distances') or self.thermal_mode == 'interpolate':
+            return self._covariance_by_sources(x, reference_error_m, temp_change_c, bar_error_m,
+                                               fit_columns_m, observed)
+        eps = np.asarray(reference_error_m, dtype=np.float64).reshape(n, -1)
+        noise = (np.broadcast_to(self.read_noise_m(), (n, self.noise.columns))
+                 if observed is None else observed.read_noise_m)
+        fast = self._fast()
+        pos = (x - self._grid_lo) * (1.0 / self._grid_step)
+        i0 = np.clip(pos.astype(np.intp), 0, self._grid_n - 2)
+        f = pos - i0
+        g = 1.0 - f
+        rows = fast['rows']
+        diag = fast['q12'] + noise[:, :6] ** 2
+        if fast['diag'] is not None:
+            tab = fast['diag']
+            diag += tab[rows, i0] * g + tab[rows, i0 + 1] * f
+        bias = np.zeros((n, 6))
+        if fast['drift'] is not None:
+            tab = fast['drift']
+            bias += tab[rows, i0] * g + tab[rows, i0 + 1] * f
+        if self.thermal_mode == 'single':
+            bias -= (x - self.ref_distances_m[0]) * (self.scale_cte * np.asarray(temp_change_c))[:, None]
+            if self.mismatch_fraction:
+                diag += (self.mismatch_fraction * eps[:, :1]) ** 2 if bar_error_m is None \
+                    else (self.mismatch_fraction * bar_error_m) ** 2
+        kept = fast['hysteresis']
+        if kept:
+            s_dir = np.zeros((n, 6)) if observed is None else observed.directions
+            bias -= math.sqrt(kept) * self.hysteresis_m * s_dir
+            diag += kept * self.hysteresis_m ** 2 * (1.0 - s_dir * s_dir)
+        total = bias[:, :, None] * bias[:, None, :]
+        total[:, rows[0], rows[0]] += diag
+        if self.thermal_mode == 'single':
+            cross = self._cross(noise[-1, 6:], eps)[:, 0]
+            ref = np.maximum(fast['q12'] + noise[:, 6] ** 2 + self.zero_var_m2 - 2.0 * cross, 0.0)
+            total += ref[:, None, None]
+        if fit_columns_m is not None and fit_columns_m.shape[-1]:
+            total += fit_columns_m @ np.swapaxes(fit_columns_m, 1, 2)
+        elif self._has_mean_terms:
+            total += self.mean_terms_m2
+        if self._has_residual:
+            total += self.residual_m2
+        return total
+
+    def _fast(self) -> dict[str, Any]:
+        """What :meth:`covariance` reads for every call, made once."""
+        if self._fast_parts is None:
+            tables = self._tables()
+            diag = [tables[k] for k in ('calibration_points', 'interpolation') if k in tables]
+            self._fast_parts = {
+                'rows': np.arange(6)[None, :],
+                'q12': self.resolution_m ** 2 / 12.0,
+                'diag': np.ascontiguousarray(sum(diag)) if diag else None,
+                'drift': tables.get('calibration_drift'),
+                'hysteresis': self._kept('hysteresis') if self._has_hysteresis else 0.0,
+            }
+        return self._fast_parts
+
+    def _covariance_by_sources(self, x: FloatArray, reference_error_m: FloatArray,
+                               temp_change_c: FloatArray, bar_error_m: FloatArray | None,
+                               fit_columns_m: FloatArray | None, observed: Observed | None
+                               ) -> FloatArray:
+        t = self._terms(x, reference_error_m, temp_change_c, bar_error_m, fit_columns_m, observed)
+        n = x.shape[0]
+        total = np.zeros((n, 6, 6))
+        idx = np.arange(6)
+        total[:, idx, idx] = sum(t.diag.values())
+        ref = t.reference(n)
+        if ref is not None:
+            total += ref
+        for m in t.full.values():
+            total += m
+        for m in t.constant.values():
+            total += m
+        if t.bias:
+            b = sum(t.bias.values())
+            total += b[:, :, None] * b[:, None, :]
+        return total
+
+    def summary(self) -> dict[str, Any]:
+        """The budget's numbers, for reports (SI units in the keys' names)."""
+        noise = self.read_noise_m()
+        return {
+            'thermal_mode': self.thermal_mode,
+            'resolution_nm': self.resolution_m * 1e9,
+            'read_noise_nm': [round(float(v) * 1e9, 3) for v in noise],
+            'read_noise_from': ('model file' if self.fixed_noise_m is not None else
+                                ['stream' if w >= self.noise.min_windows else 'calibration'
+                                 for w in self.noise.windows]),
+            'calibration_point_nm': round(math.sqrt(self.point_var_m2) * 1e9, 3),
+            'routine_temp_change_c': self.figures.routine_temp_change_c,
+            'calibration_drift_nm': round(float(np.max(np.abs(self.drift_m))) * 1e9, 3),
+            'thermal_zero_nm': round(math.sqrt(self.zero_var_m2) * 1e9, 3),
+            'interpolation': self.interpolation.as_dict(),
+            'thermal_mismatch_fraction': self.mismatch_fraction,
+            'hysteresis_nm': [round(float(v) * 1e9, 2) for v in self.hysteresis_m],
+            'fit': None if self.fit is None else {
+                'replaces': sorted(self.replaced), 'systematic_scale': self.systematic_scale,
+                'residual_nm': [round(float(math.sqrt(max(v, 0.0))) * 1e9, 2)
+                                for v in np.diag(self.residual_m2)],
+                'directions': len(self.fit.directions)},
+            'notes': list(self.notes),
+        }

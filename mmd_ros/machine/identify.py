@@ -1,0 +1,704 @@
+"""Identification of a machine's geometric errors from the approaches of a session (ISO 230-1,
+ISO 230-2, ISO 230-7), with Monte Carlo uncertainty.
+
+Definitions (``msg_docs/machine.md`` states them with their signs):
+
+- **Machine frame.** X is the reference: x is the direction of the X run's least-squares line
+  (through the bidirectional means at its targets), y completes the plane of the X and Y lines,
+  z = x × y. {L}'s setup misalignment on the table drops out this way (ISO 230-1: the slope of
+  a straightness run is setup; the difference of two axes' slopes in one setup is squareness).
+- **Linear error motions** of axis k at target i: the displacement of the functional point
+  (origin of {U}) relative to {L} in machine axes, minus the commanded motion, and the rotation
+  of {U} relative to {L}: the tool relative to the workpiece, relative to the run's reference
+  position (the bidirectional mean there is zero). Per direction of approach; the bidirectional
+  mean and reversal (↑ − ↓) follow. Straightness deviations are from the least-squares
+  reference line of the bidirectional means; the line's slope in machine axes gives the
+  squareness: EC0Y (Y about z), EB0Z and EA0Z (Z about y and x), the rotation of the axis' line
+  by the right-hand rule.
+- **Rotary axes.** The measured motion relative to the run's reference (the pose at the
+  reference angle), placed in machine coordinates by the machine frame and the functional
+  point, is compared with the kinematic model (:mod:`mmd_ros.machine.kinematics`: nominal
+  motion, the linear axes' identified error motions where they follow, and the axis' location
+  errors). The location errors (position of the axis line at its pivot in the two directions
+  across it, its tilt about those two directions) are fitted by least squares over all
+  approaches; what remains, at the axis point nearest the functional point in fixed machine
+  axes and relative to the reference angle, are the component error motions: radial, axial,
+  tilt and angular positioning.
+
+Uncertainty: the approaches' mean poses are drawn ``draws`` times from their covariance (the
+MMD's pose covariance, systematic at a pose, plus the scatter between cycles over their number)
+and the functional point from the stated uncertainty of the upper plate's position; the whole
+identification is repeated on each draw. The MMD's error at a pose is drawn from its
+covariance independently between targets and, once more, as a linear trend along the run: its
+errors follow the bar lengths, which change smoothly along a run, and a trend is what turns into
+a false slope (squareness) or a false location. A second set of draws with the MMD's covariance alone
+gives the MMD's part. A location fit whose residual is larger than its inputs explain (ratio >
+1: component errors the fit cannot tell from location over a partial turn) has its uncertainty
+scaled by that ratio.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.stats import t as student_t
+
+from mmd_ros.analysis.iso230 import evaluate
+from mmd_ros.core.machine import MachineAxis, MachineDescription
+from mmd_ros.core.rotation import rotation_matrix
+from mmd_ros.machine.errors import MachineAnalysisError
+from mmd_ros.machine.geometry import (
+    apply, inverse, pose_to_transform, rotation_from_rotvec, rotvec, transform,
+)
+from mmd_ros.machine.kinematics import ErrorTable, MachineModel, RotaryLocation, axis_point
+from mmd_ros.machine.results import COVERAGE_K, AxisResult, ErrorMotion, MachineResult, Value
+from mmd_ros.machine.session import AxisRun
+
+__all__ = ['IdentifyOptions', 'identify']
+
+FloatArray = NDArray[np.float64]
+_XYZ, _ABC = 'XYZ', 'ABC'
+
+
+@dataclass(frozen=True)
+class IdentifyOptions:
+    """draws : Monte Carlo draws per uncertainty estimate; seed : their random seed
+    limit_m, limit_rad : an error whose standard uncertainty exceeds these is reported as not
+        determined by the session (the value is still given)
+    mmd_bound_m, mmd_bound_rad : a stated accuracy of the MMD's pose (± bound of each position
+        and rotation component, e.g. from its data sheet or its own validation), added to its
+        covariance as a uniform distribution (u = bound / sqrt 3) at every approach; 0: the
+        pose covariance alone
+    """
+
+    draws: int = 200
+    seed: int = 0
+    limit_m: float = 2e-6
+    limit_rad: float = math.radians(2.0 / 3600.0)
+    mmd_bound_m: float = 0.0
+    mmd_bound_rad: float = 0.0
+
+
+@dataclass
+class RunMeans:
+    """The approaches of one run averaged per target and direction (index 0 up, 1 down)."""
+
+    run: AxisRun
+    axis: MachineAxis
+    k: int
+    targets: FloatArray
+    p: FloatArray          # (m, 2, 3) mean position of {U} in {L}
+    r: FloatArray          # (m, 2, 3, 3) mean rotation
+    cov_mmd: FloatArray    # (m, 2, 6, 6) the MMD's covariance of the mean [dp, dw] in {L}
+    cov_stat: FloatArray   # (m, 2, 6, 6) scatter between cycles / n
+    n: NDArray[np.int64]   # (m, 2)
+    q: FloatArray          # (m, 2, n_axes)
+    dirs: FloatArray       # (m, 2, n_axes)
+    ref: int | None
+    ref_interp: tuple[int, float] | None
+    cycles_p: FloatArray   # (m, 2, c, 3) per approach, NaN where missing
+    cycles_r: FloatArray   # (m, 2, c, 3, 3)
+
+
+def _mean_rotation(rs: FloatArray) -> FloatArray:
+    """Mean of nearby rotations (k, 3, 3) about the first."""
+    w = rotvec(rs @ np.swapaxes(rs[0], -1, -2)[None])
+    return rotation_from_rotvec(w.mean(axis=0)) @ rs[0]
+
+
+def aggregate(run: AxisRun, machine: MachineDescription) -> RunMeans:
+    """Per target and direction: mean pose, the MMD's covariance, the scatter of the means."""
+    axis = machine.axis(run.axis)
+    k = machine.index(run.axis)
+    m = run.targets.size
+    cycles = max(a.cycle for a in run.approaches) + 1
+    p = np.full((m, 2, 3), np.nan)
+    r = np.full((m, 2, 3, 3), np.nan)
+    cov_mmd = np.zeros((m, 2, 6, 6))
+    cov_stat = np.zeros((m, 2, 6, 6))
+    n = np.zeros((m, 2), dtype=np.int64)
+    q = np.full((m, 2, len(machine.axes)), np.nan)
+    dirs = np.zeros((m, 2, len(machine.axes)))
+    cp = np.full((m, 2, cycles, 3), np.nan)
+    cr = np.full((m, 2, cycles, 3, 3), np.nan)
+    for i in range(m):
+        for j, direction in enumerate((1, -1)):
+            group = [a for a in run.approaches if a.target == i and a.direction == direction]
+            if not group:
+                continue
+            t = pose_to_transform(np.array([a.pose for a in group]))
+            pm = t[:, :3, 3].mean(axis=0)
+            rm = _mean_rotation(t[:, :3, :3])
+            p[i, j], r[i, j] = pm, rm
+            dev = np.column_stack([t[:, :3, 3] - pm, rotvec(t[:, :3, :3] @ rm.T[None])])
+            if len(group) > 1:
+                cov_stat[i, j] = np.cov(dev.T, ddof=1) / len(group)
+            cov_mmd[i, j] = np.mean([a.covariance for a in group], axis=0)
+            n[i, j] = len(group)
+            q[i, j] = np.mean([a.q for a in group], axis=0)
+            dirs[i, j] = group[-1].last_direction
+            for a, tt in zip(group, t):
+                cp[i, j, a.cycle] = tt[:3, 3]
+                cr[i, j, a.cycle] = tt[:3, :3]
+    missing = [f'{v:g}' for v, c in zip(run.targets, n) if c.min() == 0]
+    if missing:
+        raise MachineAnalysisError(
+            f'{run.log}: {run.axis} run: targets {missing} were not approached from both '
+            'directions; run the ISO 230-2 standard test cycle (bidirectional)')
+    scale = 1.0
+    close = np.flatnonzero(np.abs(run.targets - axis.reference) < 1e-9 + 1e-6 * scale)
+    ref = int(close[0]) if close.size else None
+    interp = None
+    if ref is None:
+        if axis.rotary or not run.targets[0] < axis.reference < run.targets[-1]:
+            unit = '°' if axis.rotary else ' mm'
+            value = math.degrees(axis.reference) if axis.rotary else axis.reference * 1e3
+            raise MachineAnalysisError(
+                f'{run.log}: the {run.axis} run has no target at the reference position '
+                f'{value:g}{unit} (machine description): add one, or set the reference there')
+        i = int(np.searchsorted(run.targets, axis.reference)) - 1
+        interp = (i, float((axis.reference - run.targets[i]) / (run.targets[i + 1] - run.targets[i])))
+    return RunMeans(run, axis, k, run.targets, p, r, cov_mmd, cov_stat, n, q, dirs, ref, interp, cp, cr)
+
+
+# -- the identification (one evaluation; repeated on Monte Carlo draws) ------------------------
+def _bidirectional(p: FloatArray, r: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Mean of the up and down poses at each target: (m, 3), (m, 3, 3)."""
+    w = rotvec(r[:, 1] @ np.swapaxes(r[:, 0], -1, -2))
+    return 0.5 * (p[:, 0] + p[:, 1]), rotation_from_rotvec(0.5 * w) @ r[:, 0]
+
+
+def _reference(mean: RunMeans, p: FloatArray, r: FloatArray) -> tuple[FloatArray, FloatArray]:
+    pb, rb = _bidirectional(p, r)
+    if mean.ref is not None:
+        return pb[mean.ref], rb[mean.ref]
+    i, t = mean.ref_interp
+    w = rotvec(rb[i + 1] @ rb[i].T)
+    return (1 - t) * pb[i] + t * pb[i + 1], rotation_from_rotvec(t * w) @ rb[i]
+
+
+def _slope(x: FloatArray, y: FloatArray) -> FloatArray:
+    """Least-squares slope of y (m, ...) against x (m,)."""
+    xc = x - x.mean()
+    return np.tensordot(xc, y - y.mean(axis=0), axes=(0, 0)) / np.dot(xc, xc)
+
+
+def _detrend(x: FloatArray, y: FloatArray) -> FloatArray:
+    """Deviations of y (m, ...) from its least-squares line against x."""
+    b = _slope(x, y)
+    return y - y.mean(axis=0) - np.multiply.outer(x - x.mean(), b)
+
+
+class _Session:
+    """The inputs of the identification and one evaluation of it."""
+
+    def __init__(self, machine: MachineDescription, means: dict[str, RunMeans]) -> None:
+        self.machine = machine
+        self.means = means
+        self.linear = [n for n, m in means.items() if not m.axis.rotary]
+        self.rotary = [n for n, m in means.items() if m.axis.rotary]
+        lin = {a.component: a.name for a in machine.linear_axes}
+        self.frame_axes = (lin[0], lin[1])
+        self.frame_measured = lin[0] in means and lin[1] in means
+        self.nominal_ml = rotation_matrix(machine.lower_rotation)
+        self.component_prior = (1e-6, math.radians(1.0 / 3600.0))
+        #: rotary axis -> (location, normalised Jacobian, its pseudo-inverse) of the nominal fit;
+        #: set after the nominal evaluation so that Monte Carlo draws take one linear step
+        self.linearised: dict[str, tuple[FloatArray, FloatArray, FloatArray]] = {}
+        #: rotary axis -> (rows, 6) uncertainty of the following axes' interpolated errors
+        self.interp_u: dict[str, FloatArray] = {}
+        self.loo: dict[str, FloatArray] = {}
+        self.rng = np.random.default_rng(0)
+        self.draw_interpolation = False
+
+    # -- frame and linear axes -------------------------------------------------------------------
+    def _frame(self, slopes_l: dict[str, FloatArray]) -> FloatArray:
+        """R_ML from the X and Y slopes in {L} (nominal where a run is missing)."""
+        xa, ya = (self.machine.axis(n) for n in self.frame_axes)
+        x = slopes_l.get(xa.name)
+        y = slopes_l.get(ya.name)
+        x = self.nominal_ml[0] if x is None else np.sign(xa.direction[0]) * x / np.linalg.norm(x)
+        y = self.nominal_ml[1] if y is None else np.sign(ya.direction[1]) * y
+        y = y - np.dot(y, x) * x
+        y /= np.linalg.norm(y)
+        return np.vstack([x, y, np.cross(x, y)])
+
+    def evaluate(self, p: dict[str, FloatArray], r: dict[str, FloatArray], shift: FloatArray
+                 ) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        dl: dict[str, tuple[FloatArray, FloatArray, FloatArray]] = {}
+        slopes_l = {}
+        for name in self.linear:
+            mean = self.means[name]
+            p0, r0 = _reference(mean, p[name], r[name])
+            dp = p[name] - p0
+            dw = rotvec(r[name] @ r0.T)
+            dq = mean.targets - mean.axis.reference
+            pb = 0.5 * (dp[:, 0] + dp[:, 1])
+            slopes_l[name] = _slope(dq, pb)
+            dl[name] = (dp, dw, dq)
+        frame = self._frame(slopes_l)
+        out['frame'] = frame
+        tables: dict[str, ErrorTable] = {}
+        slopes_m = {}
+        for name in self.linear:
+            mean = self.means[name]
+            dp, dw, dq = dl[name]
+            et = dp @ frame.T - dq[:, None, None] * mean.axis.direction
+            er = dw @ frame.T
+            e = np.concatenate([et, er], axis=-1)          # (m, 2, 6)
+            out[f'{name}/up'], out[f'{name}/down'] = e[:, 0], e[:, 1]
+            emean = 0.5 * (e[:, 0] + e[:, 1])
+            out[f'{name}/mean'] = emean
+            out[f'{name}/reversal'] = e[:, 0] - e[:, 1]
+            out[f'{name}/deviation'] = _detrend(dq, emean[:, :3])
+            slopes_m[name] = _slope(dq, emean[:, :3])
+            c = mean.axis.component
+            fig = np.zeros(6)
+            for j in range(3):
+                if j == c:
+                    fig[j] = max(e[:, 0, j].max(), e[:, 1, j].max()) - min(e[:, 0, j].min(), e[:, 1, j].min())
+                else:
+                    fig[j] = np.ptp(out[f'{name}/deviation'][:, j])
+                fig[3 + j] = np.ptp(emean[:, 3 + j])
+            out[f'{name}/figure'] = fig
+            tables[name] = ErrorTable(name, mean.targets, e[:, 0], e[:, 1])
+        out['squareness'] = self._squareness(slopes_m)
+        for name in self.rotary:
+            self._rotary(name, p[name], r[name], frame, tables, shift, out)
+        return out
+
+    def _squareness(self, slopes: dict[str, FloatArray]) -> FloatArray:
+        """EC0 of the y axis, EB0 and EA0 of the z axis (NaN where a run is missing)."""
+        lin = {a.component: a for a in self.machine.linear_axes}
+        out = np.full(3, np.nan)
+        ex, ey, ez = np.eye(3)
+        ya, za = lin[1], lin[2]
+        if ya.name in slopes and self.frame_measured:
+            out[0] = slopes[ya.name][0] / np.cross(ez, ya.direction)[0]
+        if za.name in slopes and self.frame_measured:
+            out[1] = slopes[za.name][0] / np.cross(ey, za.direction)[0]
+            out[2] = slopes[za.name][1] / np.cross(ex, za.direction)[1]
+        return out
+
+    # -- rotary axes ---------------------------------------------------------------------------
+    def _rotary(self, name: str, p: FloatArray, r: FloatArray, frame: FloatArray,
+                tables: dict[str, ErrorTable], shift: FloatArray, out: dict[str, Any]) -> None:
+        mean = self.means[name]
+        axis = mean.axis
+        m = mean.targets.size
+        fp = self.machine.functional_point
+        g = transform(r, p)                                   # (m, 2, 4, 4)
+        g_ref = transform(*reversed(_reference(mean, p, r)))
+        t_wl = transform(frame, fp + shift - frame @ _reference(mean, p, r)[0])
+        meas = t_wl @ g @ inverse(g_ref) @ inverse(t_wl)
+        q = mean.q.reshape(-1, mean.q.shape[-1])
+        dirs = mean.dirs.reshape(-1, mean.dirs.shape[-1])
+        ref = mean.ref
+        point = axis_point(axis, fp)
+        r_mw = MachineModel(self.machine).workpiece_rotation(q)
+        perp = [j for j in range(3) if j != axis.component]
+        meas = meas.reshape(-1, 4, 4)
+        if not self.loo:
+            self.loo = {n: _loo_rms(t) for n, t in tables.items()}
+        if name not in self.interp_u:
+            self.interp_u[name] = _interpolation_u(tables, self.loo, q, self.machine)
+        u_interp = self.interp_u[name]
+        if self.draw_interpolation:   # a Monte Carlo draw: tables bent between their targets
+            tables = {n: t.with_bumps(self.rng.standard_normal((t.positions.size - 1, 6))
+                                      * (np.sqrt(2.0) * self.loo[n])) for n, t in tables.items()}
+        known = MachineModel(self.machine, tables)
+        left, right, work_side = known.parts(q, dirs, name)
+        rows = q.shape[0]
+        ref_rows = [2 * ref, 2 * ref + 1]
+
+        def residual(lam: FloatArray) -> FloatArray:
+            pos, tilt = np.zeros(3), np.zeros(3)
+            pos[perp], tilt[perp] = lam[:2], lam[2:]
+            model = MachineModel(self.machine, {}, {name: RotaryLocation(pos, tilt)})
+            a = model.axis_transform(name, q[:, mean.k])
+            pred = left @ (inverse(a) if work_side else a) @ right
+            pr = pred[ref_rows]
+            w = rotvec(pr[1, :3, :3] @ pr[0, :3, :3].T)
+            pred_ref = transform(rotation_from_rotvec(0.5 * w) @ pr[0, :3, :3],
+                                 0.5 * (pr[0, :3, 3] + pr[1, :3, 3]))
+            pred = pred @ inverse(pred_ref)[None]
+            e = meas @ inverse(pred)
+            at = np.broadcast_to(point, (rows, 3)) if work_side else apply(pred, point)
+            v = apply(e, at) - at
+            dw = rotvec(e[:, :3, :3])
+            return np.concatenate([np.einsum('nij,nj->ni', r_mw, v),
+                                   np.einsum('nij,nj->ni', r_mw, dw)], axis=1)
+
+        sigma = np.sqrt(self._rotary_sigma(mean)[None, :] ** 2 + u_interp ** 2)
+        linear = self.linearised.get(name)
+        if linear is not None:
+            # a Monte Carlo draw: one Gauss-Newton step from the nominal fit with its Jacobian,
+            # the following axes' interpolation error drawn too
+            lam0, jac, pinv = linear
+            res0 = residual(lam0)
+            lam = lam0 - pinv @ (res0 / sigma).ravel()
+            res = res0 + (jac @ (lam - lam0)).reshape(res0.shape) * sigma
+        else:
+            lam = np.zeros(4)
+            step = 1e-6
+            jac = np.zeros((rows * 6, 4))
+            for _ in range(3):
+                flat = (residual(lam) / sigma).ravel()
+                for col in range(4):
+                    d = lam.copy()
+                    d[col] += step
+                    jac[:, col] = ((residual(d) / sigma).ravel() - flat) / step
+                delta = np.linalg.lstsq(jac, -flat, rcond=None)[0]
+                lam = lam + delta
+                if np.max(np.abs(delta)) < 1e-11:
+                    break
+            res = residual(lam)
+            out[f'{name}/leak'] = self._leak(jac, (res / sigma).ravel(), mean.targets, sigma)
+            out[f'{name}/jacobian'] = jac * sigma.reshape(-1, 1)
+            out[f'{name}/linear'] = (lam.copy(), jac.copy(), np.linalg.pinv(jac))
+        out[f'{name}/chi2'] = float(np.sum((res / sigma) ** 2) / max(res.size - 4, 1))
+        res = res.reshape(m, 2, 6)
+        res = res - 0.5 * (res[ref, 0] + res[ref, 1])
+        out[f'{name}/location'] = lam
+        out[f'{name}/up'], out[f'{name}/down'] = res[:, 0], res[:, 1]
+        emean = 0.5 * (res[:, 0] + res[:, 1])
+        out[f'{name}/mean'] = emean
+        out[f'{name}/reversal'] = res[:, 0] - res[:, 1]
+        out[f'{name}/deviation'] = np.full((m, 3), np.nan)
+        c = axis.component
+        fig = np.array([np.ptp(emean[:, j]) for j in range(6)])
+        fig[3 + c] = max(res[:, 0, 3 + c].max(), res[:, 1, 3 + c].max()) - \
+            min(res[:, 0, 3 + c].min(), res[:, 1, 3 + c].min())
+        out[f'{name}/figure'] = fig
+
+    def _leak(self, jac: FloatArray, res: FloatArray, targets: FloatArray, sigma: FloatArray
+              ) -> FloatArray:
+        """Covariance (4, 4) of the location errors from component errors that the fit cannot
+        tell from them over the tested span. Component errors are modelled as harmonics 2..4
+        of the angle in each of the six components, each of a full-turn RMS of the prior size
+        (``component_prior``); where the fit's residual shows more than the noise and that
+        prior explain, the prior is scaled up to match it."""
+        rows = res.size // 6
+        theta = np.repeat(targets, 2)                     # row order: target, direction
+        prior = self.component_prior
+        basis, var = [], []
+        for j in range(6):
+            for order in (2, 3, 4):
+                for f in (np.cos, np.sin):
+                    b = np.zeros((rows, 6))
+                    b[:, j] = f(order * theta) / sigma[:, j]
+                    basis.append(b.ravel())
+                    var.append(prior[0 if j < 3 else 1] ** 2 / 3.0)
+        b = np.array(basis).T                             # (rows*6, n_basis), normalised units
+        var = np.array(var)
+        try:
+            inv = np.linalg.inv(jac.T @ jac)
+        except np.linalg.LinAlgError:
+            return np.full((4, 4), np.inf)
+        leak = inv @ jac.T @ b                            # (4, n_basis): location per coefficient
+        visible = b - jac @ leak
+        expected = float(np.sum(var * np.sum(visible ** 2, axis=0)))
+        excess = max(float(res @ res) - max(res.size - 4, 1), 0.0)
+        scale = max(1.0, excess / max(expected, 1e-300))
+        return scale * (leak * var) @ leak.T
+
+    @staticmethod
+    def _rotary_sigma(mean: RunMeans) -> FloatArray:
+        """Typical standard deviation of a residual's translation and rotation components."""
+        cov = mean.cov_mmd + mean.cov_stat
+        ref = cov[mean.ref].mean(axis=0)
+        t = float(np.sqrt(np.mean([np.trace(c[:3, :3]) + np.trace(ref[:3, :3]) for c in cov.reshape(-1, 6, 6)]) / 3))
+        w = float(np.sqrt(np.mean([np.trace(c[3:, 3:]) + np.trace(ref[3:, 3:]) for c in cov.reshape(-1, 6, 6)]) / 3))
+        return np.array([max(t, 1e-9)] * 3 + [max(w, 1e-9)] * 3)
+
+
+def _loo_rms(table: ErrorTable) -> FloatArray:
+    """RMS (6,) of a table's leave-one-out prediction errors at its interior targets: how far
+    its interpolation between targets may be off (estimated at twice the target spacing, so on
+    the safe side)."""
+    pos = table.positions
+    if pos.size < 4:
+        return np.zeros(6)
+    mean = 0.5 * (table.up + table.down)
+    errors = []
+    for i in range(1, pos.size - 1):
+        keep = np.arange(pos.size) != i
+        loo = ErrorTable(table.axis, pos[keep], mean[keep], mean[keep])
+        errors.append(loo.at(pos[i:i + 1])[0] - mean[i])
+    return np.sqrt(np.mean(np.square(errors), axis=0))
+
+
+def _interpolation_u(tables: dict[str, ErrorTable], loo: dict[str, FloatArray], q: FloatArray,
+                     machine: MachineDescription) -> FloatArray:
+    """Uncertainty (rows, 6) of the linear axes' errors interpolated between their targets at
+    the axis values q (rows, n_axes) of a rotary run: zero at a target, the leave-one-out RMS
+    between targets, added in quadrature over the axes."""
+    out = np.zeros((q.shape[0], 6))
+    for name, table in tables.items():
+        k = machine.index(name)
+        between = np.min(np.abs(q[:, k, None] - table.positions[None, :]), axis=1) > 1e-7
+        out[between] = np.sqrt(out[between] ** 2 + loo[name] ** 2)
+    return out
+
+
+# -- Monte Carlo -------------------------------------------------------------------------------
+def _draws(session: _Session, base: dict[str, Any], draws: int, rng: np.random.Generator,
+           shift_sigma: float, progress: Callable[[int], None] | None
+           ) -> tuple[dict[str, FloatArray], dict[str, FloatArray], dict[str, FloatArray]]:
+    """Standard deviation of every numeric output over perturbed inputs: (everything, the MMD's
+    part, the part of the scatter between cycles). Each draw evaluates three times with shared
+    random numbers: all perturbations (the MMD's covariance, the scatter between cycles, the
+    functional point's uncertainty, the interpolation between targets), the MMD's alone, the
+    scatter alone."""
+    keys = [k for k, v in base.items() if isinstance(v, np.ndarray) and k != 'frame'
+            and not k.endswith(('/jacobian', '/leak'))]
+    acc = [{k: [] for k in keys} for _ in range(3)]
+    roots = {}
+    for name, mean in session.means.items():
+        roots[name] = tuple(_sqrtm(c) for c in (mean.cov_mmd, mean.cov_stat))
+    for d in range(draws):
+        parts = {}
+        for name, mean in session.means.items():
+            shape = mean.p.shape[:2] + (6,)
+            # the MMD's error at a pose: independent between targets, plus a trend along the run
+            # (it follows the bar lengths, which change smoothly along the run)
+            trend = _trend(mean.targets)[:, None, None] * rng.standard_normal(6)[None, None, :]
+            xi = MMD_INDEPENDENT * rng.standard_normal(shape) + MMD_TREND * trend
+            z_mmd = np.einsum('mdij,mdj->mdi', roots[name][0], xi)
+            z_stat = np.einsum('mdij,mdj->mdi', roots[name][1], rng.standard_normal(shape))
+            parts[name] = (z_mmd + z_stat, z_mmd, z_stat)
+        shift = rng.normal(0.0, shift_sigma, 3) if shift_sigma > 0 else np.zeros(3)
+        for which in range(3):
+            session.draw_interpolation = which == 0
+            p = {n: m.p + parts[n][which][..., :3] for n, m in session.means.items()}
+            r = {n: rotation_from_rotvec(parts[n][which][..., 3:]) @ m.r for n, m in session.means.items()}
+            out = session.evaluate(p, r, shift if which == 0 else np.zeros(3))
+            for k in keys:
+                acc[which][k].append(np.asarray(out[k], dtype=np.float64))
+        if progress:
+            progress(d + 1)
+    session.draw_interpolation = False
+    std = lambda a: {k: np.std(np.array(v), axis=0, ddof=1) for k, v in a.items()}  # noqa: E731
+    return std(acc[0]), std(acc[1]), std(acc[2])
+
+
+#: The MMD's pose covariance is drawn twice: independent between targets, and again as a
+#: linear trend along the run (the covariance of one pose says nothing about how the errors of
+#: neighbouring poses go together; both extremes are taken, on the safe side)
+MMD_INDEPENDENT = 1.0
+MMD_TREND = 1.0
+
+
+def _trend(targets: FloatArray) -> FloatArray:
+    """-1 … +1 along a run's targets."""
+    span = float(targets[-1] - targets[0])
+    return (2.0 * (targets - targets[0]) / span - 1.0) if span > 0 else np.zeros_like(targets)
+
+
+def _sqrtm(cov: FloatArray) -> FloatArray:
+    """A square root of stacked covariance matrices (..., 6, 6) (positive semi-definite)."""
+    vals, vecs = np.linalg.eigh(0.5 * (cov + np.swapaxes(cov, -1, -2)))
+    return vecs * np.sqrt(np.clip(vals, 0.0, None))[..., None, :]
+
+
+# -- results -----------------------------------------------------------------------------------
+KINDS_LINEAR = {True: 'positioning', False: 'straightness'}
+
+
+def _motion_kind(axis: MachineAxis, j: int) -> str:
+    if not axis.rotary:
+        return KINDS_LINEAR[j == axis.component] if j < 3 else 'angular'
+    if j < 3:
+        return 'axial' if j == axis.component else 'radial'
+    return 'positioning' if j - 3 == axis.component else 'tilt'
+
+
+def _iso230(mean: RunMeans, frame: FloatArray, out: dict[str, Any], session: _Session) -> Any:
+    """ISO 230-2 of the positioning component from every approach (linear axes)."""
+    axis = mean.axis
+    p0, _ = _reference(mean, mean.p, mean.r)
+    dq = mean.targets - axis.reference
+    dev = (mean.cycles_p - p0) @ frame.T - dq[:, None, None, None] * axis.direction
+    sign = np.sign(axis.direction[axis.component])
+    d = dev[..., axis.component] * sign
+    return evaluate(mean.targets, d[:, 0], d[:, 1], axis='x', instrument=f'{axis.name} positioning')
+
+
+def identify(runs: list[AxisRun], machine: MachineDescription, *,
+             options: IdentifyOptions = IdentifyOptions(), instrument: str = 'mmd',
+             model_text: str = '', logs: list[str] | None = None,
+             progress: Callable[[str, int, int], None] | None = None) -> MachineResult:
+    """All errors a session determines, with their uncertainty (module docstring)."""
+    started = time.perf_counter()
+    if not runs:
+        raise MachineAnalysisError('no axis runs found in the logs')
+    seen: dict[str, AxisRun] = {}
+    for run in runs:
+        if run.axis in seen:
+            raise MachineAnalysisError(f'the {run.axis} axis was run twice ({seen[run.axis].log} and '
+                                       f'{run.log}); give one run per axis')
+        seen[run.axis] = run
+    means = {run.axis: aggregate(run, machine) for run in runs}
+    if options.mmd_bound_m > 0 or options.mmd_bound_rad > 0:
+        bound = np.diag([options.mmd_bound_m ** 2 / 3.0] * 3 + [options.mmd_bound_rad ** 2 / 3.0] * 3)
+        for mean in means.values():
+            mean.cov_mmd = mean.cov_mmd + bound
+    session = _Session(machine, means)
+    zero = np.zeros(3)
+    base = session.evaluate({n: m.p for n, m in means.items()}, {n: m.r for n, m in means.items()}, zero)
+    session.linearised = {n: base[f'{n}/linear'] for n in session.rotary}
+    rng = np.random.default_rng(options.seed)
+    sigma_shift = machine.upper_offset_uncertainty
+
+    def tick(label: str) -> Callable[[int], None] | None:
+        return None if progress is None else (lambda done: progress(label, done, options.draws))
+
+    t1 = time.perf_counter()
+    u_total, u_mmd, u_stat = _draws(session, base, options.draws, rng, sigma_shift, tick('uncertainty'))
+    t2 = time.perf_counter()
+    result = _build(machine, session, base, u_total, u_mmd, u_stat, options, instrument, model_text,
+                    logs or sorted({r.log for r in runs}))
+    result.seconds = {'evaluate': t1 - started, 'monte_carlo': t2 - t1,
+                      'total': time.perf_counter() - started}
+    return result
+
+
+def _coverage(u: Any, u_stat: Any, n: int) -> FloatArray:
+    """Coverage factor(s) for about 95 %: Student's t for the Welch-Satterthwaite degrees of
+    freedom of u, its part from the scatter between n cycles (``u_stat``) having n - 1 and the
+    rest (the MMD's covariance and the other type-B parts) infinitely many; at least 2."""
+    u = np.asarray(u, dtype=np.float64)
+    u_stat2 = np.minimum(np.asarray(u_stat, dtype=np.float64) ** 2, u ** 2)
+    if n < 2:
+        return np.full(u.shape, COVERAGE_K)
+    with np.errstate(divide='ignore', invalid='ignore'):
+        nu = np.where(u_stat2 > 0, u ** 4 / (u_stat2 ** 2 / (n - 1)), np.inf)
+    nu = np.where(np.isfinite(nu), np.maximum(nu, n - 1), 1e9)
+    return np.maximum(COVERAGE_K, student_t.ppf(0.975, nu))
+
+
+def _value(name: str, v: float, u: float, um: float, unit: str, options: IdentifyOptions,
+           note_missing: str | None = None, n: int = 0, ustat: float = 0.0) -> Value:
+    if note_missing is not None or not math.isfinite(v):
+        return Value(name, math.nan, math.nan, math.nan, unit, False, note_missing or 'not measured')
+    limit = options.limit_m if unit == 'm' else options.limit_rad
+    ok = bool(u <= limit)
+    note = '' if ok else (f'uncertainty {u / (1e-6 if unit == "m" else math.radians(1 / 3600)):.2g}'
+                          f'{" µm" if unit == "m" else "″"} exceeds the limit: the run does not fix it')
+    return Value(name, float(v), float(u), float(um), unit, ok, note, float(_coverage(u, ustat, n)))
+
+
+def _build(machine: MachineDescription, session: _Session, base: dict[str, Any],
+           u: dict[str, FloatArray], um: dict[str, FloatArray], us: dict[str, FloatArray],
+           options: IdentifyOptions, instrument: str, model_text: str, logs: list[str]) -> MachineResult:
+    notes: list[str] = []
+    us_ = us
+    lin = {a.component: a for a in machine.linear_axes}
+    names = [f'EC0{lin[1].name}', f'EB0{lin[2].name}', f'EA0{lin[2].name}']
+    squareness = []
+    for i, name in enumerate(names):
+        missing = None
+        if not session.frame_measured:
+            missing = f'needs the {lin[0].name} and {lin[1].name} runs in one setup'
+        elif i > 0 and lin[2].name not in session.means:
+            missing = f'needs the {lin[2].name} run in the same setup as {lin[0].name} and {lin[1].name}'
+        cycles = min([int(m.n.min()) for m in session.means.values() if not m.axis.rotary] or [0])
+        squareness.append(_value(name, base['squareness'][i], u['squareness'][i], um['squareness'][i],
+                                 'rad', options, missing, cycles, us['squareness'][i]))
+    if not session.frame_measured:
+        notes.append(f'machine frame: the {lin[0].name} or {lin[1].name} run is missing, so the '
+                     'frame is {L} as described (its setup misalignment on the table remains '
+                     'in every direction-dependent result)')
+    axes: dict[str, AxisResult] = {}
+    for name, mean in session.means.items():
+        axis = mean.axis
+        motions = []
+        extra = np.zeros((mean.targets.size, 2, 6))
+        leak = np.zeros((4, 4))
+        if axis.rotary:
+            # component errors the location fit took for location over a partial turn
+            leak = base[f'{name}/leak']
+            jac = base[f'{name}/jacobian']
+            extra = np.sqrt(np.einsum('ij,jk,ik->i', jac, leak, jac)).reshape(mean.targets.size, 2, 6)
+        for j in range(6):
+            unit = 'm' if j < 3 else 'rad'
+            tname = f'E{_XYZ[j % 3] if j < 3 else _ABC[j % 3]}{name}'
+            kind = _motion_kind(axis, j)
+
+            def col(key: str) -> FloatArray:
+                return np.asarray(base[f'{name}/{key}'])[:, j]
+
+            def ucol(key: str, add: FloatArray | None = None) -> FloatArray:
+                val = np.asarray(u[f'{name}/{key}'])[:, j]
+                return val if add is None else np.sqrt(val ** 2 + add ** 2)
+            ex_up, ex_down = extra[:, 0, j], extra[:, 1, j]
+            ex_mean = 0.5 * (ex_up + ex_down)
+            n_cyc = int(mean.n.min())
+            fig = _value(f'{tname} figure', base[f'{name}/figure'][j], u[f'{name}/figure'][j],
+                         um[f'{name}/figure'][j], unit, options, None, n_cyc, us_[f'{name}/figure'][j])
+            fig.determined = True
+            fig.note = ''
+            deviation = u_dev = None
+            if kind == 'straightness':
+                deviation = col('deviation')
+                u_dev = ucol('deviation')
+            iso = None
+            if kind == 'positioning' and not axis.rotary:
+                iso = _iso230(mean, base['frame'], base, session)
+            elif kind == 'positioning':
+                sign = np.sign(axis.direction[axis.component])
+                up_dev, down_dev = _rotary_cycles(mean, j, base, session, sign)
+                iso = evaluate(mean.targets, up_dev, down_dev, axis='psi',
+                               instrument=f'{axis.name} positioning')
+            unc = {'up': ucol('up', ex_up), 'down': ucol('down', ex_down), 'mean': ucol('mean', ex_mean),
+                   'reversal': ucol('reversal', np.hypot(ex_up, ex_down))}
+            ks = {key: _coverage(val, np.asarray(us_[f'{name}/{key}'])[:, j], n_cyc) for key, val in unc.items()}
+            motions.append(ErrorMotion(
+                tname, name, kind, unit, mean.targets, col('up'), col('down'), col('mean'),
+                col('reversal'), unc['up'], unc['down'], unc['mean'], unc['reversal'],
+                np.asarray(um[f'{name}/mean'])[:, j], fig, deviation, u_dev, iso, True,
+                ks['up'], ks['down'], ks['mean'], ks['reversal']))
+        location = []
+        if axis.rotary:
+            perp = [j for j in range(3) if j != axis.component]
+            lam, uml = base[f'{name}/location'], um[f'{name}/location']
+            ul = np.sqrt(u[f'{name}/location'] ** 2 + np.diag(leak))
+            n_cyc = int(mean.n.min())
+            usl = us_[f'{name}/location']
+            for i, j in enumerate(perp):
+                location.append(_value(f'E{_XYZ[j]}0{name}', lam[i], ul[i], uml[i], 'm', options, None,
+                                       n_cyc, usl[i]))
+            for i, j in enumerate(perp):
+                location.append(_value(f'E{_ABC[j]}0{name}', lam[2 + i], ul[2 + i], uml[2 + i], 'rad',
+                                       options, None, n_cyc, usl[2 + i]))
+            if not session.frame_measured:
+                for v in location[2:]:
+                    v.determined = False
+                    v.note = 'orientation relative to {L}, not to the machine\'s axes (no frame)'
+        axes[name] = AxisResult(name, axis.rotary, mean.run.log, mean.run.source, mean.targets,
+                                int(mean.n.min()), mean.run.following, motions, location,
+                                base[f'{name}/chi2'] if axis.rotary else 1.0)
+    for a in machine.axes:
+        if a.name not in axes:
+            notes.append(f'{a.name}: no run in this session: none of its errors is determined')
+    return MachineResult(machine, axes, squareness, base['frame'],
+                         'measured (X run and Y run)' if session.frame_measured else 'nominal',
+                         instrument, model_text, logs, options.draws, notes)
+
+
+def _rotary_cycles(mean: RunMeans, j: int, base: dict[str, Any], session: _Session,
+                   sign: float) -> tuple[FloatArray, FloatArray]:
+    """Per-approach angular positioning deviations of a rotary run: the fitted positioning
+    error of the means plus each approach's rotation about the axis relative to its mean."""
+    c = mean.axis.component
+    w = rotvec(mean.cycles_r @ np.swapaxes(mean.r, -1, -2)[:, :, None])   # (m, 2, c, 3) in {L}
+    about = (w @ base['frame'].T)[..., c] * sign
+    centre = np.stack([base[f'{mean.axis.name}/up'][:, 3 + c], base[f'{mean.axis.name}/down'][:, 3 + c]], axis=1)
+    dev = centre[..., None] * sign + about
+    return dev[:, 0], dev[:, 1]

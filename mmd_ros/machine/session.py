@@ -1,0 +1,436 @@
+"""From logs to the approaches of a machine session: which axis run, which target, which
+direction, the machine's axis values and the MMD's mean pose (with its covariance) at each
+dwell.
+
+Where the axis values come from:
+
+- **joint states** (``/mmd/machine/joint_states`` in the log, names = the machine's axes, in m
+  and rad, commanded or measured): interpolated to the MMD's samples; a dwell is a stretch in
+  which every axis stands still (each axis' stillness found by
+  :func:`mmd_ros.analysis.iso230.detect_dwells`); runs are the stretches in which one axis
+  steps (a rotary axis with any linear axes following it); approaches are assigned to targets
+  and cycles by :func:`mmd_ros.analysis.iso230.approaches`;
+- else a **test program** (:class:`Program`: per run the axis, its targets and whether the
+  linear axes follow), one log per run in program order: the dwells are found on the MMD's own
+  pose coordinate along (or about) the axis and matched to the program's targets in order.
+
+Each approach keeps the mean pose over the middle 60 % of its dwell and the mean of the
+samples' pose covariance (``Pipeline.process(..., with_covariance=True)`` over the dwell's
+central samples; the poses themselves come from one pass over the whole log in time order),
+converted to [dp, dw] screw coordinates, not divided by the number of samples: the covariance
+stands for the MMD's error at that pose, which averaging in one place does not reduce.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mmd_ros.analysis.iso230 import Dwell, approaches, detect_dwells
+from mmd_ros.core.calibration import load_calibration
+from mmd_ros.core.machine import MachineDescription
+from mmd_ros.core.model import Model
+from mmd_ros.core.pipeline import Pipeline
+from mmd_ros.core.progress import Progress
+from mmd_ros.core.units import M_PER_MM
+from mmd_ros.core.yamlio import read_yaml
+from mmd_ros.logs.layout import RunLog
+from mmd_ros.logs.processing import process_run
+from mmd_ros.machine.errors import MachineAnalysisError
+from mmd_ros.machine.geometry import pose_covariance_to_screw
+from mmd_ros.machine.kinematics import MachineModel
+
+__all__ = ['Approach', 'AxisRun', 'Program', 'ProgramRun', 'extract_runs', 'load_program']
+
+FloatArray = NDArray[np.float64]
+
+#: An axis moved between two dwells when its value changed by more than this [m], [rad].
+MOVED_M, MOVED_RAD = 5e-6, 5e-6
+#: Shortest stillness counted as a dwell [s].
+MIN_DWELL_S = 0.15
+
+
+@dataclass
+class Approach:
+    """One approach to a target: a dwell of the machine.
+
+    q : ndarray, shape (n_axes,) — the machine's axis values in the dwell [m, rad]
+    last_direction : ndarray of int, shape (n_axes,) — sign of each axis' last motion
+    pose : ndarray, shape (6,) — mean pose of {U} in {L} over the dwell's middle [m, rad]
+    covariance : ndarray, shape (6, 6) — the MMD's covariance of that pose in [dp, dw]
+    n : samples averaged; span_s : (start, stop) since the log's first sample [s]
+    """
+
+    run: str
+    target: int
+    direction: int
+    cycle: int
+    q: FloatArray
+    last_direction: NDArray[np.int64]
+    pose: FloatArray
+    covariance: FloatArray
+    n: int
+    span_s: tuple[float, float]
+
+
+@dataclass
+class AxisRun:
+    """The approaches of one axis run: targets [m or rad] and where they come from."""
+
+    axis: str
+    rotary: bool
+    log: str
+    targets: FloatArray
+    approaches: list[Approach]
+    following: list[str] = field(default_factory=list)
+    source: str = 'joint states'
+
+
+@dataclass(frozen=True)
+class ProgramRun:
+    """One run of a test program: axis, targets [m or rad], linear axes following."""
+
+    axis: str
+    targets: FloatArray
+    follow: bool
+
+
+@dataclass(frozen=True)
+class Program:
+    """A test program (targets and dwell of each run), matched to the dwells of the logs."""
+
+    runs: tuple[ProgramRun, ...]
+    min_dwell_s: float = MIN_DWELL_S
+
+
+def load_program(path: str | Path, machine: MachineDescription) -> Program:
+    """Read a test program: YAML ``runs: [{axis: X, targets_mm: [...]}, {axis: C, targets_deg:
+    [...], follow: true}]`` (optional ``min_dwell_s``), or CSV lines ``axis,target`` (mm or
+    degrees) in run order."""
+    p = Path(path)
+    source = str(p)
+    if p.suffix.lower() == '.csv':
+        runs: list[dict[str, Any]] = []
+        try:
+            lines = p.read_text(encoding='utf-8').splitlines()
+        except OSError as exc:
+            raise MachineAnalysisError(f'{source}: cannot be read: {exc.strerror}') from None
+        for n, line in enumerate(lines, start=1):
+            text = line.split('#')[0].strip()
+            if not text or text.lower().startswith('axis'):
+                continue
+            parts = [v.strip() for v in text.split(',')]
+            if len(parts) < 2:
+                raise MachineAnalysisError(f'{source}:{n}: expected "axis,target", got {line!r}')
+            axis = parts[0].upper()
+            if not runs or runs[-1]['axis'] != axis:
+                runs.append({'axis': axis, 'targets': []})
+            try:
+                runs[-1]['targets'].append(float(parts[1]))
+            except ValueError:
+                raise MachineAnalysisError(f'{source}:{n}: target {parts[1]!r} is not a number') from None
+        data = {'runs': [{'axis': r['axis'], ('targets_deg' if machine.axis(r['axis']).rotary
+                                              else 'targets_mm'): r['targets']} for r in runs]}
+    else:
+        data = read_yaml(p)
+    if not isinstance(data, dict) or not isinstance(data.get('runs'), list) or not data['runs']:
+        raise MachineAnalysisError(f'{source}: a test program needs "runs:", a list of '
+                                   '{axis: X, targets_mm: [...]} entries')
+    out = []
+    for i, item in enumerate(data['runs']):
+        where = f'{source}: runs[{i}]'
+        if not isinstance(item, dict) or 'axis' not in item:
+            raise MachineAnalysisError(f'{where}: needs axis and targets_mm (or targets_deg)')
+        try:
+            axis = machine.axis(str(item['axis']))
+        except Exception as exc:
+            raise MachineAnalysisError(f'{where}: {exc}') from None
+        key = 'targets_deg' if axis.rotary else 'targets_mm'
+        values = item.get(key)
+        if not isinstance(values, list) or len(values) < 3:
+            raise MachineAnalysisError(f'{where}: {key} must list at least three targets')
+        try:
+            t = np.array([float(v) for v in values])
+        except (TypeError, ValueError):
+            raise MachineAnalysisError(f'{where}: {key} must be numbers, got {values!r}') from None
+        t = np.radians(t) if axis.rotary else t * M_PER_MM
+        if np.any(np.diff(t) <= 0):
+            raise MachineAnalysisError(f'{where}: {key} must increase')
+        out.append(ProgramRun(axis.name, t, bool(item.get('follow', axis.rotary))))
+    return Program(tuple(out), float(data.get('min_dwell_s', MIN_DWELL_S)))
+
+
+# -- poses of a log ---------------------------------------------------------------------------
+@dataclass
+class LogPoses:
+    """Poses of every sample of one log; the MMD's pose covariance on request for the stretches
+    that are used (None for a reference instrument: no covariance)."""
+
+    path: str
+    times_s: FloatArray
+    poses: FloatArray
+    valid: NDArray[np.bool_]
+    pipeline: Pipeline | None = None
+    counts: FloatArray | None = None
+
+    def covariance(self, sl: slice, at: FloatArray) -> FloatArray:
+        """Mean covariance (6, 6) in [dp, dw] of the samples in ``sl`` (a dwell's middle; at
+        most its central :data:`COVARIANCE_SAMPLES`), at the mean pose ``at``: the pipeline run
+        over them with its covariance (``Pipeline.process(..., with_covariance=True)``)."""
+        if self.pipeline is None:
+            return np.zeros((6, 6))
+        start, stop = sl.start, sl.stop
+        if stop - start > COVARIANCE_SAMPLES:
+            start = (start + stop - COVARIANCE_SAMPLES) // 2
+            stop = start + COVARIANCE_SAMPLES
+        self.pipeline.reset()
+        res = self.pipeline.process(self.times_s[start:stop], self.counts[start:stop],
+                                    with_covariance=True)
+        ok = res.valid & np.all(np.isfinite(res.covariance), axis=(1, 2))
+        if not ok.any():
+            return np.full((6, 6), np.nan)
+        return pose_covariance_to_screw(at, res.covariance[ok].mean(axis=0))
+
+
+#: Samples of a dwell whose covariance is computed (its central ones).
+COVARIANCE_SAMPLES = 100
+
+
+def log_poses(run: RunLog, model: Model | None, *, instrument: str = 'mmd',
+              calibration_path: str | None = None, progress: bool = False) -> LogPoses:
+    """The MMD's poses of a log (the pipeline over the whole log, in time order), or the log's
+    reference instrument's (``instrument='reference'``: a 6-D reference such as the twin's
+    pose6, no covariance)."""
+    times = run.times_s
+    if instrument == 'reference':
+        ref = run.reference_pose
+        if ref is None or not np.isfinite(ref).all(axis=1).mean() > 0.5:
+            raise MachineAnalysisError(f'{run.path}: no six-dimensional reference pose to evaluate')
+        return LogPoses(str(run.path), times, ref, np.isfinite(ref).all(axis=1))
+    model = run.model or Model() if model is None else model
+    bar = Progress(f'poses of {Path(run.path).name}', times.size, enabled=progress)
+    result = process_run(run, model, calibration_path=calibration_path, progress=bar)   # (its own
+    bar.close()                                                                           # term state)
+    calibration = load_calibration(calibration_path) if calibration_path else run.calibration
+    pipeline = Pipeline(run.device, calibration, model)
+    return LogPoses(str(run.path), times, result.poses, result.valid, pipeline, run.counts)
+
+
+# -- dwells -----------------------------------------------------------------------------------
+def _still(times: FloatArray, values: FloatArray, min_dwell_s: float) -> NDArray[np.bool_]:
+    """Samples where ``values`` stands still (detect_dwells' stretches)."""
+    mask = np.zeros(values.size, dtype=bool)
+    for d in detect_dwells(times, values, min_dwell_s=min_dwell_s):
+        mask[d.start:d.stop] = True
+    return mask
+
+
+def _segments(mask: NDArray[np.bool_], times: FloatArray, min_dwell_s: float) -> list[tuple[int, int]]:
+    edges = np.flatnonzero(np.diff(np.concatenate(([0], mask.astype(np.int8), [0]))))
+    return [(int(a), int(b)) for a, b in zip(edges[::2], edges[1::2])
+            if times[b - 1] - times[a] >= min_dwell_s]
+
+
+def _middle(start: int, stop: int) -> slice:
+    n = stop - start
+    return slice(start + n // 5, stop - n // 5) if n >= 5 else slice(start, stop)
+
+
+def _cluster(values: FloatArray, directions: NDArray[np.int64] | None = None,
+             tolerance: float = 1e-9) -> FloatArray:
+    """Distinct target values: medians of groups separated by more than ``tolerance`` (the
+    joint states' standstill scatter); with ``directions``, only groups reached from both sides
+    (an ISO target, not a home position visited on the way between runs)."""
+    order = np.argsort(values)
+    v = values[order]
+    if v.size == 0:
+        return v
+    gap = max(tolerance, 1e-9)
+    cuts = np.flatnonzero(np.diff(v) > gap) + 1
+    groups = np.split(v, cuts)
+    if directions is None:
+        return np.array([float(np.median(g)) for g in groups])
+    dirs = np.split(np.asarray(directions)[order], cuts)
+    return np.array([float(np.median(g)) for g, d in zip(groups, dirs) if (d > 0).any() and (d < 0).any()])
+
+
+def _mean_pose(poses: LogPoses, sl: slice) -> tuple[FloatArray, FloatArray, int] | None:
+    ok = poses.valid[sl]
+    if ok.sum() < 2:
+        return None
+    mean = poses.poses[sl][ok].mean(axis=0)
+    cov = poses.covariance(sl, mean)
+    if not np.all(np.isfinite(cov)):
+        return None
+    return mean, cov, int(ok.sum())
+
+
+def _label(moved: list[int], machine: MachineDescription) -> str | None:
+    """The run a move belongs to: a rotary axis (with any followers), or one linear axis."""
+    rotary = [k for k in moved if machine.axes[k].rotary]
+    if len(rotary) == 1:
+        return machine.axes[rotary[0]].name
+    if not rotary and len(moved) == 1:
+        return machine.axes[moved[0]].name
+    return None
+
+
+def _joint_values(run: RunLog, machine: MachineDescription, times: FloatArray) -> FloatArray:
+    js = run.machine_joints
+    if js is None:
+        raise MachineAnalysisError(
+            f'{run.path} has no machine axis positions (/mmd/machine/joint_states); record the '
+            'controller\'s joint states beside /mmd/pose, or give a test program (--program)')
+    names = [n.strip().upper() for n in js.names]
+    missing = [a for a in machine.axis_names if a not in names]
+    if missing:
+        raise MachineAnalysisError(f'{run.path}: /mmd/machine/joint_states names {js.names}, '
+                                   f'missing the machine axes {missing}')
+    t_js = (js.stamps_ns - run.stamps_ns[0]).astype(np.float64) * 1e-9
+    order = np.argsort(t_js, kind='stable')
+    out = np.empty((times.size, len(machine.axis_names)))
+    for k, name in enumerate(machine.axis_names):
+        col = js.positions[order, names.index(name)]
+        out[:, k] = np.interp(times, t_js[order], col)
+    return out
+
+
+def _runs_from_joints(run: RunLog, machine: MachineDescription, poses: LogPoses,
+                      min_dwell_s: float) -> list[AxisRun]:
+    times = poses.times_s
+    q = _joint_values(run, machine, times)
+    still = np.ones(times.size, dtype=bool)
+    for k in range(q.shape[1]):
+        still &= _still(times, q[:, k], min_dwell_s)
+    segments = _segments(still, times, min_dwell_s)
+    if len(segments) < 3:
+        raise MachineAnalysisError(f'{run.path}: the machine stood still only {len(segments)} '
+                                   'time(s): not an ISO test cycle')
+    tol = np.array([MOVED_RAD if a.rotary else MOVED_M for a in machine.axes])
+    values = np.array([q[_middle(a, b)].mean(axis=0) for a, b in segments])
+    last = np.zeros(values.shape, dtype=np.int64)
+    labels: list[str | None] = []
+    moved_sets: list[list[int]] = []
+    for i in range(1, len(segments)):
+        # the motion between the two dwells: an axis that overran and came back moved too, and
+        # its last direction is that of its last motion into the dwell
+        between = q[segments[i - 1][1] - 1:segments[i][0] + 1]
+        far = np.abs(between - values[i]) > tol
+        moved = [k for k in range(q.shape[1]) if far[:, k].any()]
+        last[i] = last[i - 1]
+        for k in moved:
+            j = np.flatnonzero(far[:, k])[-1]
+            last[i, k] = int(np.sign(values[i, k] - between[j, k]))
+        labels.append(_label(moved, machine))
+        moved_sets.append(moved)
+    # runs: maximal stretches of moves with the same label
+    out: list[AxisRun] = []
+    i = 0
+    while i < len(labels):
+        label = labels[i]
+        j = i
+        while j + 1 < len(labels) and labels[j + 1] == label:
+            j += 1
+        if label is not None:
+            idx = list(range(i, j + 2))  # dwells joined by moves i..j
+            k = machine.axis_names.index(label)
+            axis = machine.axes[k]
+            followers = sorted({machine.axes[m].name for s in moved_sets[i:j + 1] for m in s
+                                if m != k})
+            dwells = [Dwell(segments[n][0], segments[n][1], float(values[n, k]), int(last[n, k]))
+                      for n in idx]
+            moving = [d for d in dwells if d.direction != 0]
+            targets = _cluster(np.array([d.value for d in moving]), np.array([d.direction for d in moving]),
+                               tol[k])
+            if targets.size >= 3:
+                tg, found = approaches(dwells, targets)
+                out.append(_axis_run(run, axis.name, axis.rotary, tg, found, poses,
+                                     {d.start: n for n, d in zip(idx, dwells)}, values, last,
+                                     followers, 'joint states'))
+        i = j + 1
+    return [r for r in out if r.approaches]
+
+
+def _axis_run(run: RunLog, name: str, rotary: bool, targets: FloatArray, found: list,
+              poses: LogPoses, index_of: dict[int, int], values: FloatArray,
+              last: NDArray[np.int64], followers: list[str], source: str) -> AxisRun:
+    times = poses.times_s
+    out = []
+    for a in found:
+        sl = _middle(a.dwell.start, a.dwell.stop)
+        mean = _mean_pose(poses, sl)
+        if mean is None:
+            continue
+        n = index_of[a.dwell.start]
+        out.append(Approach(name, a.target, a.direction, a.cycle, values[n].copy(), last[n].copy(),
+                            mean[0], mean[1], mean[2],
+                            (float(times[a.dwell.start]), float(times[a.dwell.stop - 1]))))
+    return AxisRun(name, rotary, str(run.path), targets, out, followers, source)
+
+
+def _runs_from_program(run: RunLog, machine: MachineDescription, poses: LogPoses,
+                       plan: ProgramRun, min_dwell_s: float) -> AxisRun:
+    """Dwells on the MMD's own coordinate along / about the axis, matched to the program."""
+    axis = machine.axis(plan.axis)
+    k = machine.index(plan.axis)
+    comp = axis.component + (3 if axis.rotary else 0)
+    coord = np.where(poses.valid, poses.poses[:, comp], np.nan)
+    dwells = detect_dwells(poses.times_s, coord, min_dwell_s=min_dwell_s)
+    moving = [d for d in dwells if d.direction != 0]
+    found_values = _cluster(np.array([d.value for d in moving]),
+                            tolerance=1e-3 * float(np.ptp([d.value for d in moving] or [0.0])))
+    if found_values.size != plan.targets.size:
+        raise MachineAnalysisError(
+            f'{run.path}: found dwells at {found_values.size} positions of the '
+            f'{plan.axis} axis, the program lists {plan.targets.size} targets; check the program '
+            'or record the machine\'s joint states')
+    sign = 1.0 if axis.direction[axis.component] > 0 else -1.0
+    if sign < 0:
+        found_values = found_values[::-1]
+    # each dwell at its program target; direction of motion in axis values
+    mapped = []
+    for d in dwells:
+        i = int(np.argmin(np.abs(found_values - d.value)))
+        spacing = np.min(np.abs(np.diff(found_values)))
+        if abs(found_values[i] - d.value) > 0.25 * spacing:
+            mapped.append(Dwell(d.start, d.stop, math.nan, 0))
+            continue
+        mapped.append(Dwell(d.start, d.stop, float(plan.targets[i]), int(sign * d.direction)))
+    mapped = [d for d in mapped if math.isfinite(d.value)]
+    tg, found = approaches(mapped, plan.targets)
+    model = MachineModel(machine)
+    values = np.tile(machine.reference, (len(mapped), 1))
+    values[:, k] = [d.value for d in mapped]
+    if plan.follow and axis.rotary:
+        values = model.nominal_follow(values)
+    last = np.zeros(values.shape, dtype=np.int64)
+    for n, d in enumerate(mapped):
+        last[n, k] = d.direction
+        if plan.follow and axis.rotary:  # followers move with the sign of their slope
+            dq = np.zeros(len(machine.axes))
+            dq[k] = 1e-4
+            ahead = model.nominal_follow((values[n] + dq)[None])[0]
+            for m, a in enumerate(machine.axes):
+                if not a.rotary:
+                    last[n, m] = int(np.sign(ahead[m] - values[n, m])) * d.direction
+    followers = [a.name for m, a in enumerate(machine.axes)
+                 if not a.rotary and np.ptp(values[:, m]) > MOVED_M] if len(mapped) else []
+    return _axis_run(run, axis.name, axis.rotary, tg, found, poses,
+                     {d.start: n for n, d in enumerate(mapped)}, values, last, followers,
+                     'test program')
+
+
+def extract_runs(run: RunLog, machine: MachineDescription, poses: LogPoses, *,
+                 program_run: ProgramRun | None = None,
+                 min_dwell_s: float = MIN_DWELL_S) -> list[AxisRun]:
+    """The axis runs in one log: from its joint states, or from one run of a test program."""
+    if run.times_s.size < 10:
+        raise MachineAnalysisError(f'{run.path} has too few samples')
+    if program_run is not None:
+        return [_runs_from_program(run, machine, poses, program_run, min_dwell_s)]
+    return _runs_from_joints(run, machine, poses, min_dwell_s)

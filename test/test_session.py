@@ -1,0 +1,290 @@
+"""Issue 10: models that hold beyond the run they were fitted on.
+
+A session of short logs of one simulated device (the realistic twin, seed 1): an x-axis laser
+run, y and z laser runs, a C-axis rotary run and random 6-DOF runs. A model fitted on some of
+them is applied to the others (the pipeline re-run), component by component against each
+component's noise floor. And the estimators of the catalogue on effects shaped as the twin does
+not shape them, injected into a clean log's counts by this test: a friction whose state turns
+over along a sech² curve, a cyclic error at 13 µm.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mmd_ros.analysis import AnalysisOptions, analyze
+from mmd_ros.analysis.data import make_observation, noise_floor, run_pipeline
+from mmd_ros.cli.main import main
+from mmd_ros.core.device import find_config, load_device
+from mmd_ros.core.model import Model
+from mmd_ros.core.validity import Validity
+from mmd_ros.logs.layout import read_run, write_run
+from mmd_ros.twin import AmbientProfile, Effects, TwinDevice, make_scenario
+from mmd_ros.twin.recording import SimulationSpec, simulate_to_log
+
+RATE = 200.0
+ISO = ('n_cycles=5',)
+DEVICE = load_device(find_config('mmd_prototype.yaml'))
+
+
+@pytest.fixture(scope='module')
+def session(tmp_path_factory):
+    """Short logs of one realistic device (same calibration), made once for the module."""
+    folder = tmp_path_factory.mktemp('session')
+    specs = {
+        'x': ('iso_linear', ISO + ('axis=x',), None),
+        'y': ('iso_linear', ISO + ('axis=y',), None),
+        'z': ('iso_linear', ISO + ('axis=z',), None),
+        'c': ('iso_rotary', ISO + ('axis=psi',), None),
+        'pose_a': ('random_motion', ('duration_s=60', 'seed=3'), None),
+        'pose_b': ('random_motion', ('duration_s=60', 'seed=7'), None),
+    }
+    out = {}
+    start = 600.0
+    for name, (scenario, params, reference) in specs.items():
+        path = folder / f'{name}.mcap'
+        spec = SimulationSpec(scenario=scenario, scenario_params=params, effects='realistic',
+                              seed=1, ambient='constant:22', reference=reference,
+                              sample_rate_hz=RATE, start_s=start)
+        simulate_to_log(spec, path, progress=False)
+        out[name] = path
+        start += 400.0
+    return out
+
+
+def component_rms(path: Path, model: Model) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """Per observed component: RMS of MMD - reference over the whole run (datum removed) under
+    ``model``, and the component's noise floor (report units)."""
+    run = read_run(path)
+    obs = make_observation(run.reference_pose, run.reference_lengths)
+    proc = run_pipeline(run.device, run.calibration, model, run.times_s, run.counts)
+    ok = obs.usable & proc.valid
+    r = obs.residual(proc)[ok]
+    r = r - r.mean(axis=0)
+    plain = run_pipeline(run.device, run.calibration, Model(), run.times_s, run.counts)
+    idx = np.flatnonzero(obs.usable & plain.valid)
+    floor = noise_floor(obs, run.device, plain, np.nan_to_num(obs.residual(plain)), idx, True)
+    return obs.names, np.sqrt(np.mean(r ** 2, axis=0)) * obs.to_report, floor * obs.to_report
+
+
+NO_LORO = AnalysisOptions(leave_one_out=False)
+
+
+@pytest.fixture(scope='module')
+def x_only(session):
+    return analyze(read_run(session['x']), options=NO_LORO)
+
+
+@pytest.fixture(scope='module')
+def one_axis_session(session):
+    return analyze([read_run(session[k]) for k in ('x', 'y', 'z', 'c')], options=NO_LORO)
+
+
+def test_a_model_fitted_on_the_x_laser_makes_no_component_of_other_runs_worse(session, x_only):
+    """The demo's case in issue 10: fitted on x only, the old model made pitch 2.6x worse on a
+    6-DOF run. What the x laser cannot check is not written now."""
+    model = x_only.model or Model()
+    assert x_only.unchecked, 'the x run holds effects whose pitch, roll... it cannot see'
+    assert any('record a run that sees' in f.reason for f in x_only.unchecked)
+    for other in ('pose_b', 'y'):
+        names, before, floor = component_rms(session[other], Model())
+        _, after, _ = component_rms(session[other], model)
+        for n, b, a, f in zip(names, before, after, floor):
+            assert a <= b + f, (other, n, b, a, f)
+
+
+def test_one_axis_references_write_nothing_that_makes_a_6dof_run_worse(session, one_axis_session):
+    """x, y, z and C runs see one component each: whatever they write must not make any
+    component of a 6-DOF run worse by more than its noise floor."""
+    model = one_axis_session.model or Model()
+    names, before, floor = component_rms(session['pose_b'], Model())
+    _, after, _ = component_rms(session['pose_b'], model)
+    for n, b, a, f in zip(names, before, after, floor):
+        assert a <= b + f, (n, b, a, f)
+
+
+def test_a_session_with_a_6dof_run_improves_every_component_of_another(session):
+    """x, y, z, C and one 6-DOF run fitted jointly; applied to a second 6-DOF run of the same
+    device (other motion, not in the fit): every component improves."""
+    result = analyze([read_run(session[k]) for k in ('x', 'y', 'z', 'c', 'pose_a')], options=NO_LORO)
+    assert result.model is not None, result.conclusion
+    names, before, floor = component_rms(session['pose_b'], Model())
+    _, after, _ = component_rms(session['pose_b'], result.model)
+    for n, b, a in zip(names, before, after):
+        assert a < b, (n, b, a)
+    assert after[0] < 0.6 * before[0] and after[1] < 0.6 * before[1]
+
+
+def test_leave_one_run_out_figures_in_the_json(session, capsys):
+    assert main(['analyze', str(session['pose_a']), str(session['x']), '--json', '--quiet',
+                 '--effects', 'hysteresis,sampling_skew']) == 0
+    data = json.loads(capsys.readouterr().out)
+    assert data['validation'].startswith('leave-one-run-out')
+    assert [Path(r['log']).name for r in data['runs']] == ['pose_a.mcap', 'x.mcap']
+    for r in data['runs']:
+        assert r['leave_one_run_out_before'] and r['leave_one_run_out_after']
+        assert r['held_out_before'] and r['noise_floor']
+    assert data['model_file'] is None
+    assert main(['analyze', str(session['x']), '--json', '--quiet', '--effects', 'hysteresis']) == 0
+    single = json.loads(capsys.readouterr().out)
+    assert single['validation'].startswith('within-run')
+    assert 'within-run only' in single['conclusion']
+
+
+def test_the_model_file_says_what_it_was_validated_on(session, tmp_path, capsys):
+    out = tmp_path / 'a'
+    assert main(['analyze', str(session['pose_a']), '--out', str(out), '--quiet', '--no-figures',
+                 '--effects', 'hysteresis,sampling_skew']) == 0
+    model = Model.from_yaml((out / 'model.yaml').read_text())
+    validity = Validity.from_model(model)
+    run = read_run(session['pose_a'])
+    assert validity is not None and validity.runs == (run.content_hash(),)
+    assert validity.absolute and validity.temperature_c[0] <= 22.0 <= validity.temperature_c[1] + 0.1
+    proc = run_pipeline(run.device, run.calibration, Model(), run.times_s, run.counts)
+    bars, temp = validity.outside(proc.cdf_lengths_m, np.full(run.times_s.size, 22.0))
+    assert not bars.any() and temp == 0
+    bars, temp = validity.outside(proc.cdf_lengths_m + 5e-3, np.full(run.times_s.size, 26.0))
+    assert bars.all() and temp == run.times_s.size
+    assert 'bar1 outside' in validity.describe(bars, temp)
+    # the live compensation warns outside that range
+    from mmd_ros.core.streaming import Compensator
+    comp = Compensator(run.device, model)
+    comp.set_calibration(run.calibration, 'test')
+    counts = run.counts[:50].copy()
+    comp.process(np.arange(50, dtype=np.int64), counts)
+    assert not comp.stats.period_outside_bars.any()
+    far = counts.copy()
+    beyond = validity.bar_range_m[0, 1] + 3e-3 - proc.cdf_lengths_m[0, 0]   # 3 mm past its range
+    far[:, 0] += beyond / run.device.encoder_resolution_m * np.sign(
+        run.calibration.bars['bar1'].counts[-1] - run.calibration.bars['bar1'].counts[0])
+    comp.process(np.arange(50, 100, dtype=np.int64), far)
+    assert comp.stats.period_outside_bars[0] > 0
+    # ISO 230-2 "after" on the run the model was fitted on says it is in-sample, on another not
+    capsys.readouterr()
+    assert main(['iso230-2', str(session['x']), '--after', str(out / 'model.yaml'), '--json']) == 0
+    assert json.loads(capsys.readouterr().out)['in_sample'] == {'MMD before': False, 'MMD after': False}
+
+
+def test_logs_of_two_devices_are_refused(session, tmp_path, capsys):
+    other = tmp_path / 'other.mcap'
+    spec = SimulationSpec(scenario='random_motion', scenario_params=('duration_s=5',),
+                          effects='ideal', device='mmd_two_reference_bars.yaml', sample_rate_hz=RATE)
+    simulate_to_log(spec, other, progress=False)
+    assert main(['analyze', str(session['pose_a']), str(other), '--quiet']) == 2
+    err = capsys.readouterr().err
+    assert 'one analysis takes logs of one device' in err and 'Traceback' not in err
+
+
+# -- estimators on effects shaped otherwise ----------------------------------------------------
+def sech_friction(lengths: np.ndarray, width_m: float) -> np.ndarray:
+    """A friction state that turns over along s = sigma - (sigma - s_a) sech^2(u / w) after a
+    reversal (slowly at first, unlike Dahl's exponential), u the travel since the reversal."""
+    out = np.zeros_like(lengths)
+    for j in range(lengths.shape[1]):
+        x = lengths[:, j]
+        sigma, s_a, x_a, s = 0.0, 0.0, x[0], 0.0
+        for k in range(1, x.size):
+            step = x[k] - x[k - 1]
+            if abs(step) > 1e-12 and np.sign(step) != sigma:
+                s_a, x_a, sigma = s, x[k - 1], float(np.sign(step))
+            if sigma:
+                u = min((x[k] - x_a) * sigma / width_m, 300.0)
+                s = sigma - (sigma - s_a) / math.cosh(u) ** 2
+            out[k, j] = s
+    return out
+
+
+def injected_log(tmp_path: Path, name: str, error_of) -> Path:
+    """A clean 40 s 6-DOF log of the ideal twin whose measuring-bar counts carry
+    ``error_of(true_lengths, counts)`` (N, 6) [m] of reading error."""
+    twin = TwinDevice(DEVICE, Effects.ideal(), seed=2)
+    room = AmbientProfile.constant(21.0)
+    calibration = twin.calibrate(0.0, room)
+    run = twin.simulate(make_scenario('random_motion', ['duration_s=40']), room, start_s=600.0,
+                        sample_rate_hz=RATE)
+    counts = run.counts.astype(np.float64)
+    meas = list(DEVICE.measuring_channels)
+    if error_of is not None:
+        counts[:, meas] += np.rint(error_of(run.true_lengths, counts) / DEVICE.encoder_resolution_m)
+    stamps = (np.round((600.0 + run.times_s) * 1e9)).astype(np.int64)
+    return write_run(tmp_path / name, DEVICE, calibration, stamps, counts, reference_pose=run.reference)
+
+
+def overall(result, after: bool = True) -> float:
+    stats = result.stats_after if after and result.stats_after else result.stats_before
+    return next(s.rms for s in stats if s.name == 'overall (um)')
+
+
+def test_a_friction_turning_over_along_another_curve_is_found_and_removed(tmp_path):
+    """sech² turn-over over 6 µm, 0.3 µm amplitude: named hysteresis, its travel fitted, and
+    the held-out error brought close to the clean log's."""
+    amp = np.array([0.2, 0.35, 0.3, 0.25, 0.4, 0.3]) * 1e-6
+    log = injected_log(tmp_path, 'sech.mcap', lambda d, q: -amp * sech_friction(d, 6e-6))
+    clean = analyze(read_run(injected_log(tmp_path, 'clean.mcap', None)))
+    result = analyze(read_run(log))
+    assert result.found and result.found[0].effect == 'hysteresis', result.conclusion
+    assert overall(result, after=False) > 3 * overall(clean, after=False)
+    assert overall(result) < 1.5 * overall(clean, after=False), (overall(result), overall(clean, after=False))
+    fitted = -result.found[0].value
+    assert np.allclose(fitted, amp, atol=0.06e-6), fitted
+
+
+def test_the_friction_setting_chosen_is_the_one_best_on_held_out_data(tmp_path):
+    """Issue 10 (a): the training criterion picks the turn-over travel; when the choice matters
+    (held-out errors of the settings differ by more than 2x), its held-out error is within 10 %
+    of the best setting's."""
+    from mmd_ros.analysis.effects import CATALOGUE
+    from mmd_ros.analysis.identify import _prepare, _Selector
+    amp = np.full(6, 0.3e-6)
+    run = read_run(injected_log(tmp_path, 'sech2.mcap', lambda d, q: -amp * sech_friction(d, 10e-6)))
+    o = AnalysisOptions()
+    sel = _Selector([_prepare(0, run, Model(), None, o, lambda t: None)], o)
+    effect = CATALOGUE['hysteresis']
+    _, e0 = sel.baseline()
+    chosen = sel.evaluate(effect, e0)
+    held_out = {}
+    for travel in effect.hypers([sel.ctx]) + [chosen.hyper]:
+        fit = sel.reduce(effect, travel)
+        pred = sel.columns(effect, travel, 'test') @ (fit['basis'] @ fit['beta'])
+        if fit['coef_b'].size:
+            pred = pred + sel.base('test') @ fit['coef_b']
+        held_out[travel] = float(np.mean((sel.test.y - pred) ** 2))
+    best, worst = min(held_out.values()), max(held_out.values())
+    assert worst > 2 * best
+    assert held_out[chosen.hyper] <= 1.1 * best, (chosen.hyper, held_out)
+
+
+def test_a_cyclic_error_at_a_period_of_no_list_is_found_from_the_spectrum(tmp_path):
+    """13 µm, 80 nm: not a standard signal period; its period is estimated from the data."""
+    names = DEVICE.channel_names
+    channels = list(DEVICE.measuring_channels)
+
+    def cyclic(d, counts):
+        phase = 2 * np.pi * counts[:, channels] * DEVICE.encoder_resolution_m / 13e-6
+        return 80e-9 * np.sin(phase + np.arange(6))
+
+    result = analyze(read_run(injected_log(tmp_path, 'cyc13.mcap', cyclic)))
+    found = {f.effect: f for f in result.found}
+    assert 'cyclic_error' in found, result.conclusion
+    assert math.isclose(found['cyclic_error'].hyper, 13e-6, rel_tol=2e-3), found['cyclic_error'].hyper
+    amp = np.hypot(found['cyclic_error'].value[:6], found['cyclic_error'].value[6:])
+    assert np.allclose(amp, 80e-9, atol=15e-9), amp
+    del names
+
+
+@pytest.mark.parametrize('seed', [1, 2])
+def test_a_clean_iso_run_with_a_laser_at_24c_adds_nothing(tmp_path, seed):
+    """Issue 10 (d): on the ideal twin at 24.2 °C with a 1-D laser the residual is at the floor:
+    nothing is added (the kinematic term used to be, on every seed)."""
+    path = tmp_path / f'clean{seed}.mcap'
+    simulate_to_log(SimulationSpec(scenario='iso_linear', scenario_params=ISO, effects='ideal',
+                                   seed=seed, ambient='constant:24.2', sample_rate_hz=RATE),
+                    path, progress=False)
+    result = analyze(read_run(path))
+    assert result.found == [] and result.model is None, [f.effect for f in result.found]
+    assert result.at_floor

@@ -1,0 +1,316 @@
+"""The pose uncertainty (issue 10, section 2): the budget's formulas, and its coverage of the
+twin's true pose.
+
+A covariance is a claim about the distribution of the error. One run sees one draw of each
+systematic error (a thermal zero, seven points per bar), so the coverage tests pool several
+calibrations of the twin (different seeds, calibrated at different times of the room's
+temperature course) and compare with the twin's true pose (not its reference instrument,
+which adds its own noise).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+from mmd_ros.core.accuracy import coverage, pose_error
+from mmd_ros.core.budget import LengthBudget
+from mmd_ros.core.calibration import Calibration
+from mmd_ros.core.device import find_config, load_device
+from mmd_ros.core.model import FitUncertainty, Model, ModelUncertainty, load_model
+from mmd_ros.core.pipeline import Pipeline
+from mmd_ros.core.uncertainty import (
+    InterpolationError, NoiseEstimator, averaged_quantisation_var, capture_var, dither_var,
+    fit_interpolation_error, quantisation_cross_cov, read_noise_from_dither, two_sided_figures,
+)
+from mmd_ros.twin import Effects, TwinDevice, make_scenario
+from mmd_ros.twin.recording import ambient_profile
+
+DEVICE = load_device(find_config('mmd_prototype.yaml'))
+RES = DEVICE.encoder_resolution_m
+LIMIT = chi2.ppf(0.95, 6)
+
+
+# -- the formulas ----------------------------------------------------------------------------
+def test_averaged_quantisation_and_dither_against_a_simulation():
+    """b^2 (the bias left in the mean of quantised readings) and g (the variance inside a
+    window) over a uniformly unknown position within a count, against a seeded simulation."""
+    rng = np.random.default_rng(0)
+    assert averaged_quantisation_var(RES, 0.0) == pytest.approx(RES ** 2 / 12, rel=1e-3)
+    for sigma in (0.0, 5e-9, 10e-9, 20e-9):
+        x = rng.uniform(0, RES, 4000)
+        reads = np.rint((x[:, None] + sigma * rng.standard_normal((4000, 400))) / RES) * RES
+        bias = reads.mean(axis=1) - x      # quantisation bias and the averaging's standard error
+        assert np.mean(bias ** 2) == pytest.approx(capture_var(RES, sigma, 400), rel=0.08, abs=2e-19)
+        assert np.mean(reads.var(axis=1)) == pytest.approx(dither_var(RES, sigma), rel=0.08, abs=2e-19)
+        assert read_noise_from_dither(RES, dither_var(RES, sigma)) == pytest.approx(sigma, abs=1e-12)
+    # the correlation of two readings' biases: full at the same place, none half a count apart
+    c = quantisation_cross_cov(RES, 0.0, 0.0, np.array([0.0, 0.25 * RES, 0.5 * RES]))
+    assert c[0] == pytest.approx(RES ** 2 / 12, rel=0.02) and c[2] == pytest.approx(-RES ** 2 / 24, rel=0.02)
+
+
+def test_noise_estimator_finds_the_read_noise_of_still_readings_and_streams_as_one_call():
+    rng = np.random.default_rng(1)
+    n = 64 * 200
+    sigma = np.array([0.0, 5e-9, 12e-9])
+    # still values (one count position per 0.5 s), and a slow thermal creep on the last column
+    pos = np.repeat(rng.uniform(0, 100 * RES, (n // 512 + 1, 3)), 512, axis=0)[:n]
+    pos[:, 2] += np.linspace(0, 2 * RES, n)
+    values = np.rint((pos + sigma * rng.standard_normal((n, 3))) / RES) * RES
+    est = NoiseEstimator(3, RES)
+    whole = est.feed(values)
+    final = est.sigma_m()
+    assert final[0] < 1e-9 and final[1] == pytest.approx(5e-9, rel=0.25)
+    assert final[2] == pytest.approx(12e-9, rel=0.2)
+    assert np.all(np.isnan(whole[:64 * 19]))            # too few windows yet
+    piecewise = NoiseEstimator(3, RES)
+    parts = np.concatenate([piecewise.feed(values[k:k + 8]) for k in range(0, n, 8)])
+    np.testing.assert_allclose(parts, whole, equal_nan=True)
+
+
+def test_interpolation_error_is_zero_at_the_points_and_fitted_to_their_curvature():
+    knots = np.tile(DEVICE.reference_distances_m, (7, 1))
+    model = InterpolationError(1e-6, 0.03)
+    v = model.variance(knots[:6].T.copy(), knots[:6])
+    assert np.all(v < 1e-24)                                    # zero at the points
+    mid = 0.5 * (knots[:6, :-1] + knots[:6, 1:])
+    assert np.all(model.variance(mid.T.copy(), knots[:6]) > (0.1e-6) ** 2)
+    # a smooth error of 1 um over the stroke: the fitted amplitude follows it, and a straight
+    # line (what Eq. 10 removes exactly) is not mistaken for one
+    rng = np.random.default_rng(2)
+    xi = (knots - knots[:, :1]) / (knots[:, -1:] - knots[:, :1])
+    wavy = 1e-6 * np.sin(2 * np.pi * 2 * xi + rng.uniform(0, 6, (7, 1)))
+    fit = fit_interpolation_error(knots, wavy, np.full(knots.shape, (10e-9) ** 2))
+    assert 0.4e-6 < fit.sigma_m < 3e-6
+    line = fit_interpolation_error(knots, 3e-6 * xi + 1e-6, np.full(knots.shape, (10e-9) ** 2))
+    assert line.sigma_m < 0.05e-6
+
+
+def test_two_sided_figures_from_synthetic_placements():
+    rng = np.random.default_rng(3)
+    h = np.array([0.2e-6, 0.4e-6])
+    seat = 30e-9
+    short = [rng.normal(0, seat, 7) - hh for hh in h]
+    long = [rng.normal(0, seat, 7) + hh for hh in h]
+    found, seating, dof = two_sided_figures(short, long, 0.0)
+    np.testing.assert_allclose(found, h, atol=30e-9)
+    assert dof == 12 and 15e-9 < seating < 50e-9
+
+
+# -- the budget and the files ----------------------------------------------------------------
+@pytest.fixture(scope='module')
+def realistic():
+    twin = TwinDevice(DEVICE, Effects.realistic(), seed=4)
+    room = ambient_profile('section_4_1')
+    calibration = twin.calibrate(0.0, room, approaches=2)
+    run = twin.simulate(make_scenario('random_motion', ['duration_s=4']), room, start_s=600.0,
+                        reference='pose6')
+    return twin, room, calibration, run
+
+
+def test_sigma_d_is_symmetric_positive_and_shares_the_reference_bar(realistic):
+    _, _, calibration, run = realistic
+    pipeline = Pipeline(DEVICE, calibration)
+    res = pipeline.process(run.times_s, run.counts, with_covariance=True)
+    comp, th = res.compensated, res.compensated.thermal
+    budget = pipeline.budget
+    sigma_d = budget.covariance(comp.lengths_m, th.reference_error_m, th.temp_change_c, th.bar_error_m)
+    assert np.allclose(sigma_d, np.swapaxes(sigma_d, 1, 2))
+    assert np.all(np.linalg.eigvalsh(sigma_d) > 0)
+    parts = budget.variances(comp.lengths_m, th.reference_error_m, th.temp_change_c, th.bar_error_m)
+    ref = parts['reference_bar']
+    assert np.allclose(ref, ref[:, :1, :1])                   # Eq. (13): the same for every pair
+    assert np.count_nonzero(parts['quantisation'] - np.diag(np.diag(parts['quantisation'][0]))) == 0
+    assert {'interpolation', 'calibration_points', 'hysteresis', 'calibration_drift',
+            'thermal_mismatch'} <= set(parts)
+    assert np.all(np.isfinite(res.covariance[res.valid]))
+    summary = budget.summary()
+    assert summary['hysteresis_nm'][0] > 100 and summary['interpolation']['sigma_um'] > 0.2
+    json.dumps(summary)
+
+
+def test_old_files_and_the_default_model_still_give_a_budget(realistic, tmp_path):
+    _, _, calibration, run = realistic
+    data = calibration.to_dict()
+    del data['uncertainty']
+    old = Calibration.from_dict(data)
+    path = tmp_path / 'model.yaml'
+    path.write_text('format_version: 1\nlength_sigma_um: 0.4\n')
+    budget = LengthBudget(DEVICE, old, load_model(path))
+    assert any('read noise' in note for note in budget.notes)
+    assert budget.point_var_m2 == pytest.approx(RES ** 2 / 12, rel=1e-3)  # no dither known
+    res = Pipeline(DEVICE, old, load_model(path)).process(run.times_s, run.counts, with_covariance=True)
+    assert np.all(np.linalg.eigvalsh(res.covariance[res.valid]) > 0)
+    assert 'length_sigma_um' not in load_model(path).to_yaml()
+
+
+def test_a_fit_section_round_trips_and_its_directions_enter_every_sample(realistic, tmp_path):
+    """One sigma of a fitted term along a direction, written as that term, adds c c^T per
+    sample; the residual adds R; both survive the model file."""
+    from mmd_ros.core.terms import SamplingSkewTerm
+    _, _, calibration, run = realistic
+    fit = FitUncertainty(residual_m2=np.eye(6) * (50e-9) ** 2, replaces=('interpolation',),
+                         directions=[[SamplingSkewTerm(np.full(6, 5e-6))]],
+                         mean_terms_m2=np.eye(6) * 1e-18)
+    model = Model(uncertainty=ModelUncertainty(fit=fit))
+    back = load_model(model.save(tmp_path / 'm.yaml'))
+    assert back.uncertainty.fit.replaces == ('interpolation',)
+    np.testing.assert_allclose(back.uncertainty.fit.residual_m2, fit.residual_m2)
+    p = Pipeline(DEVICE, calibration, back)
+    res = p.process(run.times_s, run.counts, with_covariance=True)
+    comp = res.compensated
+    velocity = np.diff(comp.cdf_lengths_m, axis=0, prepend=comp.cdf_lengths_m[:1]) / 1e-3
+    np.testing.assert_allclose(comp.fit_columns_m[:, :, 0], -5e-6 * velocity, atol=1e-12)
+    parts = p.budget.variances(comp.lengths_m, comp.thermal.reference_error_m,
+                               comp.thermal.temp_change_c, comp.thermal.bar_error_m,
+                               comp.fit_columns_m)
+    assert 'interpolation' not in parts and 'residual' in parts
+    np.testing.assert_allclose(parts['fitted_terms'][:, 0, 0], comp.fit_columns_m[:, 0, 0] ** 2)
+
+
+# -- coverage of the twin's true pose -----------------------------------------------------------
+def _pooled(effects: Effects, ambient: str, k_runs: int, seconds: float = 5.0):
+    """Errors against the twin's true pose and covariances of several calibrations."""
+    errors, covs = [], []
+    for k in range(k_runs):
+        twin = TwinDevice(DEVICE, effects, seed=k + 1)
+        room = ambient_profile(ambient)
+        calibration = twin.calibrate(-211.0 * k, room, approaches=2)
+        run = twin.simulate(make_scenario('random_motion', [f'duration_s={seconds}', f'seed={k}']),
+                            room, start_s=600.0, reference='pose6')
+        res = Pipeline(DEVICE, calibration).process(run.times_s, run.counts, with_covariance=True)
+        ok = res.valid
+        errors.append(pose_error(res.poses, run.true_poses)[ok])
+        covs.append(res.covariance[ok])
+    e, c = np.concatenate(errors), np.concatenate(covs)
+    ratio = np.sqrt(np.mean(np.diagonal(c, axis1=1, axis2=2), axis=0)) / np.sqrt(np.mean(e * e, axis=0))
+    d2 = np.einsum('ni,ni->n', e, np.linalg.solve(c, e[:, :, None])[:, :, 0])
+    return ratio, float(np.mean(d2 <= LIMIT))
+
+
+def test_clean_twin_is_covered():
+    """`--effects ideal` (quantisation, 5 nm read noise, the room cooling during the routine):
+    predicted / observed sigma within 0.8-1.25 on every axis. The 95 % ellipsoid covers more
+    than 95 %: quantisation errors are bounded (uniform), not Gaussian."""
+    ratio, cover = _pooled(Effects.ideal(), 'section_4_1', 6, seconds=4.0)
+    assert np.all((ratio > 0.8) & (ratio < 1.25)), ratio
+    assert 0.93 <= cover <= 1.0, cover
+
+
+def test_twin_without_any_effect_is_covered():
+    """`--effects ideal --effect read_noise_m=0 --ambient constant:20`. Every error is a count's
+    quantisation. The budget over-states by the calibration points' quantisation, which this
+    twin does not have: at exactly 20 °C and without noise every Table 2 distance (0.1 um
+    digits = 2 counts) falls on a count. The z axis, dominated by the few common-mode terms,
+    reads up to 1.4."""
+    ratio, cover = _pooled(Effects.ideal().with_assignments(['read_noise_m=0']), 'constant:20', 3)
+    assert np.all(ratio > 0.8), ratio
+    assert np.all(ratio[[0, 1, 3, 4, 5]] < 1.25) and ratio[2] < 1.4, ratio
+    assert cover >= 0.93
+
+
+def test_realistic_twin_is_covered_except_for_latch_skew():
+    """`--effects realistic`: the budget sizes hysteresis and seating (two-sided calibration),
+    the interpolation error (fitted to the points), the routine's drift, the thermal mismatch
+    (section 4.1). It cannot size the channels' latch skew (an error of skew x velocity that
+    nothing of the device measures before a fit against a reference): with it off the claim
+    holds, with it on the moving axes are under-stated (see the report; `mmd analyze` fits it)."""
+    ratio, cover = _pooled(Effects.realistic().with_assignments(['sampling_skew_s=0']),
+                           'section_4_1', 8, seconds=3.0)
+    assert np.all((ratio > 0.8) & (ratio < 1.25)), ratio
+    assert cover >= 0.9, cover
+
+
+def test_after_the_loop_the_fit_s_uncertainty_is_in_the_model(tmp_path):
+    """`mmd analyze` with the twin's full pose: the written model carries the fitted terms'
+    parameter covariance (as one-sigma directions) and the residual; judged on runs the fit
+    never saw, the covariance covers the error (the residual of a single run's held-out
+    blocks does not replace the calibration-derived sources)."""
+    from mmd_ros.analysis.identify import AnalysisOptions, analyze
+    from mmd_ros.logs.layout import read_run
+    from mmd_ros.twin.recording import SimulationSpec, simulate_to_log
+    log = tmp_path / 'fit.mcap'
+    spec = SimulationSpec(scenario='random_motion', scenario_params=('duration_s=60', 'seed=100'),
+                          effects='realistic', reference='pose6', seed=1, calibration_approaches=2)
+    simulate_to_log(spec, log, progress=False)
+    result = analyze(read_run(log), options=AnalysisOptions(datum='none'))
+    assert 'sampling_skew' in [f.effect for f in result.found]
+    model = result.model
+    fit = model.uncertainty.fit
+    assert fit is not None and fit.directions and fit.replaces == ()
+    assert 'length_sigma_um' not in model.to_yaml()
+    back = Model.from_yaml(model.to_yaml())
+    twin = TwinDevice(DEVICE, Effects.realistic(), seed=1)
+    room = ambient_profile('section_4_1')
+    calibration = twin.calibrate(0.0, room, approaches=2)
+    errors, covs = [], []
+    for k in range(3):
+        run = twin.simulate(make_scenario('random_motion', ['duration_s=5', f'seed={k}']), room,
+                            start_s=700.0 + 20 * k, reference='pose6')
+        res = Pipeline(DEVICE, calibration, back).process(run.times_s, run.counts, with_covariance=True)
+        errors.append(pose_error(res.poses, run.true_poses)[res.valid])
+        covs.append(res.covariance[res.valid])
+    e, c = np.concatenate(errors), np.concatenate(covs)
+    ratio = np.sqrt(np.mean(np.diagonal(c, axis1=1, axis2=2), axis=0)) / np.sqrt(np.mean(e * e, axis=0))
+    d2 = np.einsum('ni,ni->n', e, np.linalg.solve(c, e[:, :, None])[:, :, 0])
+    assert np.all(ratio > 0.6), ratio          # the fitted model's own error on new motion
+    assert np.mean(d2 <= LIMIT) > 0.8
+
+
+# -- mmd process reports it -------------------------------------------------------------------
+def test_coverage_report_of_a_full_and_a_partial_reference():
+    rng = np.random.default_rng(5)
+    cov = np.broadcast_to(np.diag([1e-12] * 3 + [1e-10] * 3), (20000, 6, 6))
+    err = rng.multivariate_normal(np.zeros(6), cov[0], 20000)
+    full = coverage(err, cov, np.ones(20000, bool), absolute=True)
+    assert full['ellipsoid_coverage'] == pytest.approx(0.95, abs=0.01)
+    assert [r['ratio'] for r in full['per_component']] == pytest.approx([1.0] * 6, abs=0.03)
+    partial = err.copy()
+    partial[:, 1:] = np.nan
+    partial[:, 0] += 5e-6                                         # a zeroed laser's offset
+    one = coverage(partial, cov, np.ones(20000, bool), absolute=False)
+    assert one['components'] == ['x'] and one['offset_removed']
+    assert one['ellipsoid_coverage'] == pytest.approx(0.95, abs=0.01)
+    assert one['per_component'][0]['ratio'] == pytest.approx(1.0, abs=0.03)
+
+
+def test_mmd_process_json_reports_the_coverage(tmp_path, capsys):
+    from mmd_ros.cli.main import main
+    from mmd_ros.twin.recording import SimulationSpec, simulate_to_log
+    log = tmp_path / 'run.mcap'
+    simulate_to_log(SimulationSpec(scenario='random_motion', scenario_params=('duration_s=3',),
+                                   effects='ideal', reference='pose6', calibration_approaches=2),
+                    log, progress=False)
+    capsys.readouterr()
+    assert main(['process', str(log), '--json']) == 0
+    summary = json.loads(capsys.readouterr().out)
+    report = summary['uncertainty_coverage']
+    assert report['components'] == ['x', 'y', 'z', 'roll', 'pitch', 'yaw']
+    assert not report['offset_removed']                          # the twin's reference is absolute
+    assert report['per_component'][3]['reference_sigma'] == pytest.approx(0.1)  # 0.1 arcsec
+    for row in report['per_component']:
+        assert 0.5 < row['ratio'] < 3.0 and math.isfinite(row['observed_sigma'])
+    assert 0.8 < report['ellipsoid_coverage'] <= 1.0
+    budget = json.loads(json.dumps(summary['uncertainty_budget']))
+    assert budget['calibration_point_nm'] > 0 and any('reference plate' in n for n in budget['notes'])
+
+
+def test_the_streaming_sum_is_the_sum_of_the_sources(realistic):
+    """Sigma_d as the nodes add it up for every transfer equals the sources listed one by one
+    (random ones plus b b^T of the known errors)."""
+    _, _, calibration, run = realistic
+    pipeline = Pipeline(DEVICE, calibration)
+    res = pipeline.process(run.times_s, run.counts)
+    comp, th = res.compensated, res.compensated.thermal
+    budget = LengthBudget(DEVICE, calibration, Model())
+    observed = budget.observe(comp.cdf_lengths_m, th.reference_error_m)
+    args = (comp.lengths_m, th.reference_error_m, th.temp_change_c, th.bar_error_m, None, observed)
+    assert np.any(observed.directions != 0)
+    cov, bias = budget.sources(*args)
+    b = sum(bias.values())
+    expected = sum(cov.values()) + b[:, :, None] * b[:, None, :]
+    np.testing.assert_allclose(budget.covariance(*args), expected, rtol=1e-9, atol=1e-30)
