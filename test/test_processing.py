@@ -78,6 +78,33 @@ def test_a_log_processed_block_by_block_is_the_run_processed_at_once(run_log, tm
         assert mine['n'] == theirs['n'] and mine['name'] == theirs['name']
         for stat in ('mean', 'std', 'rms', 'max_abs'):
             assert mine[stat] == pytest.approx(theirs[stat], rel=1e-9, abs=1e-9)
+    # the covariance's coverage, gathered block by block, is the whole run's (20,000 samples
+    # are under the accumulator's cap: every sample is kept)
+    mine, theirs = summary['uncertainty_coverage'], reference['uncertainty_coverage']
+    assert mine['every'] == 1 and mine['samples'] == theirs['samples'] > 19000
+    assert mine['ellipsoid_coverage'] == pytest.approx(theirs['ellipsoid_coverage'], abs=1e-12)
+    for a_row, b_row in zip(mine['per_component'], theirs['per_component']):
+        assert a_row['ratio'] == pytest.approx(b_row['ratio'], rel=1e-9)
+    assert summary['uncertainty_budget'] == reference['uncertainty_budget']
+
+
+def test_coverage_of_a_long_run_is_judged_on_samples_spread_over_all_of_it():
+    """Past its cap the accumulator keeps every 2nd, 4th... sample: memory stays bounded, and a
+    covariance too small in the second half of a run still shows (the kept samples span it)."""
+    from mmd_ros.core.accuracy import CoverageAccumulator, coverage
+    rng = np.random.default_rng(3)
+    n = 10_000
+    sigma = np.where(np.arange(n) < n // 2, 1e-6, 3e-6)        # the error grows half-way
+    errors = rng.normal(0, 1, (n, 6)) * sigma[:, None]
+    cov = np.broadcast_to(np.eye(6) * 1e-12, (n, 6, 6)).copy()  # claims 1 um throughout
+    acc = CoverageAccumulator(max_samples=1000)
+    for k in range(0, n, 700):
+        acc.add(errors[k:k + 700], cov[k:k + 700], np.ones(len(errors[k:k + 700]), bool))
+    report = acc.report(absolute=True)
+    assert report['every'] == 16 and report['samples'] == n // 16
+    whole = coverage(errors, cov, np.ones(n, bool), absolute=True)
+    assert report['ellipsoid_coverage'] == pytest.approx(whole['ellipsoid_coverage'], abs=0.05)
+    assert whole['ellipsoid_coverage'] < 0.8    # the second half is not covered: it shows
 
 
 def test_process_log_refuses_to_write_over_its_input(run_log):
