@@ -76,7 +76,7 @@ def run_case(device, name: str, scenario: str, runs: int, seconds: float, after:
         p = [v.format(seconds=seconds, k=k) for v in params]
         run = twin.simulate(make_scenario(kind, p), room, start_s=start, reference='pose6',
                             sample_rate_hz=rate)
-        res = Pipeline(device, calibration, model if after else Model()).process(
+        res = Pipeline(twin.documented_device, calibration, model if after else Model()).process(
             run.times_s, run.counts, with_covariance=True)
         ok = res.valid & np.all(np.isfinite(run.true_poses), axis=1)
         errors.append(pose_error(res.poses, run.true_poses)[ok])
@@ -87,7 +87,7 @@ def run_case(device, name: str, scenario: str, runs: int, seconds: float, after:
                 run = twin.simulate(make_scenario(kind, [v.format(seconds=seconds, k=j) for v in params]),
                                     room, start_s=start + j * (seconds + 30), reference='pose6',
                                     sample_rate_hz=rate)
-                res = Pipeline(device, calibration, model).process(run.times_s, run.counts,
+                res = Pipeline(twin.documented_device, calibration, model).process(run.times_s, run.counts,
                                                                    with_covariance=True)
                 ok = res.valid & np.all(np.isfinite(run.true_poses), axis=1)
                 errors.append(pose_error(res.poses, run.true_poses)[ok])
@@ -109,7 +109,7 @@ def fit(device, twin, room, calibration):
     run = twin.simulate(make_scenario('random_motion', ['duration_s=60', 'seed=100']), room,
                         start_s=600.0, reference='pose6')
     stamps = np.round((600.0 + run.times_s) * 1e9).astype(np.int64)
-    log = RunLog(Path('twin'), device, calibration, None, stamps, run.counts.astype(np.float64),
+    log = RunLog(Path("twin"), twin.documented_device, calibration, None, stamps, run.counts.astype(np.float64),
                  device.channel_names, run.reference)
     result = analyze(log, options=AnalysisOptions(datum='none'))
     found = ', '.join(f.effect for f in result.found) or 'nothing'

@@ -56,6 +56,7 @@ def _set(data, path, value):
     (('terminal', 'channels', 6, 'pair'), 'dr9', 'terminal.channels[6].pair'),
     (('terminal', 'channels', 2, 'bar'), 1, 'terminal.channels'),
     (('terminal', 'counter_bits'), 31, 'terminal.counter_bits'),
+    (('terminal', 'latch_skew_us'), -5, 'terminal.latch_skew_us'),
     (('format_version',), 2, 'format_version'),
 ])
 def test_bad_files_are_refused_naming_the_key(path, value, key):

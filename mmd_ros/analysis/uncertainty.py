@@ -120,7 +120,7 @@ def _predicted(run: ResidualRun, model: Model, fit: FitUncertainty, idx: IntArra
                   model.source, ModelUncertainty(fit=fit))
     budget = LengthBudget(run.ctx.device, run.ctx.calibration, trial)
     a = run.after
-    observed = budget.observe(a.cdf_lengths_m, a.reference_error_m)
+    observed = budget.observe(a.cdf_lengths_m, a.reference_error_m, run.ctx.times_s)
     cov, bias = budget.sources(a.lengths_m[idx], a.reference_error_m[idx], a.temp_change_c[idx],
                                a.bar_error_m[idx], None, observed[idx])
     zero = np.zeros((idx.size, 6, 6))

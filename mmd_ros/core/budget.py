@@ -11,7 +11,8 @@ Where the numbers come from:
 
 - the device description: the encoder resolution, the scale CTE (Eq. 13's approximation), the
   reference distances' standard uncertainty (``reference_plate.distance_uncertainty_um``, when
-  stated), the bars' thermal mismatch (``bars.thermal_mismatch_fraction``);
+  stated), the bars' thermal mismatch (``bars.thermal_mismatch_fraction``), the terminal's
+  latch skew (``terminal.latch_skew_us``, its datasheet);
 - the calibration: its points (hat functions of Eq. 10, the interpolation error fitted to
   them) and what the routine measured (read noise, hysteresis, seating repeatability);
 - the stream: each channel's read noise where it stands still (:class:`NoiseEstimator`);
@@ -31,6 +32,7 @@ from mmd_ros.core.calibration import Calibration
 from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.errors import CalibrationError
 from mmd_ros.core.model import Model
+from mmd_ros.core.terms import MAX_GAP_S, SamplingSkewTerm
 from mmd_ros.core.uncertainty import (
     InterpolationError, NoiseEstimator, capture_var, fit_interpolation_error,
     quantisation_cross_weights,
@@ -46,6 +48,8 @@ DIRECTION_TRAVEL_M = 1e-6
 #: Model terms that compensate the bars' friction hysteresis (the budget's hysteresis source
 #: is then off: the fit's uncertainty and residual stand for what is left of it).
 FRICTION_TERMS = ('hysteresis', 'friction')
+#: Model terms that compensate the channels' latch skew (the latch_skew source is then off).
+SKEW_TERMS = ('sampling_skew',)
 #: Travel after a reversal by which a bar's friction state has turned over (an assumption:
 #: rolling guides turn within a few um; the calibration does not measure it) [m].
 FRICTION_TURNOVER_M = 20e-6
@@ -82,13 +86,37 @@ class Observed:
     directions : (N, 6) — each bar's friction state as far as its motion tells: its direction
         (+1 lengthening, -1 shortening, 0 before its first move) times how far the state has
         turned since the last reversal, min(1, travel / FRICTION_TURNOVER_M)
+    velocity_m_s : (N, 6) — each bar's speed of lengthening, a backward difference of its CDF
+        length (0 where not known) [m/s]
     """
 
     read_noise_m: FloatArray
     directions: FloatArray
+    velocity_m_s: FloatArray | None = None
 
     def __getitem__(self, index: Any) -> Observed:
-        return Observed(self.read_noise_m[index], self.directions[index])
+        return Observed(self.read_noise_m[index], self.directions[index],
+                        None if self.velocity_m_s is None else self.velocity_m_s[index])
+
+
+class _Velocity:
+    """Each bar's speed as the sampling-skew term computes it (a backward difference of the CDF
+    lengths, zero across gaps), carried from call to call."""
+
+    def __init__(self, period_s: float) -> None:
+        self.period_s = float(period_s)
+        self.reset()
+
+    def reset(self) -> None:
+        self._state: Any = None
+
+    def __call__(self, x: FloatArray, times_s: FloatArray | None) -> FloatArray:
+        if times_s is None:   # the device's sample period apart
+            last = self._state[1] if self._state is not None else -self.period_s
+            times_s = last + self.period_s * np.arange(1, x.shape[0] + 1)
+        minus_v, self._state = SamplingSkewTerm.features(x, np.asarray(times_s, dtype=np.float64),
+                                                         MAX_GAP_S, self._state)
+        return np.where(np.isfinite(minus_v), -minus_v, 0.0)
 
 
 class _Friction:
@@ -137,7 +165,7 @@ class _Friction:
 #: The budget's sources, in the order reports list them.
 SOURCES = ('quantisation', 'read_noise', 'reference_bar', 'calibration_points',
            'calibration_drift', 'reference_distances', 'interpolation', 'thermal_approximation',
-           'thermal_mismatch', 'hysteresis', 'fitted_terms', 'residual')
+           'thermal_mismatch', 'hysteresis', 'latch_skew', 'fitted_terms', 'residual')
 
 
 class LengthBudget:
@@ -253,6 +281,15 @@ class LengthBudget:
         self.hysteresis_m = np.zeros(6) if compensated else np.abs(h)
         self._direction = _Friction(DIRECTION_TRAVEL_M, FRICTION_TURNOVER_M)
 
+        # -- the terminal's latch skew (its datasheet), unless a fitted term compensates it
+        skew = device.latch_skew_s
+        if skew is None:
+            self.notes.append('latch skew: the device description does not state the terminal\'s '
+                              '(terminal.latch_skew_us); a bar moving at v reads up to v x skew off')
+        self.latch_skew_s = (0.0 if any(t.type_name in SKEW_TERMS for t in model.terms)
+                             else float(skew or 0.0))
+        self._velocity = _Velocity(1.0 / device.sample_rate_hz)
+
         # -- what a fit replaced, and how much of the rest it kept
         self.replaced = set(fit.replaces) if fit is not None else set()
         self.systematic_scale = fit.systematic_scale if fit is not None else 1.0
@@ -275,6 +312,7 @@ class LengthBudget:
         again."""
         self.noise.reset()
         self._direction.reset()
+        self._velocity.reset()
 
     # -- per-sample inputs ---------------------------------------------------------------------
     def bar_error(self, lengths_m: FloatArray, reference_error_m: FloatArray) -> FloatArray:
@@ -290,11 +328,14 @@ class LengthBudget:
         frac = (lengths_m - lo) / (hi - lo)
         return eps[:, :1] + frac * (eps[:, -1:] - eps[:, :1])
 
-    def observe(self, cdf_lengths_m: FloatArray, reference_error_m: FloatArray) -> Observed:
+    def observe(self, cdf_lengths_m: FloatArray, reference_error_m: FloatArray,
+                times_s: FloatArray | None = None) -> Observed:
         """What the budget learns from N consecutive samples (call once per sample, in time
         order): the read-noise estimate from the CDF lengths (or the lengths plus the thermal
         error subtracted, which differ by terms that do not change while a bar stands still)
-        and the reference bars' Eq. (11) errors, and each bar's motion direction.
+        and the reference bars' Eq. (11) errors, each bar's motion direction and its speed.
+
+        times_s : (N,) the samples' times [s]; None: the device's sample period apart
 
         returns : what :meth:`covariance` needs of these samples
         """
@@ -307,7 +348,9 @@ class LengthBudget:
         est = self.noise.feed(values)
         directions = (self._direction(np.asarray(cdf_lengths_m, dtype=np.float64))
                       if self._has_hysteresis else np.zeros((n, 6)))
-        return Observed(self._resolve(est), directions)
+        velocity = (self._velocity(np.asarray(cdf_lengths_m, dtype=np.float64), times_s)
+                    if self.latch_skew_s else None)
+        return Observed(self._resolve(est), directions, velocity)
 
     def _resolve(self, estimate: FloatArray) -> FloatArray:
         if self.fixed_noise_m is not None:
@@ -390,6 +433,10 @@ class LengthBudget:
             kept = self._kept('hysteresis')
             t.bias['hysteresis'] = -math.sqrt(kept) * self.hysteresis_m * s_dir
             t.diag['hysteresis'] = kept * self.hysteresis_m ** 2 * (1.0 - s_dir ** 2)
+        if self.latch_skew_s and observed is not None and observed.velocity_m_s is not None:
+            v = observed.velocity_m_s
+            t.bias['latch_skew'] = 0.5 * self.latch_skew_s * v
+            t.diag['latch_skew'] = (self.latch_skew_s ** 2 / 12.0) * v * v
         if fit_columns_m is not None and fit_columns_m.shape[-1]:
             t.full['fitted_terms'] = fit_columns_m @ np.swapaxes(fit_columns_m, 1, 2)
         elif self._has_mean_terms:
@@ -525,6 +572,10 @@ class LengthBudget:
             s_dir = np.zeros((n, 6)) if observed is None else observed.directions
             bias -= math.sqrt(kept) * self.hysteresis_m * s_dir
             diag += kept * self.hysteresis_m ** 2 * (1.0 - s_dir * s_dir)
+        if self.latch_skew_s and observed is not None and observed.velocity_m_s is not None:
+            v = observed.velocity_m_s
+            bias += (0.5 * self.latch_skew_s) * v
+            diag += (self.latch_skew_s ** 2 / 12.0) * v * v
         total = bias[:, :, None] * bias[:, None, :]
         total[:, rows[0], rows[0]] += diag
         if self.thermal_mode == 'single':
@@ -591,6 +642,7 @@ class LengthBudget:
             'interpolation': self.interpolation.as_dict(),
             'thermal_mismatch_fraction': self.mismatch_fraction,
             'hysteresis_nm': [round(float(v) * 1e9, 2) for v in self.hysteresis_m],
+            'latch_skew_us': round(self.latch_skew_s * 1e6, 3),
             'fit': None if self.fit is None else {
                 'replaces': sorted(self.replaced), 'systematic_scale': self.systematic_scale,
                 'residual_nm': [round(float(math.sqrt(max(v, 0.0))) * 1e9, 2)

@@ -7,6 +7,7 @@ refused with a :class:`ConfigError` naming the key and the problem.
 
 from __future__ import annotations
 
+import copy
 import math
 import os
 import sys
@@ -85,6 +86,10 @@ class DeviceDescription:
     #: sigma of a bar's thermal error left after Eqs. (12)/(13), as a fraction of the error
     #: subtracted (bars do not behave exactly alike); None when the description does not say
     thermal_mismatch_fraction: float | None = None
+    #: the terminal's latch skew: every channel latches its counter at an unknown, fixed delay
+    #: between 0 and this after the sample tick that stamps it (its datasheet) [s]; None when
+    #: the description does not say
+    latch_skew_s: float | None = None
 
     @property
     def reference_distances_m(self) -> NDArray[np.float64]:
@@ -116,6 +121,12 @@ class DeviceDescription:
     def to_yaml(self) -> str:
         """The description as YAML (the mapping it was read from, inheritance resolved)."""
         return yaml.safe_dump(self.raw, sort_keys=False)
+
+    def with_latch_skew(self, skew_s: float) -> DeviceDescription:
+        """A copy that states the terminal's latch skew (``terminal.latch_skew_us``) [s]."""
+        data = copy.deepcopy(self.raw)
+        data['terminal']['latch_skew_us'] = round(float(skew_s) * 1e6, 6)
+        return parse_device(data, self.source)
 
 
 # -- parsing -----------------------------------------------------------------------------------
@@ -280,6 +291,8 @@ def parse_device(data: dict[str, Any], source: str = '<device>') -> DeviceDescri
         thermal_mismatch_fraction=(r.number(bars, 'thermal_mismatch_fraction', 'bars', low=0.0, high=1.0)
                                    if isinstance(bars, dict) and 'thermal_mismatch_fraction' in bars
                                    else None),
+        latch_skew_s=(r.number(terminal, 'latch_skew_us', 'terminal', low=0.0, high=1000.0) * 1e-6
+                      if 'latch_skew_us' in terminal else None),
     )
 
 

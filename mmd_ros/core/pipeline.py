@@ -227,7 +227,8 @@ class Pipeline:
         status = np.where(out_of_range, np.int8(FkStatus.OUT_OF_SPAN), sol.status)
         cov = None
         if with_covariance and sol.jacobian_inverse is not None:
-            observed = self.budget.observe(comp.cdf_lengths_m, comp.thermal.reference_error_m)
+            observed = self.budget.observe(comp.cdf_lengths_m, comp.thermal.reference_error_m,
+                                           times_s)
             cov = self.covariance(sol.jacobian_inverse, comp, observed, compiled=compiled)
         return ProcessResult(times_s, comp, sol.poses, sol.converged, valid, status,
                              sol.iterations, sol.residual_m, sol.condition, cov)
@@ -276,7 +277,7 @@ class Pipeline:
         out = comp.out_of_range[0]
         cov = None
         if with_covariance:
-            observed = self.budget.observe(comp.cdf_lengths_m, comp.thermal.reference_error_m)
+            observed = self.budget.observe(comp.cdf_lengths_m, comp.thermal.reference_error_m, t)
             if sol.converged:
                 jinv = np.linalg.inv(sol.jacobian)
                 cov = self.covariance(jinv[None], comp, observed)[0]

@@ -322,12 +322,13 @@ class _CovarianceInputs:
     temp_change_c: FloatArray
     bar_error_m: FloatArray
     fit_columns_m: FloatArray | None
+    times_s: FloatArray | None = None
     observed: Observed | None = None
 
     def observe(self) -> Observed:
         if self.observed is None:
             self.observed = self.budget.observe(self.lengths_m + self.bar_error_m,
-                                                self.reference_error_m)
+                                                self.reference_error_m, self.times_s)
         return self.observed
 
 
@@ -420,7 +421,9 @@ class Kinematics:
                          else np.asarray(temp_change_c, dtype=np.float64))
                 if bar_error_m is None:
                     bar_error_m = b.bar_error(lengths_m, eps)
+                times = (None if stamps_ns is None or not len(stamps_ns)
+                         else np.asarray(stamps_ns, dtype=np.int64) * 1e-9)
                 unc = self._last = _CovarianceInputs(b, lengths_m, eps, dtemp, bar_error_m,
-                                                     fit_columns_m)
+                                                     fit_columns_m, times)
         return KinematicsOut(poses, valid, converged, sol.status, iterations, residual,
                              sol.condition, sol.jacobians, plate_scale, unc)

@@ -105,6 +105,7 @@ def simulate_to_log(spec: SimulationSpec, out: Path, *, progress: bool = True
     device = load_device(find_config(spec.device))
     effects = Effects.preset(spec.effects).with_assignments(spec.effect_params)
     twin = TwinDevice(device, effects, seed=spec.seed)
+    device = twin.documented_device      # what the log says of the device, its terminal included
     room = ambient_profile(spec.ambient)
     calibration = twin.calibrate(spec.calibrate_at_s, room, approaches=spec.calibration_approaches)
     scenario = make_scenario(spec.scenario, spec.scenario_params)

@@ -198,6 +198,16 @@ class TwinDevice:
     def __repr__(self) -> str:
         return f'TwinDevice({self.device.name!r}, seed={self.seed})'
 
+    @property
+    def documented_device(self) -> DeviceDescription:
+        """The device description as the simulated terminal's datasheet completes it: its
+        latch skew (``terminal.latch_skew_us``) is the bound the effects give the channels'
+        delays (``sampling_skew_s``), not the channels' own delays, which stay hidden (as a
+        real terminal's datasheet states a bound). A description that states one keeps it."""
+        if self.device.latch_skew_s is not None:
+            return self.device
+        return self.device.with_latch_skew(self.effects.sampling_skew_s)
+
     # -- bars on the reference plate -----------------------------------------------------------
     def _pair(self, pair: str) -> int:
         if pair not in self._pair_index:
