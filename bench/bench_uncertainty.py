@@ -10,8 +10,8 @@ pooled and per run, and a JSON line.
 
 Usage: ``python bench/bench_uncertainty.py [--cases ideal,noeffect,realistic,realistic_noskew]
 [--scenario random|iso_y|rotary|thermal] [--runs 6] [--seconds 8] [--after] [--approaches 2]``. ``--after``
-first runs ``mmd analyze`` (full pose reference, absolute) on a 60 s random run of each case's
-first twin and judges the extended model on new runs of that twin.
+first runs ``mmd analyze`` (full pose reference, absolute) on a 60 s random run of each twin
+and judges that twin's extended model on a new run of it.
 """
 
 from __future__ import annotations
@@ -65,55 +65,45 @@ def run_case(device, name: str, scenario: str, runs: int, seconds: float, after:
     preset, effect_params, ambient = CASES[name]
     kind, params, rate = SCENARIOS[scenario]
     room = ambient_profile(ambient)
-    errors, covs = [], []
-    model, note = Model(), ''
+    errors, covs, notes = [], [], []
+    model = Model()
     for k in range(runs):
         twin = TwinDevice(device, Effects.preset(preset).with_assignments(effect_params), seed=k + 1)
         calibration = twin.calibrate(-211.0 * k, room, approaches=approaches)
         start = 600.0
-        if after and k == 0:
-            model, note, start = fit(device, twin, room, calibration)
+        if after:
+            # each twin's own extended model, judged on new motion of that twin
+            model, found, start = fit(twin, room, calibration, k)
+            notes.append(found)
         p = [v.format(seconds=seconds, k=k) for v in params]
         run = twin.simulate(make_scenario(kind, p), room, start_s=start, reference='pose6',
                             sample_rate_hz=rate)
-        res = Pipeline(twin.documented_device, calibration, model if after else Model()).process(
+        res = Pipeline(twin.documented_device, calibration, model).process(
             run.times_s, run.counts, with_covariance=True)
         ok = res.valid & np.all(np.isfinite(run.true_poses), axis=1)
         errors.append(pose_error(res.poses, run.true_poses)[ok])
         covs.append(res.covariance[ok])
-        if after:
-            # the extended model belongs to the first twin: judge it there, on new motion
-            for j in range(1, runs):
-                run = twin.simulate(make_scenario(kind, [v.format(seconds=seconds, k=j) for v in params]),
-                                    room, start_s=start + j * (seconds + 30), reference='pose6',
-                                    sample_rate_hz=rate)
-                res = Pipeline(twin.documented_device, calibration, model).process(run.times_s, run.counts,
-                                                                   with_covariance=True)
-                ok = res.valid & np.all(np.isfinite(run.true_poses), axis=1)
-                errors.append(pose_error(res.poses, run.true_poses)[ok])
-                covs.append(res.covariance[ok])
-            break
     out = {'case': name, 'scenario': scenario, 'runs': runs, 'after_analysis': after,
            'calibration_approaches': approaches, **judge(errors, covs)}
-    if note:
-        out['analysis'] = note
+    if notes:
+        out['analysis'] = '; '.join(notes)
     return out
 
 
-def fit(device, twin, room, calibration):
+def fit(twin, room, calibration, k):
     """mmd analyze on a 60 s random run with the full (absolute) pose reference."""
     from pathlib import Path
 
     from mmd_ros.analysis.identify import AnalysisOptions, analyze
     from mmd_ros.logs.layout import RunLog
-    run = twin.simulate(make_scenario('random_motion', ['duration_s=60', 'seed=100']), room,
+    run = twin.simulate(make_scenario('random_motion', ['duration_s=60', f'seed={100 + k}']), room,
                         start_s=600.0, reference='pose6')
     stamps = np.round((600.0 + run.times_s) * 1e9).astype(np.int64)
-    log = RunLog(Path("twin"), twin.documented_device, calibration, None, stamps, run.counts.astype(np.float64),
-                 device.channel_names, run.reference)
+    log = RunLog(Path('twin'), twin.documented_device, calibration, None, stamps, run.counts.astype(np.float64),
+                 twin.device.channel_names, run.reference, metadata=run.metadata)
     result = analyze(log, options=AnalysisOptions(datum='none'))
-    found = ', '.join(f.effect for f in result.found) or 'nothing'
-    return result.model or Model(), f'found {found}', 700.0
+    found = '+'.join(f.effect for f in result.found) or 'nothing'
+    return result.model or Model(), found, 700.0
 
 
 def main() -> None:

@@ -169,6 +169,54 @@ def test_latch_skew_is_sized_from_the_terminal_s_stated_bound(realistic):
     assert fitted.latch_skew_s == 0
 
 
+def test_a_fit_s_residual_stands_only_where_the_fit_saw_the_bars(realistic):
+    """A fit whose residual replaced the calibration-derived sources: inside the lengths it saw
+    (its validity record) they are gone; a bar outside gets them back, plus the square of the
+    length terms' correction there (an extrapolation no data checked). A friction term does
+    not know a bar's state before it has moved: the budget keeps h^2 for it, without bias."""
+    from mmd_ros.core.model import FIT_REPLACEABLE, HysteresisTerm
+    from mmd_ros.core.terms import ScaleNonlinearityTerm
+    _, _, calibration, run = realistic
+    comp = Pipeline(DEVICE, calibration).compensate(run.times_s, run.counts)
+    th = comp.thermal
+    x = comp.lengths_m
+    mid = np.median(comp.cdf_lengths_m, axis=0)
+    knots = np.sort(np.array([calibration.bars[n].distances_m for n in ('bar1', 'bar2', 'bar3',
+                                                                         'bar4', 'bar5', 'bar6')]))
+    term = ScaleNonlinearityTerm(knots, np.full((6, 2), 0.3e-6), np.full((6, 2), -0.2e-6))
+    fit = FitUncertainty(np.zeros((6, 6)), tuple(FIT_REPLACEABLE), 1.0, [], np.zeros((6, 6)), {})
+    ranges = [[(m - 1e-3) / 1e-3, (m + 1e6) / 1e-3] for m in mid]    # bar i seen above its median
+    hyst = HysteresisTerm(np.full(6, 0.2e-6), 1e-6)
+    model = Model(terms=[term, hyst], uncertainty=ModelUncertainty(fit=fit),
+                  extra={'validity': {'bar_range_mm': ranges}})
+    budget = LengthBudget(DEVICE, calibration, model)
+    observed = budget.observe(comp.cdf_lengths_m, th.reference_error_m, run.times_s)
+    parts = budget.variances(x, th.reference_error_m, th.temp_change_c, th.bar_error_m,
+                             observed=observed)
+    below = comp.cdf_lengths_m < mid[None] - 1e-3
+    assert below.any() and (~below).any()
+    interp = parts['interpolation'][:, range(6), range(6)]
+    assert np.all(interp[below] > 0) and np.all(interp[~below] == 0)
+    unchecked = parts['unchecked_range'][:, range(6), range(6)]
+    from mmd_ros.core.model import TermContext
+    n = x.shape[0]
+    c = term.correction(TermContext(np.zeros(n), np.zeros((n, 8)), x, x + th.bar_error_m,
+                                    th.reference_error_m, th.temp_change_c))
+    np.testing.assert_allclose(unchecked[below], c[below] ** 2)
+    assert np.all(unchecked[~below] == 0)
+    # the friction state before a bar's first move: h^2, no known error
+    h = parts['hysteresis'][:, range(6), range(6)]
+    assert np.allclose(h[0], 0.2e-6 ** 2) and np.all(h >= 0) and np.all(h[-1] < h[0])
+    assert 'hysteresis' not in budget.sources(x, th.reference_error_m, th.temp_change_c,
+                                              th.bar_error_m, observed=observed)[1]
+    # the streaming sum equals the sum of the sources
+    total = budget.covariance(x, th.reference_error_m, th.temp_change_c, th.bar_error_m,
+                              observed=observed)
+    np.testing.assert_allclose(total, budget._covariance_by_sources(
+        x, th.reference_error_m, th.temp_change_c, th.bar_error_m, None, observed), rtol=1e-9,
+        atol=1e-24)
+
+
 def test_old_files_and_the_default_model_still_give_a_budget(realistic, tmp_path):
     _, _, calibration, run = realistic
     data = calibration.to_dict()
@@ -260,40 +308,60 @@ def test_realistic_twin_is_covered():
     assert cover >= 0.93, cover
 
 
-def test_after_the_loop_the_fit_s_uncertainty_is_in_the_model(tmp_path):
-    """`mmd analyze` with the twin's full pose: the written model carries the fitted terms'
-    parameter covariance (as one-sigma directions) and the residual; judged on runs the fit
-    never saw, the covariance covers the error (the residual of a single run's held-out
-    blocks does not replace the calibration-derived sources)."""
+def _after_the_loop(tmp_path, seed: int, fit_s: float = 60.0):
+    """mmd analyze on a log of a realistic twin with its full pose (the log's own reference
+    noise stated), then that twin's model judged against its true pose on three new runs."""
     from mmd_ros.analysis.identify import AnalysisOptions, analyze
     from mmd_ros.logs.layout import read_run
     from mmd_ros.twin.recording import SimulationSpec, simulate_to_log
-    log = tmp_path / 'fit.mcap'
-    spec = SimulationSpec(scenario='random_motion', scenario_params=('duration_s=60', 'seed=100'),
-                          effects='realistic', reference='pose6', seed=1, calibration_approaches=2)
+    log = tmp_path / f'fit{seed}.mcap'
+    spec = SimulationSpec(scenario='random_motion', scenario_params=(f'duration_s={fit_s:g}',
+                                                                     f'seed={99 + seed}'),
+                          effects='realistic', reference='pose6', seed=seed, calibration_approaches=2)
     simulate_to_log(spec, log, progress=False)
     result = analyze(read_run(log), options=AnalysisOptions(datum='none'))
-    assert 'sampling_skew' in [f.effect for f in result.found]
-    model = result.model
-    fit = model.uncertainty.fit
-    assert fit is not None and fit.directions and fit.replaces == ()
-    assert 'length_sigma_um' not in model.to_yaml()
-    back = Model.from_yaml(model.to_yaml())
-    twin = TwinDevice(DEVICE, Effects.realistic(), seed=1)
+    model = Model.from_yaml(result.model.to_yaml()) if result.model is not None else Model()
+    twin = TwinDevice(DEVICE, Effects.realistic(), seed=seed)
     room = ambient_profile('section_4_1')
     calibration = twin.calibrate(0.0, room, approaches=2)
     errors, covs = [], []
     for k in range(3):
-        run = twin.simulate(make_scenario('random_motion', ['duration_s=5', f'seed={k}']), room,
-                            start_s=700.0 + 20 * k, reference='pose6')
-        res = Pipeline(DEVICE, calibration, back).process(run.times_s, run.counts, with_covariance=True)
+        run = twin.simulate(make_scenario('random_motion', ['duration_s=4', f'seed={10 * seed + k}']),
+                            room, start_s=700.0 + 20 * k, reference='pose6')
+        res = Pipeline(twin.documented_device, calibration, model).process(
+            run.times_s, run.counts, with_covariance=True)
         errors.append(pose_error(res.poses, run.true_poses)[res.valid])
         covs.append(res.covariance[res.valid])
+    return result, model, errors, covs
+
+
+def test_after_the_loop_the_fit_s_uncertainty_is_in_the_model_and_covers(tmp_path):
+    """`mmd analyze` with the twin's full pose: the written model carries the fitted terms'
+    parameter covariance (as one-sigma directions), the residual of every bar (the
+    reference's own noise taken out) in place of the calibration-derived sources over the
+    lengths the fit saw, and that range. Two twins, each judged with its own model on new
+    motion: the 95 % ellipsoid covers 93-99 % and no axis is under-stated (ratio > 0.8).
+    The issue's 0.8-1.25 is not reached: the friction state at a run's start, which the term
+    cannot know before the bar has moved, is claimed as +-h (a bar left fully turned one way
+    or the other); the twin draws it uniformly in [-h, h]. Measured today 1.26-1.96."""
+    from mmd_ros.core.model import FIT_REPLACEABLE
+    errors, covs = [], []
+    for seed in (1, 2):
+        result, model, e, c = _after_the_loop(tmp_path, seed)
+        assert 'sampling_skew' in [f.effect for f in result.found]
+        fit = model.uncertainty.fit
+        assert fit is not None and fit.directions and fit.replaces == tuple(FIT_REPLACEABLE)
+        assert np.all(np.diag(fit.residual_m2) > 0)
+        assert 'bar_range_mm' in model.extra['validity']
+        assert 'length_sigma_um' not in model.to_yaml()
+        errors += e
+        covs += c
     e, c = np.concatenate(errors), np.concatenate(covs)
     ratio = np.sqrt(np.mean(np.diagonal(c, axis1=1, axis2=2), axis=0)) / np.sqrt(np.mean(e * e, axis=0))
     d2 = np.einsum('ni,ni->n', e, np.linalg.solve(c, e[:, :, None])[:, :, 0])
-    assert np.all(ratio > 0.6), ratio          # the fitted model's own error on new motion
-    assert np.mean(d2 <= LIMIT) > 0.8
+    print('after the loop: ratio', np.round(ratio, 2), 'coverage', np.mean(d2 <= LIMIT))
+    assert np.all((ratio > 0.8) & (ratio < 2.5)), ratio
+    assert 0.93 <= np.mean(d2 <= LIMIT) <= 0.99, np.mean(d2 <= LIMIT)
 
 
 # -- mmd process reports it -------------------------------------------------------------------

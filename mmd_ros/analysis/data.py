@@ -117,6 +117,8 @@ class Observation:
     reference : (N, k) — reference values of the observed components [m, rad]
     usable : (N,) — reference known in every observed component
     datum : True when a constant offset per component is removed (zeroed instrument)
+    sigma : (k,) the reference's own standard uncertainty per observed component [m, rad]
+        (the log's ``reference_sigma``), 0 where not stated
     """
 
     kind: str
@@ -126,6 +128,7 @@ class Observation:
     reference: FloatArray
     usable: BoolArray
     datum: bool
+    sigma: FloatArray | None = None
 
     @property
     def to_report(self) -> FloatArray:
@@ -152,10 +155,12 @@ class Observation:
 
 
 def make_observation(reference_pose: FloatArray | None, reference_lengths: FloatArray | None,
-                     datum: str = 'auto') -> Observation:
+                     datum: str = 'auto', reference_sigma: Any = None) -> Observation:
     """The observation space of a log's reference (pose components, else bar lengths).
 
     datum : 'auto' (an offset per pose component; none for bar lengths), 'offset', 'none'
+    reference_sigma : (6,) the reference pose's standard uncertainty [m, rad] (the log's
+        metadata ``reference_sigma``), or None: not stated
     """
     if datum not in ('auto', 'offset', 'none'):
         raise AnalysisError(f'datum must be auto, offset or none, got {datum!r}')
@@ -174,7 +179,14 @@ def make_observation(reference_pose: FloatArray | None, reference_lengths: Float
             names = [f'bar{k + 1}' for k in comps]
             units = ['um'] * len(comps)
         use_datum = datum == 'offset' or (datum == 'auto' and kind == 'pose')
-        return Observation(kind, comps, names, units, ref[:, comps], usable, use_datum)
+        sigma = None
+        if kind == 'pose' and reference_sigma is not None:
+            try:
+                s = np.asarray(reference_sigma, dtype=np.float64).reshape(6)
+                sigma = np.nan_to_num(s[comps], nan=0.0)
+            except (TypeError, ValueError):
+                sigma = None    # a malformed statement is no statement
+        return Observation(kind, comps, names, units, ref[:, comps], usable, use_datum, sigma)
     raise AnalysisError('the log has no reference (no /mmd/reference/pose or '
                         '/mmd/reference/bar_lengths with known values): nothing to compare the '
                         'MMD with; record a reference (see msg_docs/analysis.md)')

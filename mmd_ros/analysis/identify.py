@@ -387,7 +387,8 @@ def _prepare(index: int, run: RunLog, model: Model, calibration: Calibration | N
     if run.counts.shape[0] == 0:
         raise AnalysisError(f'{run.path} has no samples')
     try:
-        obs = make_observation(run.reference_pose, run.reference_lengths, o.datum)
+        obs = make_observation(run.reference_pose, run.reference_lengths, o.datum,
+                               run.metadata.get('reference_sigma'))
     except AnalysisError as exc:
         raise AnalysisError(f'{run.path}: {exc}') from None
     times = run.times_s

@@ -170,26 +170,32 @@ def fit_uncertainty(ctx: FitContext, found: list[FittedEffect], runs: list[Resid
         observed_cov = np.zeros((6, 6))
         predicted = np.zeros((6, 6))
         seen = np.zeros(6, dtype=bool)
+        for run, _ in full:      # what the references see of the bars
+            seen[slice(None) if run.ctx.obs.kind == 'pose' else run.ctx.obs.components] = True
+        # a residual of every bar stands for the calibration-derived sources over the lengths
+        # the fit saw (the budget restores them outside: the model's validity record)
+        replace = bool(seen.all())
         n = 0
         for run, idx in full:
             obs = run.ctx.obs
             r = run.residual[idx]
             if obs.kind == 'pose':
-                dd = np.einsum('nij,nj->ni', jacobian(run.ctx.device.geometry, run.after.poses[idx]), r)
-                seen[:] = True
+                jac = jacobian(run.ctx.device.geometry, run.after.poses[idx])
+                dd = np.einsum('nij,nj->ni', jac, r)
+                if obs.sigma is not None:    # the reference's own noise is not the MMD's error
+                    observed_cov -= np.einsum('nik,k,njk->ij', jac, obs.sigma ** 2, jac)
             else:
                 dd = np.zeros((idx.size, 6))
                 dd[:, obs.components] = r
-                seen[obs.components] = True
             kept, replaceable = _predicted(run, model, fit, idx)
             observed_cov += dd.T @ dd
-            predicted += np.sum(kept if unseen else kept + replaceable, axis=0)
+            predicted += np.sum(kept if replace else kept + replaceable, axis=0)
             n += idx.size
         excess = _psd(observed_cov / n - predicted / n)
         excess[~seen, :] = 0.0
         excess[:, ~seen] = 0.0
         fit.residual_m2 = excess
-        fit.replaces = tuple(FIT_REPLACEABLE) if unseen and seen.all() else ()
+        fit.replaces = tuple(FIT_REPLACEABLE) if replace else ()
         fit.record['samples'] = int(n)
         fit.record['residual_rms_nm'] = [round(float(math.sqrt(max(v, 0.0) / n)) * 1e9, 3)
                                          for v in np.diag(observed_cov)]
@@ -206,6 +212,8 @@ def fit_uncertainty(ctx: FitContext, found: list[FittedEffect], runs: list[Resid
             repl_p = np.mean(np.diagonal(pose_covariance(jinv, replaceable, scale), axis1=1,
                                          axis2=2)[:, comp], axis=0)
             seen_var = np.mean(run.residual[idx] ** 2, axis=0)
+            if run.ctx.obs.sigma is not None:
+                seen_var = seen_var - run.ctx.obs.sigma ** 2
             num += float(np.sum((seen_var - kept_p) * repl_p))
             den += float(np.sum(repl_p * repl_p))
         estimate = num / den if den > 0 else 1.0

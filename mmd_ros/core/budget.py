@@ -31,8 +31,9 @@ from numpy.typing import NDArray
 from mmd_ros.core.calibration import Calibration
 from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.errors import CalibrationError
-from mmd_ros.core.model import Model
+from mmd_ros.core.model import Model, TermContext
 from mmd_ros.core.terms import MAX_GAP_S, SamplingSkewTerm
+from mmd_ros.core.validity import Validity
 from mmd_ros.core.uncertainty import (
     InterpolationError, NoiseEstimator, capture_var, fit_interpolation_error,
     quantisation_cross_weights,
@@ -50,6 +51,8 @@ DIRECTION_TRAVEL_M = 1e-6
 FRICTION_TERMS = ('hysteresis', 'friction')
 #: Model terms that compensate the channels' latch skew (the latch_skew source is then off).
 SKEW_TERMS = ('sampling_skew',)
+#: Fitted terms whose correction depends on a bar's length only (the unchecked_range source).
+LENGTH_TERMS = ('scale_nonlinearity', 'cdf_offsets')
 #: Travel after a reversal by which a bar's friction state has turned over (an assumption:
 #: rolling guides turn within a few um; the calibration does not measure it) [m].
 FRICTION_TURNOVER_M = 20e-6
@@ -88,15 +91,19 @@ class Observed:
         turned since the last reversal, min(1, travel / FRICTION_TURNOVER_M)
     velocity_m_s : (N, 6) — each bar's speed of lengthening, a backward difference of its CDF
         length (0 where not known) [m/s]
+    settled : (N, 6) — how far each bar's friction state has turned since the run began,
+        min(1, travel / turnover): 0 before its first move (the state a compensating term
+        cannot know yet), 1 once it has travelled the turnover
     """
 
     read_noise_m: FloatArray
     directions: FloatArray
     velocity_m_s: FloatArray | None = None
+    settled: FloatArray | None = None
 
     def __getitem__(self, index: Any) -> Observed:
-        return Observed(self.read_noise_m[index], self.directions[index],
-                        None if self.velocity_m_s is None else self.velocity_m_s[index])
+        return Observed(*(None if v is None else v[index] for v in (
+            self.read_noise_m, self.directions, self.velocity_m_s, self.settled)))
 
 
 class _Velocity:
@@ -120,52 +127,63 @@ class _Velocity:
 
 
 class _Friction:
-    """Each bar's direction (a play operator of half-width ``w``) and the travel since its last
-    reversal, carried from call to call."""
+    """Each bar's direction (a play operator of half-width ``w``), the travel since its last
+    reversal and since the run began, carried from call to call."""
 
     def __init__(self, w: float, turnover: float) -> None:
         self.w, self.turnover = float(w), float(turnover)
         self.reset()
 
     def reset(self) -> None:
-        self._state: list[tuple[float, float, float]] | None = None   # play, direction, flip at
+        # play, direction, flip at, path since the run began
+        self._state: list[tuple[float, float, float, float]] | None = None
 
-    def __call__(self, x: FloatArray) -> FloatArray:
+    def __call__(self, x: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """The friction state as far as the motion tells, (N, 6) (see :class:`Observed`), and
+        how far it has turned since the run began, min(1, path / turnover), (N, 6)."""
         n = x.shape[0]
         out = np.zeros((n, 6))
+        settled = np.zeros((n, 6))
         if n == 0:
-            return out
+            return out, settled
         if self._state is None:
-            self._state = [(math.nan, 0.0, math.nan)] * 6
+            self._state = [(math.nan, 0.0, math.nan, 0.0)] * 6
         w, turn = self.w, self.turnover
         for bar in range(6):  # a sequential recurrence: plain floats beat numpy rows here
-            p, d, f = self._state[bar]
+            p, d, f, path = self._state[bar]
             col = x[:, bar].tolist()
             res = [0.0] * n
+            done = [0.0] * n
             for k, v in enumerate(col):
                 if v != v:      # NaN: out of range, the state stays
                     res[k] = d * min(1.0, abs(p - f) / turn) if d else 0.0
+                    done[k] = min(1.0, path / turn)
                     continue
                 if p != p:
                     p = f = v
                 if p < v - w:
+                    path += v - w - p
                     p = v - w
                     if d != 1.0:
                         d, f = 1.0, p
                 elif p > v + w:
+                    path += p - v - w
                     p = v + w
                     if d != -1.0:
                         d, f = -1.0, p
                 if d:
                     res[k] = d * min(1.0, abs(p - f) / turn)
+                done[k] = min(1.0, path / turn)
             out[:, bar] = res
-            self._state[bar] = (p, d, f)
-        return out
+            settled[:, bar] = done
+            self._state[bar] = (p, d, f, path)
+        return out, settled
 
 #: The budget's sources, in the order reports list them.
 SOURCES = ('quantisation', 'read_noise', 'reference_bar', 'calibration_points',
            'calibration_drift', 'reference_distances', 'interpolation', 'thermal_approximation',
-           'thermal_mismatch', 'hysteresis', 'latch_skew', 'fitted_terms', 'residual')
+           'thermal_mismatch', 'hysteresis', 'latch_skew', 'unchecked_range', 'fitted_terms',
+           'residual')
 
 
 class LengthBudget:
@@ -274,12 +292,21 @@ class LengthBudget:
         self.zero_noise_m = s_cal
         self.zero_var_m2 = capture_var(res, s_cal, int(figures.capture_samples or 1))
 
-        # -- friction hysteresis measured by a two-sided calibration, unless compensated: a bar
-        # that last lengthened reads short by h (the sign from its motion, a play operator)
-        compensated = any(t.type_name in FRICTION_TERMS for t in model.terms)
-        h = np.array([figures.hysteresis_m.get(m, 0.0) for m in measuring])
-        self.hysteresis_m = np.zeros(6) if compensated else np.abs(h)
-        self._direction = _Friction(DIRECTION_TRAVEL_M, FRICTION_TURNOVER_M)
+        # -- friction hysteresis measured by a two-sided calibration: a bar that last lengthened
+        # reads short by h (the sign from its motion, a play operator). A term that compensates
+        # it knows the state only once the bar has moved: until then the state is unknown, +-h
+        # (h the larger of the calibration's and the term's amplitude)
+        friction = [t for t in model.terms if t.type_name in FRICTION_TERMS]
+        self.friction_compensated = bool(friction)
+        h = np.abs([figures.hysteresis_m.get(m, 0.0) for m in measuring])
+        for term in friction:
+            amplitude = np.abs(np.asarray(getattr(term, 'amplitude_m', np.zeros(6)), dtype=np.float64))
+            h = np.maximum(h, amplitude if amplitude.shape == (6,) else 0.0)
+        self.hysteresis_m = h
+        # (a compensating term's own turnover travel, where longer, is how far a bar must move
+        # before the term knows its state)
+        turnover = max([FRICTION_TURNOVER_M] + [float(getattr(t, 'travel_m', 0.0)) for t in friction])
+        self._direction = _Friction(DIRECTION_TRAVEL_M, turnover)
 
         # -- the terminal's latch skew (its datasheet), unless a fitted term compensates it
         skew = device.latch_skew_s
@@ -289,6 +316,17 @@ class LengthBudget:
         self.latch_skew_s = (0.0 if any(t.type_name in SKEW_TERMS for t in model.terms)
                              else float(skew or 0.0))
         self._velocity = _Velocity(1.0 / device.sample_rate_hz)
+
+        # -- a fitted length-dependent term where the fit never saw the bar: its correction
+        # there is an extrapolation that no data checked (the model's validity record)
+        validity = Validity.from_model(model)
+        self._fit_range_m = validity.bar_range_m if validity is not None and fit is not None else None
+        self._length_terms = [t for t in model.terms if t.type_name in LENGTH_TERMS]
+        self._fitted_range_m = (validity.bar_range_m if validity is not None and self._length_terms
+                                else None)
+        if self._length_terms and validity is None:
+            self.notes.append('unchecked range: the model does not record the lengths its terms '
+                              'were fitted on (validity.bar_range_mm)')
 
         # -- what a fit replaced, and how much of the rest it kept
         self.replaced = set(fit.replaces) if fit is not None else set()
@@ -346,11 +384,11 @@ class LengthBudget:
         if k:
             values[:, 6:] = np.asarray(reference_error_m, dtype=np.float64).reshape(n, -1)[:, :k]
         est = self.noise.feed(values)
-        directions = (self._direction(np.asarray(cdf_lengths_m, dtype=np.float64))
-                      if self._has_hysteresis else np.zeros((n, 6)))
+        directions, settled = (self._direction(np.asarray(cdf_lengths_m, dtype=np.float64))
+                               if self._has_hysteresis else (np.zeros((n, 6)), None))
         velocity = (self._velocity(np.asarray(cdf_lengths_m, dtype=np.float64), times_s)
                     if self.latch_skew_s else None)
-        return Observed(self._resolve(est), directions, velocity)
+        return Observed(self._resolve(est), directions, velocity, settled)
 
     def _resolve(self, estimate: FloatArray) -> FloatArray:
         if self.fixed_noise_m is not None:
@@ -406,12 +444,13 @@ class LengthBudget:
         i0 = np.clip(pos.astype(np.intp), 0, self._grid_n - 2)
         f = pos - i0
         rows = np.arange(6)[None, :]
-        for name, tab in tables.items():
+        factor = self._table_factor(x, bar_error_m)
+        for name, tab in tables.items() if np.any(factor) else ():
             value = tab[rows, i0] * (1.0 - f) + tab[rows, i0 + 1] * f
             if name == 'calibration_drift':
-                t.bias[name] = value
+                t.bias[name] = np.sqrt(factor) * value
             else:
-                t.diag[name] = value
+                t.diag[name] = factor * value
         if self._has_pairs and self._kept('reference_distances'):
             k = self.knots_m
             seg = np.clip(np.sum(x[:, :, None] >= k[None], axis=2) - 1, 0, k.shape[1] - 2)
@@ -428,11 +467,13 @@ class LengthBudget:
                 * np.asarray(temp_change_c)[:, None]
         if self.mismatch_fraction:
             t.diag['thermal_mismatch'] = (self.mismatch_fraction * bar_error_m) ** 2
-        if self._has_hysteresis and self._kept('hysteresis'):
-            s_dir = np.zeros((n, 6)) if observed is None else observed.directions
-            kept = self._kept('hysteresis')
-            t.bias['hysteresis'] = -math.sqrt(kept) * self.hysteresis_m * s_dir
-            t.diag['hysteresis'] = kept * self.hysteresis_m ** 2 * (1.0 - s_dir ** 2)
+        hysteresis = self._hysteresis(n, observed)
+        if hysteresis is not None:
+            if hysteresis[0] is not None:
+                t.bias['hysteresis'] = hysteresis[0]
+            t.diag['hysteresis'] = hysteresis[1]
+        if self._fitted_range_m is not None:
+            t.diag['unchecked_range'] = self._unchecked(x, bar_error_m, eps, temp_change_c)
         if self.latch_skew_s and observed is not None and observed.velocity_m_s is not None:
             v = observed.velocity_m_s
             t.bias['latch_skew'] = 0.5 * self.latch_skew_s * v
@@ -448,7 +489,7 @@ class LengthBudget:
     def _tables(self) -> dict[str, FloatArray]:
         """Per bar, on a grid of lengths (G,) over the calibrated span and 10 mm beyond: the
         calibration points' and the interpolation's variance and the routine drift's error,
-        (6, G) each, as the fit keeps them."""
+        (6, G) each, before a fit's factor (:meth:`_table_factor`)."""
         if self._tab is not None:
             return self._tab
         k = self.knots_m
@@ -462,17 +503,65 @@ class LengthBudget:
         seg = np.clip(np.sum(x[:, :, None] >= k[None], axis=2) - 1, 0, k.shape[1] - 2)
         u = (x - k[rows, seg]) / (k[rows, seg + 1] - k[rows, seg])
         tab: dict[str, FloatArray] = {}
-        if self._kept('calibration_points'):
-            tab['calibration_points'] = (self._kept('calibration_points') * self.point_var_m2
-                                         * ((1.0 - u) ** 2 + u ** 2)).T
-        if self._has_drift and self._kept('calibration_drift'):
+        tab['calibration_points'] = (self.point_var_m2 * ((1.0 - u) ** 2 + u ** 2)).T
+        if self._has_drift:
             e = self.drift_m[rows, seg] * (1.0 - u) + self.drift_m[rows, seg + 1] * u
-            tab['calibration_drift'] = (math.sqrt(self._kept('calibration_drift')) * e).T
-        if self.interpolation.sigma_m > 0 and self._kept('interpolation'):
-            tab['interpolation'] = (self._kept('interpolation')
-                                    * self.interpolation.variance(x, k)).T
+            tab['calibration_drift'] = e.T
+        if self.interpolation.sigma_m > 0:
+            tab['interpolation'] = self.interpolation.variance(x, k).T
         self._tab = {name: np.ascontiguousarray(v) for name, v in tab.items()}
         return self._tab
+
+    def _table_factor(self, x: FloatArray, bar_error_m: FloatArray) -> float | FloatArray:
+        """The factor on the tabulated calibration-derived sources (points, drift,
+        interpolation): what a fit kept of them (:meth:`_kept`, 0 when its residual replaced
+        them), but at least 1 for a bar outside the lengths the fit saw (its residual measured
+        nothing there); a scalar, or (N, 6)."""
+        kept = self._kept('interpolation')
+        if self._fit_range_m is None or kept >= 1.0:
+            return kept
+        cdf = x + bar_error_m
+        with np.errstate(invalid='ignore'):
+            out = (cdf < self._fit_range_m[:, 0]) | (cdf > self._fit_range_m[:, 1])
+        return np.where(out, 1.0, kept)
+
+    def _unchecked(self, x: FloatArray, bar_error_m: FloatArray, eps: FloatArray,
+                   temp_change_c: FloatArray) -> FloatArray:
+        """The unchecked_range source, (N, 6) [m^2]: the square of the length-dependent terms'
+        correction of a bar whose CDF length lies outside the lengths the fit saw, else 0."""
+        n = x.shape[0]
+        cdf = x + bar_error_m       # before the thermal compensation (the terms' shift is small)
+        ctx = TermContext(np.zeros(n), np.zeros((n, 8)), x, cdf, eps,
+                          np.broadcast_to(np.asarray(temp_change_c, dtype=np.float64), (n,)))
+        c = sum(term.correction(ctx) for term in self._length_terms)
+        lo, hi = self._fitted_range_m[:, 0], self._fitted_range_m[:, 1]
+        with np.errstate(invalid='ignore'):
+            out = (cdf < lo) | (cdf > hi)
+        return np.where(out, c * c, 0.0)
+
+    def _hysteresis(self, n: int, observed: Observed | None
+                    ) -> tuple[FloatArray | None, FloatArray] | None:
+        """The hysteresis source of N samples: its known error (N, 6) [m] (None when a term
+        compensates it) and its variance (N, 6) [m^2]; None when it is off.
+
+        Uncompensated: -h s and h^2 (1 - s^2), s the friction state as far as the motion tells
+        (scaled by what a fit kept of it). Compensated: h^2 (1 - r^2) only, r how far the bar
+        has travelled since the run began (``Observed.settled``): the state the term cannot know
+        before the bar has moved (each run starts with it unknown; a fit's residual does not
+        replace it).
+        """
+        if not self._has_hysteresis:
+            return None
+        if self.friction_compensated:
+            settled = (np.zeros((n, 6)) if observed is None or observed.settled is None
+                       else observed.settled)
+            return None, self.hysteresis_m ** 2 * (1.0 - settled * settled)
+        kept = self._kept('hysteresis')
+        if not kept:
+            return None
+        s_dir = np.zeros((n, 6)) if observed is None else observed.directions
+        return (-math.sqrt(kept) * self.hysteresis_m * s_dir,
+                kept * self.hysteresis_m ** 2 * (1.0 - s_dir * s_dir))
 
     def _cross(self, noise_ref_m: FloatArray, eps: FloatArray) -> FloatArray:
         """quantisation_cross_cov of each reference bar's live reading and its zero at the
@@ -555,23 +644,28 @@ class LengthBudget:
         g = 1.0 - f
         rows = fast['rows']
         diag = fast['q12'] + noise[:, :6] ** 2
-        if fast['diag'] is not None:
-            tab = fast['diag']
-            diag += tab[rows, i0] * g + tab[rows, i0 + 1] * f
+        factor = self._table_factor(x, bar_error_m if bar_error_m is not None
+                                    else self.bar_error(x, eps))
         bias = np.zeros((n, 6))
-        if fast['drift'] is not None:
-            tab = fast['drift']
-            bias += tab[rows, i0] * g + tab[rows, i0 + 1] * f
+        if np.any(factor):
+            tab = fast['diag']
+            diag += factor * (tab[rows, i0] * g + tab[rows, i0 + 1] * f)
+            if fast['drift'] is not None:
+                tab = fast['drift']
+                bias += np.sqrt(factor) * (tab[rows, i0] * g + tab[rows, i0 + 1] * f)
         if self.thermal_mode == 'single':
             bias -= (x - self.ref_distances_m[0]) * (self.scale_cte * np.asarray(temp_change_c))[:, None]
             if self.mismatch_fraction:
                 diag += (self.mismatch_fraction * eps[:, :1]) ** 2 if bar_error_m is None \
                     else (self.mismatch_fraction * bar_error_m) ** 2
-        kept = fast['hysteresis']
-        if kept:
-            s_dir = np.zeros((n, 6)) if observed is None else observed.directions
-            bias -= math.sqrt(kept) * self.hysteresis_m * s_dir
-            diag += kept * self.hysteresis_m ** 2 * (1.0 - s_dir * s_dir)
+        hysteresis = self._hysteresis(n, observed)
+        if hysteresis is not None:
+            if hysteresis[0] is not None:
+                bias += hysteresis[0]
+            diag += hysteresis[1]
+        if self._fitted_range_m is not None:
+            diag += self._unchecked(x, self.bar_error(x, eps) if bar_error_m is None else bar_error_m,
+                                    eps, temp_change_c)
         if self.latch_skew_s and observed is not None and observed.velocity_m_s is not None:
             v = observed.velocity_m_s
             bias += (0.5 * self.latch_skew_s) * v
@@ -598,9 +692,8 @@ class LengthBudget:
             self._fast_parts = {
                 'rows': np.arange(6)[None, :],
                 'q12': self.resolution_m ** 2 / 12.0,
-                'diag': np.ascontiguousarray(sum(diag)) if diag else None,
+                'diag': np.ascontiguousarray(sum(diag)),
                 'drift': tables.get('calibration_drift'),
-                'hysteresis': self._kept('hysteresis') if self._has_hysteresis else 0.0,
             }
         return self._fast_parts
 
