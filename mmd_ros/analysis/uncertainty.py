@@ -12,14 +12,17 @@ claim in two ways (``msg_docs/frames.md``):
   per-sample sum and enter, with all others, as their mean over the fit's samples
   (``mean_terms_nm2``, for a stage without counts);
 - **the residual**: with a reference that determines every bar (a full pose, or bar lengths)
-  the bar-length residual, J dp, has a covariance R. With several logs it is each log's error
-  under the model fitted on the others (leave-one-run-out): data the fit never saw. The
-  budget keeps its per-sample sources (quantisation, read noise, reference bar, thermal,
-  fitted terms); what R holds beyond their mean over the same samples is the residual source
-  (PSD part), and it replaces the calibration-derived systematic sources it measured
-  (:data:`~mmd_ros.core.model.FIT_REPLACEABLE`). With one log, R comes from its held-out
-  blocks, which interleave with the training blocks: the calibration-derived sources stay and
-  R adds what exceeds them. A reference that sees only some pose components cannot tell the
+  the bar-length residual, J dp, has a covariance R, the reference's own variance (the log's
+  ``reference_sigma``) taken out. With several logs it is each log's error under the model
+  fitted on the others (leave-one-run-out): data the fit never saw; with one log, its
+  held-out blocks. The budget keeps its per-sample sources (quantisation, read noise,
+  reference bar, thermal, latch skew, fitted terms); what R holds beyond their mean over the
+  same samples is the residual source (PSD part), and it replaces the calibration-derived
+  systematic sources it measured (:data:`~mmd_ros.core.model.FIT_REPLACEABLE`) over the
+  lengths the fit saw: the budget brings them back for a bar outside the model's
+  ``validity.bar_range_mm``. Not when the fit removed an offset per component (a zeroed
+  reference, ``--datum offset``, the default for a pose): the residual then lacks the constant
+  part of the error, so those sources stay and the residual adds only what exceeds them. A reference that sees only some pose components cannot tell the
   bars apart: the calibration-derived sources stay, scaled by the factor k that makes the
   observed components' predicted variance match what was observed, never below 1 (what the
   reference did not see is not claimed better than before).
@@ -146,11 +149,9 @@ def fit_uncertainty(ctx: FitContext, found: list[FittedEffect], runs: list[Resid
     runs : the logs the residual is measured on
     model : the extended model (its terms; its uncertainty section is not used)
     unseen : the residuals come from data the fit never saw (leave-one-run-out: each log
-        predicted by the model fitted on the others). Only then may they replace the
-        calibration-derived sources: held-out blocks of a fitted run interleave with the
-        training blocks and show how well the model fits that run, not how it does on another
-        motion, so otherwise the calibration-derived sources stay and the residual adds only
-        what exceeds them
+        predicted by the model fitted on the others), else from held-out blocks of the fitted
+        logs (recorded in ``from``). Either replaces the calibration-derived sources where
+        every bar is seen, over the lengths the fit saw (the budget restores them outside)
     """
     ref = runs[0] if runs else None
     idx0 = ref.idx if ref is not None else np.zeros(0, np.int64)
@@ -173,8 +174,10 @@ def fit_uncertainty(ctx: FitContext, found: list[FittedEffect], runs: list[Resid
         for run, _ in full:      # what the references see of the bars
             seen[slice(None) if run.ctx.obs.kind == 'pose' else run.ctx.obs.components] = True
         # a residual of every bar stands for the calibration-derived sources over the lengths
-        # the fit saw (the budget restores them outside: the model's validity record)
-        replace = bool(seen.all())
+        # the fit saw (the budget restores them outside: the model's validity record); not
+        # when an offset per component was removed: the constant part of the error (which
+        # those sources mostly are) is then missing from it, and they stay
+        replace = bool(seen.all()) and not any(run.ctx.obs.datum for run, _ in full)
         n = 0
         for run, idx in full:
             obs = run.ctx.obs
