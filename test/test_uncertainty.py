@@ -332,7 +332,7 @@ def _after_the_loop(tmp_path, seed: int, fit_s: float = 60.0):
             run.times_s, run.counts, with_covariance=True)
         errors.append(pose_error(res.poses, run.true_poses)[res.valid])
         covs.append(res.covariance[res.valid])
-    return result, model, errors, covs
+    return result, model, errors, covs, log
 
 
 def test_after_the_loop_the_fit_s_uncertainty_is_in_the_model_and_covers(tmp_path):
@@ -347,7 +347,7 @@ def test_after_the_loop_the_fit_s_uncertainty_is_in_the_model_and_covers(tmp_pat
     from mmd_ros.core.model import FIT_REPLACEABLE
     errors, covs = [], []
     for seed in (1, 2):
-        result, model, e, c = _after_the_loop(tmp_path, seed)
+        result, model, e, c, log = _after_the_loop(tmp_path, seed)
         assert 'sampling_skew' in [f.effect for f in result.found]
         fit = model.uncertainty.fit
         assert fit is not None and fit.directions and fit.replaces == tuple(FIT_REPLACEABLE)
@@ -356,6 +356,11 @@ def test_after_the_loop_the_fit_s_uncertainty_is_in_the_model_and_covers(tmp_pat
         assert 'length_sigma_um' not in model.to_yaml()
         errors += e
         covs += c
+    # a residual with an offset removed per component lacks the constant error: no replacing
+    from mmd_ros.analysis.identify import AnalysisOptions, analyze
+    from mmd_ros.logs.layout import read_run
+    zeroed = analyze(read_run(log), options=AnalysisOptions(datum='offset')).model
+    assert zeroed is not None and zeroed.uncertainty.fit.replaces == ()
     e, c = np.concatenate(errors), np.concatenate(covs)
     ratio = np.sqrt(np.mean(np.diagonal(c, axis1=1, axis2=2), axis=0)) / np.sqrt(np.mean(e * e, axis=0))
     d2 = np.einsum('ni,ni->n', e, np.linalg.solve(c, e[:, :, None])[:, :, 0])
