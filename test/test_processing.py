@@ -9,7 +9,6 @@ import dataclasses
 import numpy as np
 import pytest
 
-from mmd_ros.cli.main import main
 from mmd_ros.core.compiled import AVAILABLE as COMPILED, NOT_IN_USE
 from mmd_ros.core.model import Model
 from mmd_ros.core.terms import GravitySagTerm, HysteresisTerm
