@@ -980,9 +980,13 @@ static PyObject *dahl_state(PyObject *self, PyObject *args)
     double *last = ptr[1], *dir = ptr[2], *anchor_x = ptr[3], *anchor_s = ptr[4], *out = ptr[5];
     Py_BEGIN_ALLOW_THREADS
     for (Py_ssize_t j = 0; j < k; j++) {
-        double prev = last[j], d = dir[j], ax = anchor_x[j], as = anchor_s[j];
+        double prev = last[j], d = dir[j], ax = anchor_x[j], as = anchor_s[j], s = 0.0;
         for (Py_ssize_t i = 0; i < n; i++) {
             const double p = x[i * k + j];
+            if (i > 0 && p == prev) {   /* at rest (the play holds): the same state */
+                out[i * k + j] = out[(i - 1) * k + j];
+                continue;
+            }
             const double step = (p > prev) - (p < prev);
             const double now = step != 0.0 ? step : d;
             if (now != d) {         /* a new direction begins at prev: its anchor */
@@ -991,7 +995,7 @@ static PyObject *dahl_state(PyObject *self, PyObject *args)
                 ax = prev;
                 d = now;
             }
-            double s = d == 0.0 ? as : d - (d - as) * exp(-d * (p - ax) / travel);
+            s = d == 0.0 ? as : d - (d - as) * exp(-d * (p - ax) / travel);
             out[i * k + j] = s < -1.0 ? -1.0 : (s > 1.0 ? 1.0 : s);
             prev = p;
         }
