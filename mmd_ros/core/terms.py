@@ -101,9 +101,9 @@ def leg_geometry(upper_m: FloatArray, lower_m: FloatArray, poses: FloatArray
         positions are scaled by s (Eq. 6 with s a_i, s b_i), n_i . (R a_i - b_i)
     """
     rot = rotation_matrix(poses[:, 3:])
-    ra = np.einsum('nij,kj->nki', rot, upper_m)
+    ra = np.matmul(rot, np.asarray(upper_m).T).transpose(0, 2, 1)   # (einsum: 2x slower here)
     legs = ra + poses[:, None, :3] - lower_m[None]
-    units = legs / np.linalg.norm(legs, axis=2, keepdims=True)
+    units = legs / np.sqrt(np.einsum('nki,nki->nk', legs, legs))[:, :, None]
     ddds = np.einsum('nki,nki->nk', units, ra - lower_m[None])
     return ra, units, ddds
 
