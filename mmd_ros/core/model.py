@@ -166,8 +166,8 @@ class HysteresisTerm(ModelTerm):
         direction = self._direction.copy()
         w = self.travel_m
         if use_compiled(compiled):
-            fast.play_directions(np.ascontiguousarray(lengths_m, dtype=np.float64), w, play,
-                                 direction, out)
+            fast.play(np.ascontiguousarray(lengths_m, dtype=np.float64), w, play, direction,
+                      None, out)
             self._play, self._direction = play, direction
             return out
         for bar in range(6):  # a sequential recurrence: plain floats beat numpy rows here
@@ -422,4 +422,4 @@ def load_model(path: str | os.PathLike[str] | None) -> Model:
     return Model.from_dict(read_yaml(path), str(path))
 
 
-import mmd_ros.core.terms  # noqa: F401  (registers the catalogue's terms)
+import mmd_ros.core.terms  # noqa: F401,E402  (registers the catalogue's terms)
