@@ -33,11 +33,11 @@ from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.errors import CalibrationError
 from mmd_ros.core.model import Model, TermContext
 from mmd_ros.core.terms import MAX_GAP_S, SamplingSkewTerm
-from mmd_ros.core.validity import Validity
 from mmd_ros.core.uncertainty import (
     InterpolationError, NoiseEstimator, capture_var, fit_interpolation_error,
     quantisation_cross_weights,
 )
+from mmd_ros.core.validity import Validity
 
 __all__ = ['DIRECTION_TRAVEL_M', 'FRICTION_TURNOVER_M', 'LengthBudget', 'Observed', 'SOURCES']
 
@@ -444,7 +444,7 @@ class LengthBudget:
         i0 = np.clip(pos.astype(np.intp), 0, self._grid_n - 2)
         f = pos - i0
         rows = np.arange(6)[None, :]
-        factor = self._table_factor(x, bar_error_m)
+        factor = self._table_factor(x, bar_error_m, eps)
         for name, tab in tables.items() if np.any(factor) else ():
             value = tab[rows, i0] * (1.0 - f) + tab[rows, i0 + 1] * f
             if name == 'calibration_drift':
@@ -512,7 +512,8 @@ class LengthBudget:
         self._tab = {name: np.ascontiguousarray(v) for name, v in tab.items()}
         return self._tab
 
-    def _table_factor(self, x: FloatArray, bar_error_m: FloatArray) -> float | FloatArray:
+    def _table_factor(self, x: FloatArray, bar_error_m: FloatArray | None, eps: FloatArray
+                      ) -> float | FloatArray:
         """The factor on the tabulated calibration-derived sources (points, drift,
         interpolation): what a fit kept of them (:meth:`_kept`, 0 when its residual replaced
         them), but at least 1 for a bar outside the lengths the fit saw (its residual measured
@@ -520,7 +521,7 @@ class LengthBudget:
         kept = self._kept('interpolation')
         if self._fit_range_m is None or kept >= 1.0:
             return kept
-        cdf = x + bar_error_m
+        cdf = x + (self.bar_error(x, eps) if bar_error_m is None else bar_error_m)
         with np.errstate(invalid='ignore'):
             out = (cdf < self._fit_range_m[:, 0]) | (cdf > self._fit_range_m[:, 1])
         return np.where(out, 1.0, kept)
@@ -644,8 +645,7 @@ class LengthBudget:
         g = 1.0 - f
         rows = fast['rows']
         diag = fast['q12'] + noise[:, :6] ** 2
-        factor = self._table_factor(x, bar_error_m if bar_error_m is not None
-                                    else self.bar_error(x, eps))
+        factor = self._table_factor(x, bar_error_m, eps)
         bias = np.zeros((n, 6))
         if np.any(factor):
             tab = fast['diag']
