@@ -34,6 +34,7 @@ from mmd_ros.nodes.outlets import Outlet
 from mmd_ros.nodes.params import Param
 from mmd_ros.nodes.sim_commands import SimCommandError, run_commands
 from mmd_ros.twin import SCENARIOS
+from mmd_ros.twin.effects import PRESETS as EFFECT_PRESETS
 
 __all__ = ['TERMINAL_PARAMS', 'TerminalConfig', 'TerminalStage']
 
@@ -58,8 +59,9 @@ TERMINAL_PARAMS = [
           'are mounted (restarted when it ends)', choices=tuple(sorted(SCENARIOS))),
     Param('sim_scenario_params', 'duration_s=300.0', 'simulation: scenario parameters, '
           'space-separated name=value (see msg_docs/simulation.md)'),
-    Param('sim_effects', 'realistic', 'simulation: physical effects preset',
-          choices=('ideal', 'realistic')),
+    Param('sim_effects', 'realistic', 'simulation: physical effects preset (msg_docs/'
+          'simulation.md): none (no error source at all), ideal or realistic',
+          choices=EFFECT_PRESETS),
     Param('sim_effect_params', '', 'simulation: effect parameters, space-separated name=value'),
     Param('sim_seed', 1, 'simulation: seed of the simulated device', low=0, high=2**31 - 1),
     Param('sim_ambient', 'constant:20.0', 'simulation: room temperature: section_4_1, '
