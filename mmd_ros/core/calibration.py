@@ -33,6 +33,12 @@ __all__ = ['BarCalibration', 'Calibration', 'CdfBank', 'CentreDistanceFunction',
            'binding_problem', 'channel_roles', 'load_calibration']
 
 FloatArray = NDArray[np.float64]
+#: The keys of a calibration file, of one bar's points and of the terminal it was made with;
+#: anything else is refused as a typo (``quality`` is free-form: the routine's notes).
+CALIBRATION_KEYS = ('format_version', 'device', 'created', 'valid', 'ambient_c', 'thermal_zero_um',
+                    'bars', 'quality', 'terminal', 'uncertainty')
+BAR_KEYS = ('pairs', 'counts', 'distances_mm')
+TERMINAL_KEYS = ('serial', 'simulated', 'channels')
 
 
 class CentreDistanceFunction:
@@ -148,6 +154,7 @@ class TerminalBinding:
     def from_dict(cls, data: Any, source: str) -> TerminalBinding:
         if not isinstance(data, dict):
             raise ConfigError(source, 'terminal', 'must map serial, simulated and channels')
+        validate.known_keys(data, TERMINAL_KEYS, source, 'terminal.')
         serial, simulated = data.get('serial', ''), data.get('simulated')
         channels = data.get('channels') or {}
         if not isinstance(serial, str):
@@ -261,12 +268,14 @@ class Calibration:
         f = validate.Fields(source)
         if not isinstance(data, dict) or data.get('format_version') != 1:
             raise f.fail('format_version', 'not a calibration file of format 1')
+        f.known_keys(data, CALIBRATION_KEYS)
         bars_raw = f.get(data, 'bars')
         if not isinstance(bars_raw, dict) or not bars_raw:
             raise f.fail('bars', 'must map channel names to calibration points')
         bars = {}
         for name, item in bars_raw.items():
             path = f'bars.{name}'
+            f.known_keys(validate.mapping(item, source, path), BAR_KEYS, path)
             pairs = f.get(item, 'pairs', path)
             if not isinstance(pairs, list) or not all(isinstance(p, str) for p in pairs):
                 raise f.fail(f'{path}.pairs', f'must be a list of reference pair names, got {pairs!r}')
