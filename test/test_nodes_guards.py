@@ -11,6 +11,7 @@
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import replace
 
 import numpy as np
@@ -100,6 +101,43 @@ def stage(device, path, *, any_terminal=False, terminal=None, factory=None, refu
                           terminal=terminal, on_refused=refused)
     st.start()
     return st, published
+
+
+@needs_ros
+def test_the_stage_restores_a_calibration_an_interrupted_save_left_as_bak(device, source, tmp_path):
+    """Killed between the old writer's two renames, only cal.yaml.bak and a temporary remain:
+    the next start uses the complete earlier calibration (not a new factory one), puts the
+    file back, and says so in the log and the diagnostics until the next save."""
+    roles = channel_roles(device.channels)
+    path = tmp_path / 'cal.yaml'
+    old = bound(source.factory_calibration(), 'MMD-SIM-0001', True, device)
+    old = replace(old, created='2026-01-01T00:00:00Z')
+    old.save(path)
+    os.rename(path, tmp_path / 'cal.yaml.bak')
+    (tmp_path / '.cal.yaml.99.beef.tmp').write_text(old.to_yaml()[:300])
+
+    def factory():
+        raise AssertionError('a new factory calibration written over the recoverable one')
+
+    st, published = stage(device, path, terminal=TerminalBinding('MMD-SIM-0001', True, roles),
+                          factory=factory)
+    assert st.routine.calibration is not None and st.routine.calibration.created == old.created
+    assert published[0].bars == old.bars
+    assert load_calibration(path) == old and load_calibration(tmp_path / 'cal.yaml.bak') == old
+    warned = [text for level, text in st.log.lines if level == 'warn']
+    assert any('restored' in t and 'cal.yaml.bak' in t for t in warned), st.log.lines
+    r = st.report()
+    assert r.level == 1 and 'restored' in r.message and 'cal.yaml.bak' in r.values['recovered']
+    st._save(st.routine.calibration)           # the next save: the warning has done its work
+    assert st.report().level == 0 and st.report().values['recovered'] == ''
+    # a backup that is no calibration: ERROR, said, and the simulator's factory takes over
+    os.unlink(path)
+    (tmp_path / 'cal.yaml.bak').write_text('not: a calibration\n')
+    st, published = stage(device, path, terminal=TerminalBinding('MMD-SIM-0001', True, roles),
+                          factory=source.factory_calibration)
+    errors = [text for level, text in st.log.lines if level == 'error']
+    assert any('cal.yaml.bak, which cannot be used' in t for t in errors), st.log.lines
+    assert (tmp_path / 'cal.yaml.bak').read_text() == 'not: a calibration\n'
 
 
 @needs_ros
