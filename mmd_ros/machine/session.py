@@ -186,6 +186,8 @@ class LogPoses:
     valid: NDArray[np.bool_]
     pipeline: Pipeline | None = None
     counts: FloatArray | None = None
+    #: (N, 8) the terminal's channel status codes (flagged samples: no pose), or None
+    status: NDArray[np.uint8] | None = None
 
     def covariance(self, sl: slice, at: FloatArray) -> FloatArray:
         """Mean covariance (6, 6) in [dp, dw] of the samples in ``sl`` (a dwell's middle; at
@@ -199,7 +201,8 @@ class LogPoses:
             stop = start + COVARIANCE_SAMPLES
         self.pipeline.reset()
         res = self.pipeline.process(self.times_s[start:stop], self.counts[start:stop],
-                                    with_covariance=True)
+                                    with_covariance=True,
+                                    status=None if self.status is None else self.status[start:stop])
         ok = res.valid & np.all(np.isfinite(res.covariance), axis=(1, 2))
         if not ok.any():
             return np.full((6, 6), np.nan)
@@ -227,7 +230,8 @@ def log_poses(run: RunLog, model: Model | None, *, instrument: str = 'mmd',
     bar.close()                                                                           # term state)
     calibration = load_calibration(calibration_path) if calibration_path else run.calibration
     pipeline = Pipeline(run.device, calibration, model)
-    return LogPoses(str(run.path), times, result.poses, result.valid, pipeline, run.counts)
+    return LogPoses(str(run.path), times, result.poses, result.valid, pipeline, run.counts,
+                    run.status)
 
 
 # -- dwells -----------------------------------------------------------------------------------

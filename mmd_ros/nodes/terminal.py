@@ -113,13 +113,6 @@ class TerminalConfig:
 BatchCallback = Callable[[NDArray[np.int64], NDArray[np.float64], NDArray[np.uint8] | None], None]
 
 
-def runs(flags: NDArray[np.bool_]) -> list[tuple[int, int]]:
-    """[a, b) ranges of equal values of ``flags``, in order."""
-    edges = np.flatnonzero(np.diff(flags.astype(np.int8))) + 1
-    bounds = np.r_[0, edges, flags.size]
-    return [(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]
-
-
 class TerminalStage:
     """Driver + reader thread + raw counts (see the module docstring).
 
@@ -315,15 +308,9 @@ class TerminalStage:
 
     def _publish_raw(self, stamps: NDArray[np.int64], counts: NDArray[np.float64],
                      dev_t: NDArray[np.int64], status: NDArray[np.uint8] | None) -> None:
-        if status is None:
-            self.raw.rows(self.rows.raw.encode(stamps, counts), stamps)
-        else:
-            # a sample whose channel status is not good carries it in ``effort``
-            flagged = status.any(axis=1)
-            for a, b in runs(flagged):
-                encode = self.rows.raw_with_status if flagged[a] else self.rows.raw.encode
-                args = (stamps[a:b], counts[a:b]) + ((status[a:b],) if flagged[a] else ())
-                self.raw.rows(encode(*args), stamps[a:b])
+        # a sample whose channel status is not good carries it in ``effort``
+        for rows, part in self.rows.raw_parts(stamps, counts, status):
+            self.raw.rows(rows, part)
         if self.source is not None and self.reference is not None and self.cfg.publish_reference:
             ref = self.source.reference_at(dev_t)
             known = np.isfinite(ref).any(axis=1)
