@@ -130,6 +130,17 @@ def test_the_stage_restores_a_calibration_an_interrupted_save_left_as_bak(device
     assert r.level == 1 and 'restored' in r.message and 'cal.yaml.bak' in r.values['recovered']
     st._save(st.routine.calibration)           # the next save: the warning has done its work
     assert st.report().level == 0 and st.report().values['recovered'] == ''
+    # the file damaged by hand: refused by name, the calibration in use stays; the .bak copied
+    # over it (recovery.md) is reloaded at the next poll and published
+    in_use = st.routine.calibration
+    path.write_text(path.read_text().replace('counts:', 'counts: [1, 2]\n    x:', 1))
+    st.poll_file()
+    assert st.routine.calibration is in_use and st.report().level == 2
+    assert str(path) in st.report().message
+    n = len(published)
+    path.write_bytes((tmp_path / 'cal.yaml.bak').read_bytes())
+    st.poll_file()
+    assert not st.file_problem and len(published) == n + 1 and published[-1].bars == old.bars
     # a backup that is no calibration: ERROR, said, and the simulator's factory takes over
     os.unlink(path)
     (tmp_path / 'cal.yaml.bak').write_text('not: a calibration\n')
