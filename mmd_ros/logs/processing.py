@@ -122,7 +122,7 @@ def _resolve_calibration(source: RunSource, calibration: Calibration | str | Non
 
 
 def process_blocks(source: RunSource, model: Model, *, calibration: Calibration | str | None = None,
-                   with_covariance: bool = False, block: int = BLOCK,
+                   with_covariance: bool = False, covariance_every: int = 1, block: int = BLOCK,
                    compiled: bool | None = None) -> Iterator[tuple[RunBlock, ProcessedRun]]:
     """The run block by block through one pipeline: (samples, their results), in time order.
     The next block is read in a background thread while one is computed.
@@ -139,7 +139,8 @@ def process_blocks(source: RunSource, model: Model, *, calibration: Calibration 
     for part in itertools.chain([first], parts):
         times = (part.stamps_ns - t0).astype(np.float64) * 1e-9
         res = pipeline.process(times, part.counts, with_covariance=with_covariance,
-                               compiled=compiled, status=part.status)
+                               covariance_every=covariance_every, compiled=compiled,
+                               status=part.status)
         comp = res.compensated
         yield part, ProcessedRun(
             part.stamps_ns, comp.lengths_m, res.poses, res.converged, res.valid, res.status,
@@ -182,6 +183,7 @@ class RunSummary:
         self.pose_error: ErrorAccumulator | None = None
         self.length_error: ErrorAccumulator | None = None
         self.coverage: CoverageAccumulator | None = None
+        self.covariance_every = 1   # the blocks have the covariance of every k-th sample
         self.budget: dict[str, Any] | None = None
 
     def add(self, part: RunBlock, result: ProcessedRun) -> None:
@@ -250,6 +252,7 @@ class RunSummary:
                          if isinstance(sigma, list) and len(sigma) == 6 else None)
             report = self.coverage.report(absolute=absolute, reference_sigma=ref_sigma)
             if report is not None:
+                report['every'] *= self.covariance_every
                 summary['uncertainty_coverage'] = report
         if self.budget is not None:
             summary['uncertainty_budget'] = self.budget
@@ -348,13 +351,18 @@ def process_log(source: RunSource, out: Path, model: Model, *,
     log being read is refused.
 
     with_covariance : write the poses with their covariance. With a reference pose in the log
-        the covariance is computed anyway, to report how well it covers the error.
+        the covariance is computed anyway, to report how well it covers the error (of about
+        :attr:`CoverageAccumulator.MAX_SAMPLES` samples spread over the run).
     absolute_reference : see :meth:`RunSummary.as_dict`
     """
     check_outputs([('out', out), ('csv', csv)], [source.path], force=True)
     if isinstance(calibration, str):
         calibration = load_calibration(calibration)
+    # a covariance wanted only for its coverage is computed for the samples the summary keeps
+    coverage_only = source.has_reference_pose and not with_covariance
+    every = max(1, source.n_samples // CoverageAccumulator.MAX_SAMPLES)
     summary = RunSummary()
+    summary.covariance_every = every if coverage_only else 1
     writer: ProcessedLogWriter | None = None
     handle: IO[str] | None = None
     pending: Future[None] | None = None
@@ -370,7 +378,8 @@ def process_log(source: RunSource, out: Path, model: Model, *,
     # the pool exits first: a block being written is finished before the files are closed
     with contextlib.ExitStack() as files, ThreadPoolExecutor(1, thread_name_prefix='mmd-write') as pool:
         for part, result in process_blocks(source, model, calibration=calibration,
-                                           with_covariance=with_covariance or source.has_reference_pose,
+                                           with_covariance=with_covariance or coverage_only,
+                                           covariance_every=1 if with_covariance else every,
                                            compiled=compiled, block=block):
             if writer is None:
                 cal = _resolve_calibration(source, calibration)
