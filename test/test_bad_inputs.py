@@ -100,6 +100,13 @@ def env(tmp_path_factory):
 
     special('device_list.mcap', device_list)
 
+    def device_typo(w):
+        w.write_string('/mmd/device_description', t0,
+                       run.device.to_yaml().replace('fixed_length_mm:', 'fixed_lenght_mm:'))
+        w.write_joint_states('/mmd/raw_counts', run.stamps_ns, run.device.channel_names, run.counts)
+
+    special('device_typo.mcap', device_typo)
+
     def wrong_names(w):
         w.write_string('/mmd/device_description', t0, run.device.to_yaml())
         w.write_joint_states('/mmd/raw_counts', run.stamps_ns, [f'c{k}' for k in range(8)], run.counts)
@@ -231,6 +238,7 @@ CASES = [
     ('log model bomb', {}, 'process --json {logs}/model_bomb.mcap', 'expands to'),
     ('log model nan', {}, 'process --json {logs}/model_nan.mcap', 'length_sigma_um'),
     ('log device not mapping', {}, 'process {logs}/device_list.mcap', 'device_description'),
+    ('log device unknown key', {}, 'process {logs}/device_typo.mcap', 'did you mean fixed_length_mm'),
     ('log channel names', {}, 'process {logs}/wrong_names.mcap', 'do not match'),
     ('log metadata json', {}, 'process {logs}/bad_metadata.mcap', 'not valid JSON'),
     ('log stamps backwards', {}, 'process {logs}/backwards.mcap', 'go backwards'),
