@@ -220,3 +220,13 @@ def test_a_covariance_wanted_only_for_its_coverage_is_computed_for_a_sample_of_t
         assert rb['ratio'] == pytest.approx(ra['ratio'], rel=0.05), ra['name']
     assert '/mmd/pose_with_covariance' in LogReader(tmp_path / 'full.mcap').topics
     assert '/mmd/pose_with_covariance' not in LogReader(tmp_path / 'part.mcap').topics
+
+
+def test_no_coverage_skips_the_covariance(run_log, tmp_path):
+    """mmd process --no-coverage on a log with a reference: the error statistics, no coverage
+    report (and no covariance computed: the budget's figures are not in the summary either)."""
+    from mmd_ros.logs.layout import open_run
+    with open_run(run_log) as run:
+        summary = process_log(run, tmp_path / 'out.mcap', Model(), coverage=False)
+    assert 'pose_error' in summary
+    assert 'uncertainty_coverage' not in summary and 'uncertainty_budget' not in summary

@@ -342,7 +342,7 @@ def process_log(source: RunSource, out: Path, model: Model, *,
                 calibration: Calibration | str | None = None, with_covariance: bool = False,
                 csv: Path | None = None, progress: Progress | None = None,
                 compiled: bool | None = None, block: int = BLOCK,
-                absolute_reference: bool | None = None) -> dict[str, Any]:
+                absolute_reference: bool | None = None, coverage: bool = True) -> dict[str, Any]:
     """``mmd process``: every sample of ``source`` through the pipeline into the processed log
     ``out`` (and ``csv``), block by block in bounded memory; returns the summary
     (:class:`RunSummary`). Reading, computing and writing overlap (module docstring). The
@@ -354,12 +354,14 @@ def process_log(source: RunSource, out: Path, model: Model, *,
         the covariance is computed anyway, to report how well it covers the error (of about
         :attr:`CoverageAccumulator.MAX_SAMPLES` samples spread over the run).
     absolute_reference : see :meth:`RunSummary.as_dict`
+    coverage : False: no covariance for the coverage report (with a reference pose and without
+        ``with_covariance``, the budget's covariance costs a few µs per sample)
     """
     check_outputs([('out', out), ('csv', csv)], [source.path], force=True)
     if isinstance(calibration, str):
         calibration = load_calibration(calibration)
     # a covariance wanted only for its coverage is computed for the samples the summary keeps
-    coverage_only = source.has_reference_pose and not with_covariance
+    coverage_only = coverage and source.has_reference_pose and not with_covariance
     every = max(1, source.n_samples // CoverageAccumulator.MAX_SAMPLES)
     summary = RunSummary()
     summary.covariance_every = every if coverage_only else 1
