@@ -42,7 +42,7 @@ SECTION_KEYS = {
              'fixed_length_mm', 'thermal_mismatch_fraction'),
     'plates': ('position_layer_cte_ppm_per_c',),
     'limits': ('upper_tilt_deg', 'lower_tilt_deg', 'min_bar_separation_mm'),
-    'terminal': ('sample_rate_hz', 'counter_bits', 'channels'),
+    'terminal': ('sample_rate_hz', 'counter_bits', 'latch_skew_us', 'channels'),
 }
 PAIR_KEYS = ('name', 'sockets', 'design_mm', 'measured_mm', 'uncertainty_um')
 CHANNEL_KEYS = ('name', 'role', 'bar', 'pair')
