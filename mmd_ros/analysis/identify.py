@@ -793,22 +793,25 @@ class _Selector:
             best.verdict = 'not significant (' + ', '.join(reasons) + ')'
         return best
 
-    def refine(self) -> None:
+    def refine(self, settings: bool = True) -> None:
         """Re-choose the hyperparameters (and identified directions) of each active effect with
         the others in place: a setting chosen before a later effect was added may no longer be
-        the best (backfitting, one pass)."""
+        the best (backfitting, one pass). ``settings=False`` keeps each effect's setting and
+        re-chooses only its identified directions (leave-one-run-out refits the settings the
+        analysis chose)."""
         for k in range(len(self.active)):
             a = self.active[k]
             others = self.active[:k] + self.active[k + 1:]
             self.active = others
-            if len(self.hypers(a.effect)) < 2:
+            if not settings or len(self.hypers(a.effect)) < 2:
                 fit = self.reduce(a.effect, a.hyper)
                 best = (a.hyper, fit) if fit['basis'].shape[1] else None
             else:
                 hyper, fit, ic = self._best_setting(a.effect)
                 best = (hyper, fit) if fit is not None and math.isfinite(ic) else None
             if best is not None:
-                a = _Active(a.effect, best[0], best[1]['basis'], a.step_gain, a.explained, best[1]['norms'])
+                a = _Active(a.effect, best[0], best[1]['basis'], a.step_gain, a.explained, best[1]['norms'],
+                            a.written)
             self.active = others[:k] + [a] + others[k:]
 
     def own_structure_ratio(self, active: _Active, theta: FloatArray, e_pred: FloatArray
@@ -1313,6 +1316,11 @@ def _leave_one_out(runs: list[_Run], active: list[_Active], model: Model,
             fit = sel.reduce(a.effect, a.hyper)
             sel.active.append(_Active(a.effect, a.hyper, fit['basis'], a.step_gain, a.explained,
                                       fit['norms'], a.written))
+        # the directions each effect identifies, chosen again with the others in place (as the
+        # analysis does): reduced one after another, an early effect's directions were judged
+        # against a residual still holding the later ones, and lost those it then could not
+        # separate from their scatter
+        sel.refine(settings=False)
         fits, _ = sel.final_fit()
         refit = [(a, theta) for a, (theta, _s, _c) in zip(sel.active, fits) if a.written]
         missing = [a.effect.name for a, _ in refit if sel.group_index(a.effect, r) is None]
