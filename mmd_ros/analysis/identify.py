@@ -242,6 +242,11 @@ class RunSummary:
     loro_before: list[ComponentError] | None = None
     loro_after: list[ComponentError] | None = None
     loro_note: str = ''
+    #: the leave-one-run-out "after" on the samples whose six bar lengths all lie within the
+    #: lengths the other runs covered (the range the model written from them is valid for),
+    #: and the share of the run's samples there
+    loro_in_range: list[ComponentError] | None = None
+    loro_in_range_share: float | None = None
     log_problem: dict[str, Any] | None = None  # what was lost reading this log (LogProblem.as_dict)
 
     def as_dict(self) -> dict[str, Any]:
@@ -253,6 +258,8 @@ class RunSummary:
                 'held_out_before': rows(self.before), 'held_out_after': rows(self.after),
                 'leave_one_run_out_before': rows(self.loro_before),
                 'leave_one_run_out_after': rows(self.loro_after), 'leave_one_run_out_note': self.loro_note,
+                'leave_one_run_out_after_in_range': rows(self.loro_in_range),
+                'leave_one_run_out_in_range_share': self.loro_in_range_share,
                 'log_problem': self.log_problem}
 
 
@@ -1334,10 +1341,28 @@ def _leave_one_out(runs: list[_Run], active: list[_Active], model: Model,
             unseen.append(ResidualRun(r.ctx, after, res_a, both))
         summaries[k].loro_before = component_errors(r.obs, res_b, both)
         summaries[k].loro_after = component_errors(r.obs, res_a, both)
+        inside = both[_within_lengths(r, others)[both]]
+        summaries[k].loro_in_range_share = float(inside.size / both.size) if both.size else None
+        if inside.size:
+            summaries[k].loro_in_range = component_errors(r.obs, res_a, inside)
         if missing:
             summaries[k].loro_note = ('per-calibration or per-run parameters of ' + ', '.join(missing)
                                       + ' cannot be predicted for this log (no other log shares its '
                                       'calibration): left out')
+
+
+def _within_lengths(run: _Run, others: list[_Run]) -> NDArray[np.bool_]:
+    """Samples of ``run`` whose six CDF bar lengths all lie within the range the usable samples
+    of ``others`` covered (the validity range a model fitted on them records), shape (N,)."""
+    lo = np.full(6, np.inf)
+    hi = np.full(6, -np.inf)
+    for x in others:
+        lengths = x.ctx.base.cdf_lengths_m[x.usable]
+        if lengths.size:
+            lo = np.minimum(lo, lengths.min(axis=0))
+            hi = np.maximum(hi, lengths.max(axis=0))
+    lengths = run.ctx.base.cdf_lengths_m
+    return np.all((lengths >= lo) & (lengths <= hi), axis=1)
 
 
 def _ascii(value: Any) -> Any:
