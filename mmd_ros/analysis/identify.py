@@ -117,9 +117,11 @@ class Candidate:
     mse1: float = math.nan
     basis: FloatArray | None = field(default=None, repr=False)  # (P, r): reduced -> parameters
     norms: FloatArray | None = field(default=None, repr=False)  # (P,): column norms of the fit
+    #: directions dropped as within 2 sigma of zero, (P, w) in unit-norm scale, and their sigma
+    weak: tuple[FloatArray, FloatArray] | None = field(default=None, repr=False)
 
     def as_dict(self) -> dict[str, Any]:
-        out = {k: v for k, v in self.__dict__.items() if k not in ('basis', 'hyper', 'norms')}
+        out = {k: v for k, v in self.__dict__.items() if k not in ('basis', 'hyper', 'norms', 'weak')}
         out['hyper'] = self.hyper
         return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in out.items()}
 
@@ -501,6 +503,8 @@ class _Active:
     #: False for an effect whose whole-pose consequence the data do not determine: it stays in
     #: the fit (the data hold it; leaving it out would bend the others) but is not written
     written: bool = True
+    #: directions dropped as within 2 sigma of zero, (P, w) in unit-norm scale, and their sigma
+    weak: tuple[FloatArray, FloatArray] | None = None
 
 
 class _Selector:
@@ -655,7 +659,7 @@ class _Selector:
         usable = avail & (norms > 0)
         lost = [f'{names[j]} (not exercised)' for j in np.flatnonzero(~usable)]
         out: dict[str, Any] = {'names': names, 'lost': lost, 'note': note,
-                               'basis': np.zeros((len(names), 0)), 'norms': norms}
+                               'basis': np.zeros((len(names), 0)), 'norms': norms, 'weak': None}
         if not usable.any():
             return out
         q, t, yp, qy = self._step_basis()
@@ -698,6 +702,13 @@ class _Selector:
             lost.append(f'{int(wild.sum())} directions that would need implausible values '
                         '(beyond the physical bounds of their parameters)')
         drop = weak | wild
+        # the directions dropped as weak are determined, to be within 2 sigma of zero: their
+        # share of an unseen component's uncertainty is their sigma, not the size of the others
+        # (unit-norm parameter scale, as the basis times its norms)
+        keep_weak = weak & ~wild
+        weak_dirs = np.zeros((len(names), int(keep_weak.sum())))
+        weak_dirs[usable] = vt[keep_weak].T
+        out.update(weak=(weak_dirs, sd[keep_weak]))
         if drop.any():
             e = e + cpv[:, drop] @ beta[drop]
             sv, vt, beta = sv[~drop], vt[~drop], beta[~drop]
@@ -758,7 +769,7 @@ class _Selector:
         basis = fit['basis']
         best = Candidate(effect.name, effect.title, hyper, effect.hyper_label(hyper),
                          len(fit['names']), basis.shape[1], fit['lost'], fit['note'], basis=basis,
-                         norms=fit['norms'])
+                         norms=fit['norms'], weak=fit['weak'])
         if basis.shape[1] == 0:
             best.verdict = 'unidentifiable'
             return best
@@ -818,7 +829,7 @@ class _Selector:
                 best = (hyper, fit) if fit is not None and math.isfinite(ic) else None
             if best is not None:
                 a = _Active(a.effect, best[0], best[1]['basis'], a.step_gain, a.explained, best[1]['norms'],
-                            a.written)
+                            a.written, best[1]['weak'])
             self.active = others[:k] + [a] + others[k:]
 
     def own_structure_ratio(self, active: _Active, theta: FloatArray, e_pred: FloatArray
@@ -969,7 +980,7 @@ def _select(sel: _Selector, effects: list[Effect], o: AnalysisOptions,
         initial = steps[0][0].mse0 if steps[0] else math.nan
         sel.active.append(_Active(eff, best.hyper, best.basis, best.gain,
                                   (best.mse0 - best.mse1) / initial if initial > 0 else math.nan,
-                                  best.norms))
+                                  best.norms, weak=best.weak))
         if len(sel.active) > 1:
             sel.refine()
     return steps
@@ -998,6 +1009,7 @@ def _unchecked(sel: _Selector, a: _Active, theta: FloatArray, cov_beta: FloatArr
     good = norms > 0
     norms[~good] = np.median(norms[good]) if good.any() else 1.0
     v_n = basis * norms[:, None]                   # orthonormal identified directions
+    weak = a.weak
     beta = np.linalg.lstsq(basis, theta, rcond=None)[0]
     scale = float(np.sqrt(np.mean(beta ** 2))) if beta.size else 0.0
     n_p = theta.size // sel.n_groups(a.effect)
@@ -1035,6 +1047,10 @@ def _unchecked(sel: _Selector, a: _Active, theta: FloatArray, cov_beta: FloatArr
             var = np.einsum('nr,rs,ns->n', det, cov_beta, det)
             bn = bc / norms
             perp = bn - (bn @ v_n) @ v_n.T
+            if weak is not None and weak[0].shape[1]:
+                along = bn @ weak[0]                                  # (n, w)
+                perp = perp - along @ weak[0].T
+                var = var + (along ** 2) @ (weak[1] ** 2)
             undet = np.linalg.norm(perp, axis=1) * scale
             u = np.sqrt(np.maximum(var, 0.0) + undet ** 2)
             bad = (np.abs(z) > sel.options.floor_factor * floor[c]) & (np.abs(z) < 2.0 * u)
@@ -1322,7 +1338,7 @@ def _leave_one_out(runs: list[_Run], active: list[_Active], model: Model,
         for a in active:
             fit = sel.reduce(a.effect, a.hyper)
             sel.active.append(_Active(a.effect, a.hyper, fit['basis'], a.step_gain, a.explained,
-                                      fit['norms'], a.written))
+                                      fit['norms'], a.written, fit['weak']))
         # the directions each effect identifies, chosen again with the others in place (as the
         # analysis does): reduced one after another, an early effect's directions were judged
         # against a residual still holding the later ones, and lost those it then could not
