@@ -1345,7 +1345,18 @@ def _leave_one_out(runs: list[_Run], active: list[_Active], model: Model,
         # separate from their scatter
         sel.refine(settings=False)
         fits, _ = sel.final_fit()
-        refit = [(a, theta) for a, (theta, _s, _c) in zip(sel.active, fits) if a.written]
+        # the model the analysis would write from the other logs: an effect whose consequence on
+        # the components their references do not see is not determined by them is left out, as
+        # the analysis leaves it out (a model fitted on laser runs alone is not applied to the
+        # 6-DOF run with terms only that run determined)
+        refit, unsure = [], []
+        for a, (theta, _s, cb) in zip(sel.active, fits):
+            if not a.written:
+                continue
+            if not o.accept_unchecked and _unchecked(sel, a, theta, cb):
+                unsure.append(a.effect.name)
+                continue
+            refit.append((a, theta))
         missing = [a.effect.name for a, _ in refit if sel.group_index(a.effect, r) is None]
         trial = _build_model(model, _terms_for(sel, refit, r), {})
         after = run_pipeline(r.run.device, r.calibration, trial, r.run.times_s, r.run.counts)
@@ -1361,10 +1372,15 @@ def _leave_one_out(runs: list[_Run], active: list[_Active], model: Model,
         summaries[k].loro_in_range_share = float(inside.size / both.size) if both.size else None
         if inside.size:
             summaries[k].loro_in_range = component_errors(r.obs, res_a, inside)
+        notes = []
         if missing:
-            summaries[k].loro_note = ('per-calibration or per-run parameters of ' + ', '.join(missing)
-                                      + ' cannot be predicted for this log (no other log shares its '
-                                      'calibration): left out')
+            notes.append('per-calibration or per-run parameters of ' + ', '.join(missing)
+                         + ' cannot be predicted for this log (no other log shares its '
+                         'calibration): left out')
+        if unsure:
+            notes.append(', '.join(unsure) + ' not applied: what it does to the components the '
+                         'other logs do not see is not determined by them')
+        summaries[k].loro_note = '; '.join(notes)
 
 
 def _within_lengths(run: _Run, others: list[_Run]) -> NDArray[np.bool_]:
