@@ -996,7 +996,9 @@ def _unchecked(sel: _Selector, a: _Active, theta: FloatArray, cov_beta: FloatArr
     the minimum-norm fit sets the parameter directions the data do not identify to zero, an
     arbitrary choice; with V_n the identified directions in the fit's unit-norm parameter scale,
     the part of b outside them, |b_n - V_n V_n^T b_n|, times the typical size of the identified
-    coordinates, is what the unidentified ones could do. A change larger than the component's
+    coordinates, is what the unidentified ones could do; a direction dropped because its
+    estimate is within ``min_t_param`` sigma of zero is determined (to be small) and counts with
+    its sigma. A change larger than the component's
     noise floor (quantisation propagated, and the MMD's own sample-to-sample noise in that
     component), by more than the analysis' own "at the floor" factor, and less than twice its
     uncertainty is unchecked.
@@ -1330,8 +1332,10 @@ def _leave_one_out(runs: list[_Run], active: list[_Active], model: Model,
                    unseen: list[ResidualRun] | None = None) -> None:
     """Each log predicted by the effects found (same settings) refitted on the other logs (the
     ones not written stay in the fit, as in the analysis); the pipeline re-run over the whole
-    log with the written ones. Parameters of a calibration or run that no other log shares
-    cannot be predicted and are left out for that log (said in the note)."""
+    log with the written ones that the other logs determine on their own (:func:`_unchecked`).
+    Parameters of a calibration or run that no other log shares cannot be predicted and are
+    left out for that log (said in the note). The figure is also given on the samples within
+    the bar lengths the other logs covered (:func:`_within_lengths`)."""
     for k, r in enumerate(runs):
         others = [x for x in runs if x is not r]
         sel = _Selector(others, o)
