@@ -101,9 +101,9 @@ def leg_geometry(upper_m: FloatArray, lower_m: FloatArray, poses: FloatArray
         positions are scaled by s (Eq. 6 with s a_i, s b_i), n_i . (R a_i - b_i)
     """
     rot = rotation_matrix(poses[:, 3:])
-    ra = np.einsum('nij,kj->nki', rot, upper_m)
+    ra = np.matmul(rot, np.asarray(upper_m).T).transpose(0, 2, 1)   # (einsum: 2x slower here)
     legs = ra + poses[:, None, :3] - lower_m[None]
-    units = legs / np.linalg.norm(legs, axis=2, keepdims=True)
+    units = legs / np.sqrt(np.einsum('nki,nki->nk', legs, legs))[:, :, None]
     ddds = np.einsum('nki,nki->nk', units, ra - lower_m[None])
     return ra, units, ddds
 
@@ -182,15 +182,15 @@ def play_positions(lengths_m: FloatArray, deadband_m: float, start: FloatArray |
     p0 = x[0] if start is None else start
     w = deadband_m
     if use_compiled(compiled):
-        fast.play_positions(x, float(w), np.array(p0, dtype=np.float64), out)
+        fast.play(x, float(w), np.array(p0, dtype=np.float64), None, out, None)
         return out
     for j in range(m):   # a sequential recurrence: plain floats beat numpy rows here
         p, column = float(p0[j]), x[:, j].tolist()
         pos = [0.0] * n
         for k, v in enumerate(column):
-            if v > p + w:
+            if p < v - w:
                 p = v - w
-            elif v < p - w:
+            elif p > v + w:
                 p = v + w
             pos[k] = p
         out[:, j] = pos
