@@ -74,6 +74,12 @@ class IdentifyOptions:
         and rotation component, e.g. from its data sheet or its own validation), added to its
         covariance as a uniform distribution (u = bound / sqrt 3) at every approach; 0: the
         pose covariance alone
+    component_m, component_rad : the size (RMS over a full turn) of the rotary axes' radial
+        and axial, and of their tilt and positioning, component error motions that are not
+        the location (harmonics 2–4 of the angle), as the table's acceptance test or data sheet
+        states them. Over a partial turn such errors can pass for location errors; their
+        possible effect is part of every location error's uncertainty (scaled up where the
+        fit's residual shows more). The default, 1 µm and 1″, is a good rotary table's.
     """
 
     draws: int = 200
@@ -82,6 +88,8 @@ class IdentifyOptions:
     limit_rad: float = math.radians(2.0 / 3600.0)
     mmd_bound_m: float = 0.0
     mmd_bound_rad: float = 0.0
+    component_m: float = 1e-6
+    component_rad: float = math.radians(1.0 / 3600.0)
 
 
 @dataclass
@@ -197,7 +205,8 @@ def _detrend(x: FloatArray, y: FloatArray) -> FloatArray:
 class _Session:
     """The inputs of the identification and one evaluation of it."""
 
-    def __init__(self, machine: MachineDescription, means: dict[str, RunMeans]) -> None:
+    def __init__(self, machine: MachineDescription, means: dict[str, RunMeans],
+                 component_prior: tuple[float, float] = (1e-6, math.radians(1.0 / 3600.0))) -> None:
         self.machine = machine
         self.means = means
         self.linear = [n for n, m in means.items() if not m.axis.rotary]
@@ -206,7 +215,7 @@ class _Session:
         self.frame_axes = (lin[0], lin[1])
         self.frame_measured = lin[0] in means and lin[1] in means
         self.nominal_ml = rotation_matrix(machine.lower_rotation)
-        self.component_prior = (1e-6, math.radians(1.0 / 3600.0))
+        self.component_prior = component_prior
         #: rotary axis -> (location, normalised Jacobian, its pseudo-inverse) of the nominal fit;
         #: set after the nominal evaluation so that Monte Carlo draws take one linear step
         self.linearised: dict[str, tuple[FloatArray, FloatArray, FloatArray]] = {}
@@ -549,7 +558,10 @@ def identify(runs: list[AxisRun], machine: MachineDescription, *,
         bound = np.diag([options.mmd_bound_m ** 2 / 3.0] * 3 + [options.mmd_bound_rad ** 2 / 3.0] * 3)
         for mean in means.values():
             mean.cov_mmd = mean.cov_mmd + bound
-    session = _Session(machine, means)
+    if not (options.component_m >= 0 and options.component_rad >= 0):
+        raise MachineAnalysisError('the rotary component error size must be >= 0, got '
+                                   f'{options.component_m} m, {options.component_rad} rad')
+    session = _Session(machine, means, (options.component_m, options.component_rad))
     zero = np.zeros(3)
     base = session.evaluate({n: m.p for n, m in means.items()}, {n: m.r for n, m in means.items()}, zero)
     session.linearised = {n: base[f'{n}/linear'] for n in session.rotary}
@@ -677,6 +689,8 @@ def _build(machine: MachineDescription, session: _Session, base: dict[str, Any],
             for i, j in enumerate(perp):
                 location.append(_value(f'E{_ABC[j]}0{name}', lam[2 + i], ul[2 + i], uml[2 + i], 'rad',
                                        options, None, n_cyc, usl[2 + i]))
+            for i, v in enumerate(location):
+                v.u_turn = float(math.sqrt(leak[i, i]))
             if not session.frame_measured:
                 for v in location[2:]:
                     v.determined = False

@@ -283,10 +283,14 @@ class ThermalSoak(Scenario):
         return RestingBars(tuple(self.pairs), float(self.duration_s))
 
 
-#: Default spans of the rotary runs [deg]: C as the paper's (±40°); A over ±15° (the paper
-#: tested 0..15°, limited by its reference instrument; the MMD reaches both sides, which fixes
-#: the axis line four times better); B within the MMD's tilt range.
-ROTARY_SPANS_DEG = {'A': (-15.0, 15.0), 'B': (-10.0, 10.0), 'C': (-40.0, 40.0)}
+#: Default spans of the rotary runs [deg], as far as the MMD reaches with the linear axes
+#: following (``mmd workspace``: at the home pose, 300 mm between the plates, it turns up to
+#: 66° about z alone and tilts up to 21° about x or y alone). C over ±60° (the paper's ±40°
+#: leaves the axis line's position uncertain to about 2.7 µm, ±60° to 1.5 µm: over a partial
+#: turn the location is told from the component errors only by the span); A over ±15° (the
+#: tilt range, less the plates' misalignment, the reversal overrun and a margin; the following
+#: moves Y by ±90 mm, inside the Y run); B within the MMD's tilt range.
+ROTARY_SPANS_DEG = {'A': (-15.0, 15.0), 'B': (-10.0, 10.0), 'C': (-60.0, 60.0)}
 
 
 @dataclass(frozen=True)
