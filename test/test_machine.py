@@ -379,7 +379,7 @@ def test_head_table_machine_end_to_end_through_the_command_line(tmp_path, capsys
 # -- a test program instead of joint states, and what is refused --------------------------------
 def test_a_test_program_matches_the_dwells_as_joint_states_do(tmp_path):
     params = ['machine_file=machine_xyzac.yaml', 'n_linear_targets=5', 'n_rotary_targets=5',
-              'n_cycles=2', 'dwell_s=0.4', 'lead_s=0.5']
+              'n_cycles=2', 'dwell_s=0.4', 'lead_s=0.5', 'rotary_spans_deg=[C:-40:40]']
     logs = [_simulate(tmp_path, axis, params + [f'runs=[{axis}]']) for axis in ('X', 'C')]
     machine = load_machine('machine_xyzac.yaml')
     program = tmp_path / 'program.yaml'

@@ -391,12 +391,18 @@ class _Session:
         """Covariance (4, 4) of the location errors from component errors that the fit cannot
         tell from them over the tested span. Component errors are modelled as harmonics 2..4
         of the angle in each of the six components, each of a full-turn RMS of the prior size
-        (``component_prior``); where the fit's residual shows more than the noise and that
-        prior explain, the prior is scaled up to match it."""
+        (``component_prior``). Each component's prior is scaled up where the fit's residual in
+        that component shows more than the noise and the prior explain: the residual measures
+        the size of the component errors in each direction, and only the radial and tilt ones
+        can pass for location (a large angular positioning error says nothing about them).
+
+        jac : (rows*6, 4) Jacobian of the normalised residual; res : (rows*6,) normalised
+        residual; targets : (m,) angles [rad]; sigma : (rows, 6) the normalisation [m, rad]
+        """
         rows = res.size // 6
         theta = np.repeat(targets, 2)                     # row order: target, direction
         prior = self.component_prior
-        basis, var = [], []
+        basis, var, group = [], [], []
         for j in range(6):
             for order in (2, 3, 4):
                 for f in (np.cos, np.sin):
@@ -404,18 +410,26 @@ class _Session:
                     b[:, j] = f(order * theta) / sigma[:, j]
                     basis.append(b.ravel())
                     var.append(prior[0 if j < 3 else 1] ** 2 / 3.0)
+                    group.append(j)
         b = np.array(basis).T                             # (rows*6, n_basis), normalised units
         var = np.array(var)
+        group = np.array(group)
         try:
             inv = np.linalg.inv(jac.T @ jac)
         except np.linalg.LinAlgError:
             return np.full((4, 4), np.inf)
         leak = inv @ jac.T @ b                            # (4, n_basis): location per coefficient
         visible = b - jac @ leak
-        expected = float(np.sum(var * np.sum(visible ** 2, axis=0)))
-        excess = max(float(res @ res) - max(res.size - 4, 1), 0.0)
-        scale = max(1.0, excess / max(expected, 1e-300))
-        return scale * (leak * var) @ leak.T
+        # the residual's share of the noise in each component: its dof spread evenly
+        dof = max(res.size - 4, 1) / 6.0
+        r2 = np.sum(res.reshape(rows, 6) ** 2, axis=0)
+        scale = np.ones(var.size)
+        for j in range(6):
+            mine = group == j
+            expected = float(np.sum(var[mine] * np.sum(visible[:, mine] ** 2, axis=0)))
+            excess = max(float(r2[j]) - dof, 0.0)
+            scale[mine] = max(1.0, excess / max(expected, 1e-300))
+        return (leak * (scale * var)) @ leak.T
 
     @staticmethod
     def _rotary_sigma(mean: RunMeans) -> FloatArray:
@@ -446,13 +460,20 @@ def _loo_rms(table: ErrorTable) -> FloatArray:
 def _interpolation_u(tables: dict[str, ErrorTable], loo: dict[str, FloatArray], q: FloatArray,
                      machine: MachineDescription) -> FloatArray:
     """Uncertainty (rows, 6) of the linear axes' errors interpolated between their targets at
-    the axis values q (rows, n_axes) of a rotary run: zero at a target, the leave-one-out RMS
-    between targets, added in quadrature over the axes."""
+    the axis values q (rows, n_axes) of a rotary run: zero at a target, rising as sin(pi t)
+    across an interval (t from 0 to 1) to sqrt 2 times the leave-one-out RMS halfway (the
+    shape and size the Monte Carlo draws bend the tables by), added in quadrature over the
+    axes."""
     out = np.zeros((q.shape[0], 6))
     for name, table in tables.items():
-        k = machine.index(name)
-        between = np.min(np.abs(q[:, k, None] - table.positions[None, :]), axis=1) > 1e-7
-        out[between] = np.sqrt(out[between] ** 2 + loo[name] ** 2)
+        pos = table.positions
+        if pos.size < 2:
+            continue
+        x = np.clip(q[:, machine.index(name)], pos[0], pos[-1])
+        i = np.clip(np.searchsorted(pos, x, side='right') - 1, 0, pos.size - 2)
+        t = (x - pos[i]) / (pos[i + 1] - pos[i])
+        bump = np.sin(np.pi * t)[:, None] * (math.sqrt(2.0) * loo[name])[None, :]
+        out = np.sqrt(out ** 2 + bump ** 2)
     return out
 
 

@@ -309,9 +309,10 @@ class MachineSession(Scenario):
         up to this much)
     errors : the machine's errors (sizes, seed, errors switched off)
     setup_seed, misalignment_deg, offset_mm : how the plates are bolted (drawn)
-    follow_targets : add the linear axes' positions that a rotary run's following visits to
-        their own runs' targets (as a metrologist does, so that the rotary analysis needs no
-        interpolation of the linear errors)
+    follow_targets : add the linear axes' positions during a rotary run (those the following
+        visits, and the reference of an axis that stays put) to their own runs' targets (as a
+        metrologist does, so that the rotary analysis needs no interpolation of the linear
+        errors)
     """
 
     kind: ClassVar[str] = 'machine_session'
@@ -414,8 +415,9 @@ class MachineSession(Scenario):
             q = nominal.follow(q)
             for a in machine.linear_axes:
                 j = machine.index(a.name)
-                moved = q[np.abs(q[:, j] - a.reference) > 1e-6, j]
-                out.setdefault(a.name, []).extend(float(v) for v in moved)
+                # every value, the reference too: an axis that stays put still turns the
+                # following axes' motion by its angular errors there
+                out.setdefault(a.name, []).extend(float(v) for v in np.unique(q[:, j]))
         return out
 
     def machine(self) -> TwinMachine:
