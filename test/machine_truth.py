@@ -125,10 +125,20 @@ def session_truth(twin: TwinMachine, plans) -> dict:
         k = m.index(name)
         t = twin.truth.rotary[name]
         perp = [j for j in range(3) if j != a.component]
+        # the twin's line in the machine frame of the definition (the X and Y lines), which is
+        # turned against the twin's coordinates by the straightness errors' residual slopes
+        # over the targets; the analysis places the motion there about the functional point
+        fp = m.functional_point
+        d = a.direction
+        c = fp + frame @ (a.pivot + t.position - fp)
+        d_f = frame @ (d + np.cross(t.orientation, d))
+        d_f /= np.linalg.norm(d_f)
+        at_pivot = c - np.dot(c - a.pivot, d) / np.dot(d_f, d) * d_f
+        tilt = np.cross(d, d_f)
         for j in perp:
-            out['location'][f'E{"XYZ"[j]}0{name}'] = t.position[j]
+            out['location'][f'E{"XYZ"[j]}0{name}'] = (at_pivot - a.pivot)[j]
         for j in perp:
-            out['location'][f'E{"ABC"[j]}0{name}'] = t.orientation[j]
+            out['location'][f'E{"ABC"[j]}0{name}'] = tilt[j]
         only = zero_truth(m)
         only.rotary[name] = replace(t, position=np.zeros(3), orientation=np.zeros(3))
         single = TwinMachine(m, only, twin.setup)

@@ -291,8 +291,17 @@ def test_outputs_report_tables_and_round_trip(ideal):
     out = ideal['tmp'] / 'out'
     written = write_outputs(ideal['result'], out, SessionOptions(model=ideal['model']), figures=False)
     report = (out / 'report.md').read_text(encoding='utf-8')
-    for heading in ('## Errors', '## Not determined', 'kept apart', '## Axis C', '## Volumetric error'):
+    for heading in ('## Errors', '## Not determined', 'kept apart', '## Axis C', '## Volumetric error',
+                    'component errors over this span'):
         assert heading in report
+    # each location error's u split: the MMD, the plate's stated position, the partial turn
+    ex0c = ideal['result'].value('EX0C')
+    parts_table = report[report.index('| error | u | the MMD |'):]
+    row = next(line for line in parts_table.splitlines() if line.startswith('| EX0C |')).split('|')
+    parts = [float(c) for c in row[2:6]]
+    assert parts[0] == pytest.approx(ex0c.u * 1e6, abs=0.006)
+    assert parts[2] == pytest.approx(ideal['machine'].upper_offset_uncertainty * 1e6)
+    assert parts[0] ** 2 >= 0.9 * (parts[1] ** 2 + parts[2] ** 2 + parts[3] ** 2)
     for f in ('compensation/comp_X.txt', 'compensation/comp_C.txt', 'compensation/linuxcnc_comp.ini',
               'error_motions.csv', 'location_errors.yaml', 'machine.json', 'volumetric_linear.csv'):
         assert (out / f).is_file(), f

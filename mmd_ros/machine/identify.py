@@ -153,6 +153,7 @@ def aggregate(run: AxisRun, machine: MachineDescription) -> RunMeans:
             for a, tt in zip(group, t):
                 cp[i, j, a.cycle] = tt[:3, 3]
                 cr[i, j, a.cycle] = tt[:3, :3]
+    _floor_scatter(cov_stat, n)
     missing = [f'{v:g}' for v, c in zip(run.targets, n) if c.min() == 0]
     if missing:
         raise MachineAnalysisError(
@@ -172,6 +173,26 @@ def aggregate(run: AxisRun, machine: MachineDescription) -> RunMeans:
         i = int(np.searchsorted(run.targets, axis.reference)) - 1
         interp = (i, float((axis.reference - run.targets[i]) / (run.targets[i + 1] - run.targets[i])))
     return RunMeans(run, axis, k, run.targets, p, r, cov_mmd, cov_stat, n, q, dirs, ref, interp, cp, cr)
+
+
+def _floor_scatter(cov_stat: FloatArray, n: NDArray[np.int64]) -> None:
+    """Floor each approach group's scatter covariance (m, 2, 6, 6), in place, by the run's
+    pooled one: the machine's repeatability does not change much along an axis, and a few
+    cycles at one target can show far less scatter than there is by chance (with 3 cycles, 1
+    in 20 targets shows under a quarter of the variance). The translation and rotation blocks
+    are floored separately (by their traces)."""
+    use = n > 1
+    if not np.any(use):
+        return
+    pooled = np.sum(cov_stat[use] * (n[use] - 1)[:, None, None] * n[use][:, None, None], axis=0) \
+        / max(float(np.sum(n[use] - 1)), 1.0)   # per-approach covariance, pooled over the run
+    for block in (slice(0, 3), slice(3, 6)):
+        p_tr = float(np.trace(pooled[block, block]))
+        for i, j in zip(*np.nonzero(use)):
+            mine = float(np.trace(cov_stat[i, j][block, block]))
+            floor = p_tr / n[i, j]
+            if mine < floor:
+                cov_stat[i, j][block, block] = pooled[block, block] / n[i, j]
 
 
 # -- the identification (one evaluation; repeated on Monte Carlo draws) ------------------------
@@ -224,6 +245,10 @@ class _Session:
         self.loo: dict[str, FloatArray] = {}
         self.rng = np.random.default_rng(0)
         self.draw_interpolation = False
+        #: workpiece-side rotary axis -> its reversal at the reference [rad] (set after the
+        #: nominal evaluation): where it stands during another rotary run depends on the side
+        #: it was last approached from, which need not be the side of the linear runs
+        self.play: dict[str, float] = {}
 
     # -- frame and linear axes -------------------------------------------------------------------
     def _frame(self, slopes_l: dict[str, FloatArray]) -> FloatArray:
@@ -306,6 +331,8 @@ class _Session:
         g_ref = transform(*reversed(_reference(mean, p, r)))
         t_wl = transform(frame, fp + shift - frame @ _reference(mean, p, r)[0])
         meas = t_wl @ g @ inverse(g_ref) @ inverse(t_wl)
+        if self.draw_interpolation:   # a Monte Carlo draw: the other table axes' play
+            meas = self._play_draw(name, meas)
         q = mean.q.reshape(-1, mean.q.shape[-1])
         dirs = mean.dirs.reshape(-1, mean.dirs.shape[-1])
         ref = mean.ref
@@ -385,6 +412,23 @@ class _Session:
         fig[3 + c] = max(res[:, 0, 3 + c].max(), res[:, 1, 3 + c].max()) - \
             min(res[:, 0, 3 + c].min(), res[:, 1, 3 + c].min())
         out[f'{name}/figure'] = fig
+
+    def _play_draw(self, name: str, meas: FloatArray) -> FloatArray:
+        """The measured motion (..., 4, 4) seen with each other workpiece-side rotary axis
+        turned about its line by a random part of its reversal (uniform within ± the reversal):
+        the table stands where that axis' play left it, and the machine frame was measured
+        with it at the play of the linear runs. Tool-side axes carried after the linear axes
+        cancel in the relative motion."""
+        for other, reversal in self.play.items():
+            if other == name:
+                continue
+            a = self.machine.axis(other)
+            angle = self.rng.uniform(-1.0, 1.0) * reversal
+            turn = transform(rotation_from_rotvec(angle * a.direction), np.zeros(3))
+            about = transform(np.eye(3), a.pivot)
+            t = about @ turn @ inverse(about)
+            meas = t @ meas @ inverse(t)
+        return meas
 
     def _leak(self, jac: FloatArray, res: FloatArray, targets: FloatArray, sigma: FloatArray
               ) -> FloatArray:
@@ -586,6 +630,10 @@ def identify(runs: list[AxisRun], machine: MachineDescription, *,
     zero = np.zeros(3)
     base = session.evaluate({n: m.p for n, m in means.items()}, {n: m.r for n, m in means.items()}, zero)
     session.linearised = {n: base[f'{n}/linear'] for n in session.rotary}
+    for n in session.rotary:
+        a = session.means[n]
+        if a.axis.side == 'workpiece' and a.ref is not None:
+            session.play[n] = abs(float(base[f'{n}/reversal'][a.ref, 3 + a.axis.component]))
     rng = np.random.default_rng(options.seed)
     sigma_shift = machine.upper_offset_uncertainty
 

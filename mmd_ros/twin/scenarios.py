@@ -304,7 +304,7 @@ class MachineSession(Scenario):
 
     machine_file : machine description (config/ or a path)
     linear_travel_mm : (X and Y, Z) travel of the linear runs, centred on the reference
-    rotary_spans_deg : 'A:0:15' style spans of the rotary runs (defaults: A ±15, B ±10, C ±40)
+    rotary_spans_deg : 'A:0:15' style spans of the rotary runs (defaults: A ±15, B ±10, C ±60)
     target_jitter_mm : irregular target spacing as ISO 230-2 recommends (interior targets move by
         up to this much)
     errors : the machine's errors (sizes, seed, errors switched off)
