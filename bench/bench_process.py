@@ -7,6 +7,10 @@ and peak RSS. Then the stages alone in this process (CPU time per sample: read b
 compute, write), which overlap in the command. ``--long LOG`` adds a long log (for example a
 2-hour one made with ``mmd simulate``; keep such files out of the repository) for peak RSS.
 
+The log has a reference pose; the main figure is without the covariance's coverage report
+(``--no-coverage``: what a real device's log, which has no reference, costs), the coverage's
+cost is printed beside it.
+
 Target (issue 12): >= 500,000 samples/s. The machine is shared: compare the ratios and CPU
 times more than the rates. ``--quick`` uses a 1-minute log. Never fails on timing.
 """
@@ -43,14 +47,17 @@ def peak_rss_mb(pid: int, stop: threading.Event, out: list[float]) -> None:
         stop.wait(0.05)
 
 
-def command(log: Path, out: Path, pure: bool = False) -> dict:
-    """``mmd process`` in a child: its JSON summary, wall time, user CPU and peak RSS."""
+def command(log: Path, out: Path, pure: bool = False, coverage: bool = False) -> dict:
+    """``mmd process`` in a child: its JSON summary, wall time, user CPU and peak RSS.
+    coverage: also the covariance's coverage of the reference (the command's default when the
+    log has a reference pose; a real device's log has none)"""
     env = dict(os.environ)
     if pure:
         env['MMD_PURE_PYTHON'] = '1'
     t0 = time.perf_counter()
     proc = subprocess.Popen([sys.executable, '-m', 'mmd_ros.cli.main', 'process', str(log),
-                             '--out', str(out), '--json', '--quiet'],
+                             '--out', str(out), '--json', '--quiet']
+                            + ([] if coverage else ['--no-coverage']),
                             stdout=subprocess.PIPE, env=env)
     stop, rss = threading.Event(), [0.0]
     watch = threading.Thread(target=peak_rss_mb, args=(proc.pid, stop, rss))
@@ -104,6 +111,7 @@ def main() -> None:
         size_mb = log.stat().st_size / 1e6
         runs = [command(log, out) for _ in range(args.repeats)]
         pure = command(log, out, pure=True)
+        with_coverage = [command(log, out, coverage=True) for _ in range(args.repeats)]
         stage = stages(log, out)
         longs = {str(p): command(p, Path(tmp) / 'long.mcap') for p in args.long}
     n = runs[0]['samples']
@@ -119,6 +127,11 @@ def main() -> None:
         'peak_rss_mb': max(r['peak_rss_mb'] for r in runs),
         'numpy_path_peak_rss_mb': pure['peak_rss_mb'],
         'stage_cpu_us_per_sample': stage,
+        'with_coverage_samples_per_s_median': statistics.median(
+            r['samples_per_s'] for r in with_coverage),
+        'with_coverage_user_cpu_us_per_sample_median': 1e6 * statistics.median(
+            r['user_cpu_s'] for r in with_coverage) / n,
+        'with_coverage_peak_rss_mb': max(r['peak_rss_mb'] for r in with_coverage),
         'long_logs': longs,
     }
     print(f'mmd process on a {n / 1000:.0f} s log ({n} samples, {size_mb:.1f} MB): median '
@@ -129,6 +142,10 @@ def main() -> None:
     print(f'  user CPU {result["user_cpu_us_per_sample_median"]:.2f} us per sample '
           f'(numpy path {result["numpy_path_user_cpu_us_per_sample"]:.2f}); peak RSS '
           f'{result["peak_rss_mb"]:.0f} MB (numpy path {pure["peak_rss_mb"]:.0f} MB)')
+    print(f'  with the coverage of the reference pose by the covariance (the default on a log with a '
+          f'reference): {result["with_coverage_samples_per_s_median"]:,.0f} samples/s, user CPU '
+          f'{result["with_coverage_user_cpu_us_per_sample_median"]:.2f} us per sample, peak RSS '
+          f'{result["with_coverage_peak_rss_mb"]:.0f} MB')
     print('  stages alone, CPU per sample: ' + ', '.join(f'{k} {v:.2f} us' for k, v in stage.items())
           + ' (overlapped in the command)')
     for path, r in longs.items():

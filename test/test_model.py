@@ -205,3 +205,30 @@ def test_compiled_play_operator_equals_python():
                                     for k in range(0, len(lengths), 777)]))
     np.testing.assert_array_equal(outs[0], outs[1])
     assert set(np.unique(outs[1])) == {-1.0, 0.0, 1.0}
+
+
+def test_compiled_friction_state_equals_python():
+    """The Dahl friction state (mmd analyze evaluates it for every turn-over travel it tries):
+    the compiled play gives Python's positions exactly, the compiled Dahl recursion numpy's
+    states to the last bits of an exp, carrying the state across calls of any size."""
+    from mmd_ros.core.compiled import AVAILABLE, NOT_IN_USE
+    from mmd_ros.core.terms import dahl_state, play_positions
+    assert AVAILABLE, NOT_IN_USE
+    rng = np.random.default_rng(9)
+    n = 20000   # a slow swing with encoder-sized noise: thousands of reversals
+    lengths = 0.3 + 20e-6 * np.sin(np.arange(n) / 900)[:, None] + rng.normal(0, 60e-9, (n, 6))
+    lengths[4321, 1] = np.nan     # a sample without signal: the play holds
+    pos = [play_positions(lengths, 50e-9, None, compiled=c) for c in (False, True)]
+    np.testing.assert_array_equal(pos[0], pos[1])
+    first = pos[0][0]
+    start = (first.copy(), np.zeros(6), first.copy(), np.zeros(6))
+    whole, end = dahl_state(pos[0], 2e-6, start, compiled=False)
+    parts, state = [], start
+    for k in range(0, n, 1237):
+        out, state = dahl_state(pos[0][k:k + 1237], 2e-6, state, compiled=True)
+        parts.append(out)
+    np.testing.assert_allclose(np.concatenate(parts), whole, rtol=0, atol=1e-14)
+    for a, b in zip(state, end):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-14)
+    turns = np.count_nonzero(np.diff(np.sign(np.diff(pos[0][:, 0]))[np.diff(pos[0][:, 0]) != 0]))
+    assert turns > 100 and whole.min() < -0.8 and whole.max() > 0.8   # the state swings

@@ -9,7 +9,6 @@ import dataclasses
 import numpy as np
 import pytest
 
-from mmd_ros.cli.main import main
 from mmd_ros.core.compiled import AVAILABLE as COMPILED, NOT_IN_USE
 from mmd_ros.core.model import Model
 from mmd_ros.core.terms import GravitySagTerm, HysteresisTerm
@@ -199,3 +198,35 @@ def test_a_reference_written_apart_from_the_counts_is_aligned(tmp_path):
     np.testing.assert_array_equal(cat['reference_pose'][: n // 2], ref[: n // 2])
     assert np.isnan(cat['reference_pose'][n // 2:]).all()
     np.testing.assert_array_equal(cat['reference_pose'], read_run(path).reference_pose)
+
+
+def test_a_covariance_wanted_only_for_its_coverage_is_computed_for_a_sample_of_the_run(
+        run_log, tmp_path, monkeypatch):
+    """Without --covariance, mmd process on a log with a reference pose still reports the
+    coverage, from the covariance of every k-th sample (k from the log's length, here 4): the
+    same verdict as from every sample, and no covariance written."""
+    from mmd_ros.core.accuracy import CoverageAccumulator
+    from mmd_ros.logs.layout import open_run
+    with open_run(run_log) as run:
+        full = process_log(run, tmp_path / 'full.mcap', Model(), with_covariance=True)
+    monkeypatch.setattr(CoverageAccumulator, 'MAX_SAMPLES', full['samples'] // 4)
+    with open_run(run_log) as run:
+        part = process_log(run, tmp_path / 'part.mcap', Model())
+    a, b = full['uncertainty_coverage'], part['uncertainty_coverage']
+    assert a['every'] == 1 and b['every'] == 4
+    assert b['samples'] == pytest.approx(a['samples'] / 4, rel=0.01)
+    assert b['ellipsoid_coverage'] == pytest.approx(a['ellipsoid_coverage'], abs=0.03)
+    for ra, rb in zip(a['per_component'], b['per_component']):
+        assert rb['ratio'] == pytest.approx(ra['ratio'], rel=0.05), ra['name']
+    assert '/mmd/pose_with_covariance' in LogReader(tmp_path / 'full.mcap').topics
+    assert '/mmd/pose_with_covariance' not in LogReader(tmp_path / 'part.mcap').topics
+
+
+def test_no_coverage_skips_the_covariance(run_log, tmp_path):
+    """mmd process --no-coverage on a log with a reference: the error statistics, no coverage
+    report (and no covariance computed: the budget's figures are not in the summary either)."""
+    from mmd_ros.logs.layout import open_run
+    with open_run(run_log) as run:
+        summary = process_log(run, tmp_path / 'out.mcap', Model(), coverage=False)
+    assert 'pose_error' in summary
+    assert 'uncertainty_coverage' not in summary and 'uncertainty_budget' not in summary

@@ -180,3 +180,18 @@ def test_replay_schedule():
     assert got[0] == (0, 1) and got[-1][1] == 1000
     assert sum(b - a for a, b in got) == 1000 and sum(slept) == pytest.approx(0.999, abs=1e-6)
     assert list(paced_batches(fast, max_batch=400)) == [(0, 400), (400, 800), (800, 1000)]
+
+
+def test_a_rotation_part_that_got_nothing_before_the_close_is_not_left_behind(tmp_path):
+    """The size limit reached by the last messages opens a new part; closed before anything
+    else arrives, that part holds only the latched messages: it is removed, and every file the
+    status lists has recorded samples."""
+    rec = Recorder(tmp_path / 'r.mcap', max_bytes=1, flush_period_s=1e-9, compression='none')
+    stamps, payload = rows(10)
+    rec.write_rows([('/mmd/raw_counts', 'sensor_msgs/msg/JointState', payload)], stamps)
+    rec.poll()                      # flushes, finds the limit reached, opens r_1.mcap
+    assert len(rec.files) == 2
+    rec.close()
+    st = rec.status()
+    assert [Path(f).name for f in st.files] == ['r.mcap'] and not (tmp_path / 'r_1.mcap').exists()
+    assert LogReader(tmp_path / 'r.mcap').joint_states('/mmd/raw_counts').stamps_ns.size == 10

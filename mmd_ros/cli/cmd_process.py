@@ -37,7 +37,8 @@ def run_command(args: argparse.Namespace) -> int:
         summary = process_log(run, out, chosen or run.model or Model(), calibration=cal,
                               with_covariance=args.covariance,
                               csv=Path(args.csv) if args.csv else None, progress=progress,
-                              absolute_reference=True if args.absolute_reference else None)
+                              absolute_reference=True if args.absolute_reference else None,
+                              coverage=args.coverage)
         progress.close()
         return summary
 
@@ -100,6 +101,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument('--absolute-reference', action='store_true', dest='absolute_reference',
                    help='the reference pose is absolute in {L} (default: what the log\'s metadata '
                    'says, else zeroed at the start: an offset per component is removed)')
+    p.add_argument('--no-coverage', action='store_false', dest='coverage',
+                   help='with a reference pose in the log, do not compute the covariance to report '
+                   'how well it covers the error (faster on long logs)')
     add_segment_argument(p)
     p.add_argument('--force', action='store_true',
                    help='allow --out/--csv to replace an existing raw log (never the input)')

@@ -7,6 +7,8 @@
  *   pose_covariance     propagate_covariance, J^-1 S J^-T per sample (kinematics.py)
  *   cdf_eval            CdfBank.__call__, the piecewise-linear CDFs of Eq. (10) (calibration.py)
  *   play_directions     HysteresisTerm.directions, the play operator (model.py)
+ *   play_positions      play_positions, the play's output (terms.py)
+ *   dahl_state          dahl_state, Dahl's friction state along it (terms.py)
  *   match_rows          rows_match, the fixed bytes of messages read from a log (logs/cdr.py)
  *   decode_continuing   FrameStream.feed for a transfer that continues the stream
  *                       (hardware/stream.py)
@@ -867,6 +869,147 @@ static PyObject *play_directions(PyObject *self, PyObject *args)
     return Py_None;
 }
 
+/* (N, k) float64 lengths and their k columns' state buffers: the rows N, or -1 (error set). */
+static Py_ssize_t columns_of(PyObject *data, PyObject *state, const char *name)
+{
+    Py_buffer view;
+    if (get_buffer(state, &view, 0, -1, 8, "d", "state") < 0)
+        return -1;
+    const Py_ssize_t k = view.len / 8;
+    PyBuffer_Release(&view);
+    if (get_buffer(data, &view, 0, -1, 8, "d", name) < 0)
+        return -1;
+    const Py_ssize_t total = view.len / 8;
+    PyBuffer_Release(&view);
+    if (k < 1 || total % k) {
+        PyErr_Format(PyExc_ValueError, "%s: need shape (N, k) with a state of shape (k,)", name);
+        return -1;
+    }
+    return total / k;
+}
+
+PyDoc_STRVAR(play_positions_doc,
+"play_positions(lengths, deadband, play, out) -> None\n\n"
+"terms.play_positions: the output of a play of half-width deadband [m] on each column of\n"
+"lengths (N, k) float64, from play (k,) float64 (updated in place) into out (N, k) float64.\n"
+"Releases the GIL.");
+
+static PyObject *play_positions(PyObject *self, PyObject *args)
+{
+    (void)self;
+    PyObject *o[3];
+    double w;
+    if (!PyArg_ParseTuple(args, "OdOO", &o[0], &w, &o[1], &o[2]))
+        return NULL;
+    const Py_ssize_t n = columns_of(o[0], o[1], "lengths");
+    if (n < 0)
+        return NULL;
+    Py_buffer view;
+    if (get_buffer(o[1], &view, 0, -1, 8, "d", "play") < 0)
+        return NULL;
+    const Py_ssize_t k = view.len / 8;
+    PyBuffer_Release(&view);
+    Spec spec[] = {
+        {o[0], 0, n * k, 8, "d", "lengths", 0},
+        {o[1], 1, k, 8, "d", "play", 0},
+        {o[2], 1, n * k, 8, "d", "out", 0},
+    };
+    Buffers bufs = {.got = 0};
+    void *ptr[3];
+    if (acquire(&bufs, spec, 3, ptr) < 0) {
+        release(&bufs);
+        return NULL;
+    }
+    const double *x = ptr[0];
+    double *play = ptr[1], *out = ptr[2];
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t j = 0; j < k; j++) {
+        double p = play[j];
+        for (Py_ssize_t i = 0; i < n; i++) {
+            const double v = x[i * k + j];
+            if (v > p + w)          /* the Python expressions, so that rounding agrees */
+                p = v - w;
+            else if (v < p - w)
+                p = v + w;
+            out[i * k + j] = p;
+        }
+        play[j] = p;
+    }
+    Py_END_ALLOW_THREADS
+    release(&bufs);
+    Py_RETURN_NONE;
+}
+
+PyDoc_STRVAR(dahl_state_doc,
+"dahl_state(positions, travel, last, direction, anchor_x, anchor_s, out) -> None\n\n"
+"terms.dahl_state: Dahl's friction state along each column of positions (N, k) float64 (the\n"
+"play's output), turn-over travel [m]; the state (last position, direction, anchor position,\n"
+"anchor state), each (k,) float64, is updated in place; out (N, k) float64 gets s in [-1, 1].\n"
+"Releases the GIL.");
+
+static PyObject *dahl_state(PyObject *self, PyObject *args)
+{
+    (void)self;
+    PyObject *o[6];
+    double travel;
+    if (!PyArg_ParseTuple(args, "OdOOOOO", &o[0], &travel, &o[1], &o[2], &o[3], &o[4], &o[5]))
+        return NULL;
+    const Py_ssize_t n = columns_of(o[0], o[1], "positions");
+    if (n < 0)
+        return NULL;
+    Py_buffer view;
+    if (get_buffer(o[1], &view, 0, -1, 8, "d", "last") < 0)
+        return NULL;
+    const Py_ssize_t k = view.len / 8;
+    PyBuffer_Release(&view);
+    Spec spec[] = {
+        {o[0], 0, n * k, 8, "d", "positions", 0},
+        {o[1], 1, k, 8, "d", "last", 0},
+        {o[2], 1, k, 8, "d", "direction", 0},
+        {o[3], 1, k, 8, "d", "anchor_x", 0},
+        {o[4], 1, k, 8, "d", "anchor_s", 0},
+        {o[5], 1, n * k, 8, "d", "out", 0},
+    };
+    Buffers bufs = {.got = 0};
+    void *ptr[6];
+    if (acquire(&bufs, spec, 6, ptr) < 0) {
+        release(&bufs);
+        return NULL;
+    }
+    const double *x = ptr[0];
+    double *last = ptr[1], *dir = ptr[2], *anchor_x = ptr[3], *anchor_s = ptr[4], *out = ptr[5];
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t j = 0; j < k; j++) {
+        double prev = last[j], d = dir[j], ax = anchor_x[j], as = anchor_s[j], s = 0.0;
+        for (Py_ssize_t i = 0; i < n; i++) {
+            const double p = x[i * k + j];
+            if (i > 0 && p == prev) {   /* at rest (the play holds): the same state */
+                out[i * k + j] = out[(i - 1) * k + j];
+                continue;
+            }
+            const double step = (p > prev) - (p < prev);
+            const double now = step != 0.0 ? step : d;
+            if (now != d) {         /* a new direction begins at prev: its anchor */
+                if (d != 0.0)
+                    as = d - (d - as) * exp(-d * (prev - ax) / travel);
+                ax = prev;
+                d = now;
+            }
+            s = d == 0.0 ? as : d - (d - as) * exp(-d * (p - ax) / travel);
+            out[i * k + j] = s < -1.0 ? -1.0 : (s > 1.0 ? 1.0 : s);
+            prev = p;
+        }
+        if (n > 0)
+            last[j] = prev;
+        dir[j] = d;
+        anchor_x[j] = ax;
+        anchor_s[j] = as;
+    }
+    Py_END_ALLOW_THREADS
+    release(&bufs);
+    Py_RETURN_NONE;
+}
+
 PyDoc_STRVAR(cdf_eval_doc,
 "cdf_eval(counts, knots, distances, slopes, lengths, out_of_range) -> None\n\n"
 "Piecewise-linear CDFs of k bars (Eq. 10), as CdfBank.__call__: column j of counts (N, k)\n"
@@ -1109,6 +1252,8 @@ static PyMethodDef methods[] = {
     {"pose_covariance", pose_covariance, METH_VARARGS, pose_covariance_doc},
     {"cdf_eval", cdf_eval, METH_VARARGS, cdf_eval_doc},
     {"play_directions", play_directions, METH_VARARGS, play_directions_doc},
+    {"play_positions", play_positions, METH_VARARGS, play_positions_doc},
+    {"dahl_state", dahl_state, METH_VARARGS, dahl_state_doc},
     {"match_rows", match_rows, METH_VARARGS, match_rows_doc},
     {"decode_continuing", decode_continuing, METH_VARARGS, decode_continuing_doc},
     {NULL, NULL, 0, NULL},

@@ -215,7 +215,10 @@ class CoverageAccumulator:
     spread evenly over all of it. The report says the stride (``every``).
     """
 
-    def __init__(self, max_samples: int = 100_000) -> None:
+    #: samples kept at most by default
+    MAX_SAMPLES = 100_000
+
+    def __init__(self, max_samples: int = MAX_SAMPLES) -> None:
         self.max_samples = max_samples
         self.every = 1
         self._seen = 0          # measurements offered so far (the stride counts from the first)
@@ -225,8 +228,9 @@ class CoverageAccumulator:
 
     def add(self, errors: FloatArray, covariance: FloatArray, valid: NDArray[np.bool_]) -> None:
         """errors (N, 6) [m, rad]; covariance (N, 6, 6); valid (N,): the measurements"""
-        v = np.asarray(valid, dtype=bool)
-        e, c = np.asarray(errors, dtype=np.float64)[v], np.asarray(covariance)[v]
+        c = np.asarray(covariance)
+        v = np.asarray(valid, dtype=bool) & np.isfinite(c[:, 0, 0])   # (rows not computed: NaN)
+        e, c = np.asarray(errors, dtype=np.float64)[v], c[v]
         index = self._seen + np.arange(e.shape[0])
         self._seen += e.shape[0]
         keep = index % self.every == 0

@@ -624,7 +624,7 @@ class CalibrationRoutine:
         res = self.device.encoder_resolution_m
         if step.kind == 'drift':
             if step.channel not in self._resting or step.pair != self._resting[step.channel]:
-                return self._refuse(step, f'the drift reading is taken with a reference bar on its '
+                return self._refuse(step, 'the drift reading is taken with a reference bar on its '
                                     'resting pair', bar, pair, mode)
             self._drift = CaptureStats(step.channel, step.pair, '', q, (std_m / res) ** 2,
                                        n, _seconds(when), 'drift')

@@ -422,4 +422,4 @@ def load_model(path: str | os.PathLike[str] | None) -> Model:
     return Model.from_dict(read_yaml(path), str(path))
 
 
-import mmd_ros.core.terms  # noqa: F401  (registers the catalogue's terms)
+import mmd_ros.core.terms  # noqa: F401,E402  (registers the catalogue's terms)

@@ -209,9 +209,13 @@ class Pipeline:
 
     # -- batch ---------------------------------------------------------------------------------
     def process(self, times_s: FloatArray, counts: FloatArray, *,
-                with_covariance: bool = False, compiled: bool | None = None) -> ProcessResult:
+                with_covariance: bool = False, covariance_every: int = 1,
+                compiled: bool | None = None) -> ProcessResult:
         """Poses of N consecutive samples (one run, in time order).
 
+        covariance_every : with the covariance, that of every k-th sample only (the others NaN):
+            enough to judge how it covers a long run's error at a fraction of the cost (the
+            budget still observes every sample)
         compiled : FK and covariance with the compiled helpers (default: when they are in
             use); False: numpy, the reference (the same results, bit for bit)
         """
@@ -228,7 +232,13 @@ class Pipeline:
         cov = None
         if with_covariance and sol.jacobian_inverse is not None:
             observed = self.budget.observe(comp.cdf_lengths_m, comp.thermal.reference_error_m)
-            cov = self.covariance(sol.jacobian_inverse, comp, observed, compiled=compiled)
+            if covariance_every > 1:
+                rows = slice(None, None, covariance_every)
+                cov = np.full((times_s.size, 6, 6), np.nan)
+                cov[rows] = self.covariance(sol.jacobian_inverse, comp, observed, rows=rows,
+                                            compiled=compiled)
+            else:
+                cov = self.covariance(sol.jacobian_inverse, comp, observed, compiled=compiled)
         return ProcessResult(times_s, comp, sol.poses, sol.converged, valid, status,
                              sol.iterations, sol.residual_m, sol.condition, cov)
 
@@ -241,17 +251,21 @@ class Pipeline:
         return sol
 
     def covariance(self, jinv: FloatArray, comp: Compensated, observed: Observed | None = None,
-                   *, compiled: bool | None = None) -> FloatArray:
+                   *, rows: slice | None = None, compiled: bool | None = None) -> FloatArray:
         """Pose covariance of N samples, (N, 6, 6) [m, rad]^2: J^-1 Sigma_d J^-T with Sigma_d of
         the budget, the translation rows and columns scaled by the plates' expansion.
 
         jinv : ndarray, shape (N, 6, 6) — inverse Jacobians at the solutions (on d / s)
         observed : what :meth:`LengthBudget.observe` returned for these samples, or None
+        rows : only these samples (default all)
         """
+        r = slice(None) if rows is None else rows
         th = comp.thermal
-        sigma_d = self.budget.covariance(comp.lengths_m, th.reference_error_m, th.temp_change_c,
-                                         th.bar_error_m, comp.fit_columns_m, observed)
-        return pose_covariance(jinv, sigma_d, th.plate_scale, compiled=compiled)
+        sigma_d = self.budget.covariance(
+            comp.lengths_m[r], th.reference_error_m[r], th.temp_change_c[r], th.bar_error_m[r],
+            None if comp.fit_columns_m is None else comp.fit_columns_m[r],
+            None if observed is None else observed[r])
+        return pose_covariance(jinv[r], sigma_d, th.plate_scale[r], compiled=compiled)
 
     # -- stream --------------------------------------------------------------------------------
     def process_sample(self, time_s: float, counts: FloatArray, *,

@@ -38,6 +38,7 @@ from numpy.typing import NDArray
 from scipy.signal import lfilter
 
 from mmd_ros.core import validate
+from mmd_ros.core.compiled import fast, use_compiled
 from mmd_ros.core.errors import ConfigError
 from mmd_ros.core.model import HysteresisTerm, ModelTerm, TermContext, register_term, six_values
 from mmd_ros.core.rotation import rotation_matrix
@@ -100,9 +101,9 @@ def leg_geometry(upper_m: FloatArray, lower_m: FloatArray, poses: FloatArray
         positions are scaled by s (Eq. 6 with s a_i, s b_i), n_i . (R a_i - b_i)
     """
     rot = rotation_matrix(poses[:, 3:])
-    ra = np.einsum('nij,kj->nki', rot, upper_m)
+    ra = np.matmul(rot, np.asarray(upper_m).T).transpose(0, 2, 1)   # (einsum: 2x slower here)
     legs = ra + poses[:, None, :3] - lower_m[None]
-    units = legs / np.linalg.norm(legs, axis=2, keepdims=True)
+    units = legs / np.sqrt(np.einsum('nki,nki->nk', legs, legs))[:, :, None]
     ddds = np.einsum('nki,nki->nk', units, ra - lower_m[None])
     return ra, units, ddds
 
@@ -166,19 +167,23 @@ class _Replayable(ModelTerm):
 
 
 # -- friction ----------------------------------------------------------------------------------
-def play_positions(lengths_m: FloatArray, deadband_m: float, start: FloatArray | None
-                   ) -> FloatArray:
+def play_positions(lengths_m: FloatArray, deadband_m: float, start: FloatArray | None, *,
+                   compiled: bool | None = None) -> FloatArray:
     """Output of a play (backlash) of half-width ``deadband_m`` on each column, (N, M): it
     follows the input only when the input is more than ``deadband_m`` away, so the rounding
     flicker of a bar at rest does not move it. ``start``: the play's position before the
-    first sample (None: the first sample)."""
-    x = np.asarray(lengths_m, dtype=np.float64)
+    first sample (None: the first sample). ``compiled``: the compiled loop (default: when it
+    is in use; the same numbers); False: Python."""
+    x = np.ascontiguousarray(lengths_m, dtype=np.float64)
     n, m = x.shape
     out = np.empty_like(x)
     if n == 0:
         return out
     p0 = x[0] if start is None else start
     w = deadband_m
+    if use_compiled(compiled):
+        fast.play_positions(x, float(w), np.array(p0, dtype=np.float64), out)
+        return out
     for j in range(m):   # a sequential recurrence: plain floats beat numpy rows here
         p, column = float(p0[j]), x[:, j].tolist()
         pos = [0.0] * n
@@ -193,18 +198,24 @@ def play_positions(lengths_m: FloatArray, deadband_m: float, start: FloatArray |
 
 
 def dahl_state(positions: FloatArray, travel_m: float,
-               state: tuple[FloatArray, FloatArray, FloatArray, FloatArray]
+               state: tuple[FloatArray, FloatArray, FloatArray, FloatArray], *,
+               compiled: bool | None = None
                ) -> tuple[FloatArray, tuple[FloatArray, FloatArray, FloatArray, FloatArray]]:
     """Dahl friction state along the play's output (see :func:`friction_state`).
 
     positions : ndarray, shape (N, M) — output of :func:`play_positions` [m]
     state : (position before the first sample, direction, anchor position, anchor state)
+    compiled : the compiled loop (default: when it is in use; the same numbers but for the
+        last bit of an exp); False: numpy
     """
-    pos = np.asarray(positions, dtype=np.float64)
+    pos = np.ascontiguousarray(positions, dtype=np.float64)
     n, m = pos.shape
     last, direction, anchor_x, anchor_s = (np.array(v, dtype=np.float64) for v in state)
     out = np.empty_like(pos)
     if n == 0:
+        return out, (last, direction, anchor_x, anchor_s)
+    if use_compiled(compiled):
+        fast.dahl_state(pos, float(travel_m), last, direction, anchor_x, anchor_s, out)
         return out, (last, direction, anchor_x, anchor_s)
     for j in range(m):
         pj = pos[:, j]

@@ -120,7 +120,7 @@ def _resolve_calibration(source: RunSource, calibration: Calibration | str | Non
 
 
 def process_blocks(source: RunSource, model: Model, *, calibration: Calibration | str | None = None,
-                   with_covariance: bool = False, block: int = BLOCK,
+                   with_covariance: bool = False, covariance_every: int = 1, block: int = BLOCK,
                    compiled: bool | None = None) -> Iterator[tuple[RunBlock, ProcessedRun]]:
     """The run block by block through one pipeline: (samples, their results), in time order.
     The next block is read in a background thread while one is computed.
@@ -137,7 +137,7 @@ def process_blocks(source: RunSource, model: Model, *, calibration: Calibration 
     for part in itertools.chain([first], parts):
         times = (part.stamps_ns - t0).astype(np.float64) * 1e-9
         res = pipeline.process(times, part.counts, with_covariance=with_covariance,
-                               compiled=compiled)
+                               covariance_every=covariance_every, compiled=compiled)
         comp = res.compensated
         yield part, ProcessedRun(
             part.stamps_ns, comp.lengths_m, res.poses, res.converged, res.valid, res.status,
@@ -178,6 +178,7 @@ class RunSummary:
         self.pose_error: ErrorAccumulator | None = None
         self.length_error: ErrorAccumulator | None = None
         self.coverage: CoverageAccumulator | None = None
+        self.covariance_every = 1   # the blocks have the covariance of every k-th sample
         self.budget: dict[str, Any] | None = None
 
     def add(self, part: RunBlock, result: ProcessedRun) -> None:
@@ -243,6 +244,7 @@ class RunSummary:
                          if isinstance(sigma, list) and len(sigma) == 6 else None)
             report = self.coverage.report(absolute=absolute, reference_sigma=ref_sigma)
             if report is not None:
+                report['every'] *= self.covariance_every
                 summary['uncertainty_coverage'] = report
         if self.budget is not None:
             summary['uncertainty_budget'] = self.budget
@@ -332,7 +334,7 @@ def process_log(source: RunSource, out: Path, model: Model, *,
                 calibration: Calibration | str | None = None, with_covariance: bool = False,
                 csv: Path | None = None, progress: Progress | None = None,
                 compiled: bool | None = None, block: int = BLOCK,
-                absolute_reference: bool | None = None) -> dict[str, Any]:
+                absolute_reference: bool | None = None, coverage: bool = True) -> dict[str, Any]:
     """``mmd process``: every sample of ``source`` through the pipeline into the processed log
     ``out`` (and ``csv``), block by block in bounded memory; returns the summary
     (:class:`RunSummary`). Reading, computing and writing overlap (module docstring). The
@@ -341,13 +343,20 @@ def process_log(source: RunSource, out: Path, model: Model, *,
     log being read is refused.
 
     with_covariance : write the poses with their covariance. With a reference pose in the log
-        the covariance is computed anyway, to report how well it covers the error.
+        the covariance is computed anyway, to report how well it covers the error (of about
+        :attr:`CoverageAccumulator.MAX_SAMPLES` samples spread over the run).
     absolute_reference : see :meth:`RunSummary.as_dict`
+    coverage : False: no covariance for the coverage report (with a reference pose and without
+        ``with_covariance``, the budget's covariance costs a few µs per sample)
     """
     check_outputs([('out', out), ('csv', csv)], [source.path], force=True)
     if isinstance(calibration, str):
         calibration = load_calibration(calibration)
+    # a covariance wanted only for its coverage is computed for the samples the summary keeps
+    coverage_only = coverage and source.has_reference_pose and not with_covariance
+    every = max(1, source.n_samples // CoverageAccumulator.MAX_SAMPLES)
     summary = RunSummary()
+    summary.covariance_every = every if coverage_only else 1
     writer: ProcessedLogWriter | None = None
     handle: IO[str] | None = None
     pending: Future[None] | None = None
@@ -363,7 +372,8 @@ def process_log(source: RunSource, out: Path, model: Model, *,
     # the pool exits first: a block being written is finished before the files are closed
     with contextlib.ExitStack() as files, ThreadPoolExecutor(1, thread_name_prefix='mmd-write') as pool:
         for part, result in process_blocks(source, model, calibration=calibration,
-                                           with_covariance=with_covariance or source.has_reference_pose,
+                                           with_covariance=with_covariance or coverage_only,
+                                           covariance_every=1 if with_covariance else every,
                                            compiled=compiled, block=block):
             if writer is None:
                 cal = _resolve_calibration(source, calibration)

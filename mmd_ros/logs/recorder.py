@@ -115,6 +115,7 @@ class Recorder:
         self.flushes = 0
         self._closed_bytes = 0
         self._current_bytes = 0
+        self._part_messages = 0
         self._opened_at = 0.0
         self._last_flush = float('nan')
         self._open_next()
@@ -166,6 +167,7 @@ class Recorder:
             return
         self._opened_at = self._clock()
         self._current_bytes = 0
+        self._part_messages = 0
         meta = dict(self.metadata)
         meta['part'] = str(len(self.files) - 1)
         if len(self.files) > 1:
@@ -193,6 +195,7 @@ class Recorder:
         if self._guard('writing', lambda: writer.write_raw(topic, msg_type, int(stamp_ns),
                                                            bytes(payload), qos)):
             self.messages += 1
+            self._part_messages += 1
             return True
         self.dropped += 1
         return False
@@ -207,6 +210,7 @@ class Recorder:
             return False
         if self._guard('writing', lambda: writer.write_rows(streams, stamps_ns, qos)):
             self.messages += n
+            self._part_messages += n
             return True
         self.dropped += n
         return False
@@ -250,11 +254,16 @@ class Recorder:
         self._open_next()
 
     def close(self) -> None:
-        """Close the current file cleanly (a complete, indexed MCAP file). Safe to call twice."""
+        """Close the current file cleanly (a complete, indexed MCAP file). Safe to call twice.
+        A rotation part that received no message after the latched ones (the limit was
+        reached by the last messages before the close) is removed: it holds nothing recorded."""
         writer, self._writer = self._writer, None
         if writer is not None and self.state == 'recording':
             if self._guard('closing', writer.close):
                 self.state = 'closed'
+                if len(self.files) > 1 and self._part_messages == 0:
+                    empty = self.files.pop()
+                    empty.unlink(missing_ok=True)
         elif self.state == 'recording':
             self.state = 'closed'
 
