@@ -32,9 +32,11 @@ identification is repeated on each draw. The MMD's error at a pose is drawn from
 covariance independently between targets and, once more, as a linear trend along the run: its
 errors follow the bar lengths, which change smoothly along a run, and a trend is what turns into
 a false slope (squareness) or a false location. A second set of draws with the MMD's covariance alone
-gives the MMD's part. A location fit whose residual is larger than its inputs explain (ratio >
-1: component errors the fit cannot tell from location over a partial turn) has its uncertainty
-scaled by that ratio.
+gives the MMD's part. The other table axes' play during a rotary run (within ± their reversal)
+is drawn too, and each target's cycle scatter is floored by the run's pooled scatter. Component
+errors that a partial turn cannot tell from the location (harmonics 2–4 of the angle, of the
+stated size, scaled per component by the fit's residual) add their projection onto the location
+(:meth:`_Session._leak`).
 """
 
 from __future__ import annotations
