@@ -29,12 +29,15 @@ def zero_truth(machine) -> MachineTruth:
 
 
 def exact_runs(twin: TwinMachine, plans, cycles: int = 2, sigma: float = 0.0,
-               rng: np.random.Generator | None = None) -> list[AxisRun]:
+               rng: np.random.Generator | None = None,
+               resting: dict[str, dict[str, float]] | None = None) -> list[AxisRun]:
     """The approaches of the ISO cycles of ``plans`` with the twin's true poses of {U} in {L}
-    (optionally with pose noise ``sigma`` [m, rad] and that covariance)."""
+    (optionally with pose noise ``sigma`` [m, rad] and that covariance). ``resting``: per run
+    axis, the play state (-1 … 1) of axes that stand still during it (default 0)."""
     m = twin.machine
     out = []
     for plan in plans:
+        still = (resting or {}).get(plan.axis, {})
         k = m.index(plan.axis)
         n = plan.targets.size
         q = np.tile(m.reference, (n, 1))
@@ -49,7 +52,10 @@ def exact_runs(twin: TwinMachine, plans, cycles: int = 2, sigma: float = 0.0,
         for d in (1, -1):
             last = np.where(np.abs(slope) > 1e-12, np.sign(slope) * d, 0).astype(np.int64)
             last[:, k] = d
-            poses = twin.mmd_poses(q, last.astype(float))
+            play = last.astype(float)
+            for other, state in still.items():
+                play[:, m.index(other)] = state
+            poses = twin.mmd_poses(q, play)
             for c in range(cycles):
                 for i in range(n):
                     pose = poses[i] if sigma == 0 else poses[i] + rng.normal(0.0, sigma, 6)

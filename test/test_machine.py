@@ -184,6 +184,30 @@ def test_location_uncertainty_covers_the_truth_across_machines():
         assert r.size == 32 and np.mean(r <= 1.0) >= 0.95 and r.max() <= 1.5, (label, r.max())
 
 
+def test_the_other_table_axis_play_is_inside_the_uncertainty():
+    """C has a reversal of 4″; during the linear runs it rests mid-play, during the A run at one
+    side of it (where its last move left it): the table, and with it the A run's motion, is
+    turned 2″ about C's line against the frame. The A location errors move by that much, and
+    their uncertainty (which draws the other table axis' play within its reversal) covers it."""
+    machine = load_machine('machine_xyzac.yaml')
+    truth = zero_truth(machine)
+    truth.rotary['A'] = replace(truth.rotary['A'], position=np.array([0, 8 * UM, -6 * UM]),
+                                orientation=np.array([0, 7 * ARCSEC, -9 * ARCSEC]))
+    truth.rotary['C'] = replace(truth.rotary['C'], reversal=4 * ARCSEC)
+    twin = TwinMachine(machine, truth, MmdSetup.draw(machine, 3))
+    plans = _plans(machine)
+    rng = np.random.default_rng(2)
+    still = exact_runs(twin, plans, sigma=0.02 * UM, rng=rng)
+    turned = exact_runs(twin, plans, sigma=0.02 * UM, rng=np.random.default_rng(2), resting={'A': {'C': 1.0}})
+    options = IdentifyOptions(draws=40, component_m=0.1 * UM, component_rad=0.1 * ARCSEC)
+    ec0a = {label: identify(runs, machine, options=options).value('EC0A')
+            for label, runs in (('still', still), ('turned', turned))}
+    assert abs(ec0a['still'].value + 9 * ARCSEC) < 0.2 * ARCSEC
+    shift = ec0a['turned'].value - ec0a['still'].value
+    assert 1.5 * ARCSEC < abs(shift) < 2.5 * ARCSEC           # the play turns the A line about z
+    assert abs(ec0a['turned'].value + 9 * ARCSEC) <= ec0a['turned'].expanded
+
+
 # -- whole sessions through the MMD -----------------------------------------------------------
 def _simulate(tmp: Path, name: str, params: list[str], effects: str = 'ideal',
               ambient: str = 'constant:20.0') -> Path:
