@@ -155,6 +155,38 @@ def test_a_missing_calibration_names_what_an_interrupted_save_left(tmp_path):
     assert 'cal.yaml.bak' in message and 'cal.yaml.abc123.tmp' in message and 'interrupted' in message
 
 
+def test_an_interrupted_save_is_recovered_from_its_complete_backup(tmp_path):
+    """The old writer killed between its renames left cal.yaml.bak (complete) and a temporary
+    (here cut short after a complete bar, so it still parses): the backup is restored, the
+    temporary never used; with the file present nothing is done."""
+    from mmd_ros.core.calibration import recover_interrupted_save
+    path = tmp_path / 'cal.yaml'
+    calibration('old').save(path)
+    os.rename(path, tmp_path / 'cal.yaml.bak')
+    new_text = calibration('new').to_yaml()
+    cut = new_text[:new_text.index('  bar3:')]           # a YAML file cut after bar2: valid YAML
+    (tmp_path / '.cal.yaml.123.abcd.tmp').write_text(cut)
+    done = recover_interrupted_save(path)
+    assert done.calibration == calibration('old') and done.source == tmp_path / 'cal.yaml.bak'
+    assert load_calibration(path) == calibration('old')          # the file is back, complete
+    assert load_calibration(tmp_path / 'cal.yaml.bak') == calibration('old')   # backup kept
+    text = done.describe(path)
+    assert 'restored' in text and 'cal.yaml.bak' in text and '.cal.yaml.123.abcd.tmp' in text
+    assert recover_interrupted_save(path) is None                 # the file exists: nothing to do
+    # a damaged backup is not used, and nothing is written
+    os.unlink(path)
+    (tmp_path / 'cal.yaml.bak').write_text('format_version: 1\nbars: {bar1: {counts: [1]}}\n')
+    done = recover_interrupted_save(path)
+    assert done.calibration is None and 'cannot be used' in done.describe(path) and not path.exists()
+    # only a temporary left: named, never used
+    os.unlink(tmp_path / 'cal.yaml.bak')
+    done = recover_interrupted_save(path)
+    assert done.calibration is None and 'left only .cal.yaml.123.abcd.tmp' in done.describe(path)
+    assert not path.exists()
+    os.unlink(tmp_path / '.cal.yaml.123.abcd.tmp')
+    assert recover_interrupted_save(path) is None
+
+
 def test_a_calibration_field_of_the_wrong_kind_is_refused_by_name(tmp_path):
     cal = calibration("x")
     path = tmp_path / 'cal.yaml'

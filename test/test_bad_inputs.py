@@ -1,7 +1,8 @@
 """Hostile but fair input, every way in (issue 14, items 7–9).
 
 A table of malformed inputs across the ``mmd`` subcommands and the file kinds they read (model,
-calibration, device, ambient profile, log and the YAML strings inside a log), run in-process
+calibration, device, ambient profile, machine description, test program, log and the YAML
+strings inside a log; in every file kind an unknown key is refused, with the key it resembles), run in-process
 through ``mmd_ros.cli.main.main``. Each must end with exit status 2 and a message naming what was
 wrong; the test fails on any traceback (an exception other than SystemExit out of ``main``), on
 any silent acceptance (status 0), and on any file left in the output folder. A few run as real
@@ -59,6 +60,7 @@ def edited(kind: str, old: str, new: str):
 
 
 SIX3 = '[[1,2,3],[1,2,3],[1,2,3],[1,2,3],[1,2,3],[1,2,3]]'
+MACHINE = find_config('machine_xyzac.yaml').read_text()
 
 
 @pytest.fixture(scope='module')
@@ -97,6 +99,13 @@ def env(tmp_path_factory):
         w.write_joint_states('/mmd/raw_counts', run.stamps_ns, run.device.channel_names, run.counts)
 
     special('device_list.mcap', device_list)
+
+    def device_typo(w):
+        w.write_string('/mmd/device_description', t0,
+                       run.device.to_yaml().replace('fixed_length_mm:', 'fixed_lenght_mm:'))
+        w.write_joint_states('/mmd/raw_counts', run.stamps_ns, run.device.channel_names, run.counts)
+
+    special('device_typo.mcap', device_typo)
 
     def wrong_names(w):
         w.write_string('/mmd/device_description', t0, run.device.to_yaml())
@@ -175,6 +184,13 @@ CASES = [
     ('calibration thermal zero text', {'c.yaml': lambda env: env['cal'] + 'thermal_zero_um: {ref1: abc}\n'},
      WITH_CALIBRATION, 'thermal_zero_um.ref1'),
     ('calibration bomb', {'c.yaml': BOMB}, WITH_CALIBRATION, 'expands to'),
+    ('calibration unknown key', {'c.yaml': lambda env: env['cal'] + 'ambient_cc: 20.0\n'},
+     WITH_CALIBRATION, 'did you mean ambient_c'),
+    ('calibration unknown bar key', {'c.yaml': edited('cal', 'distances_mm:', 'distance_mm:')},
+     WITH_CALIBRATION, 'distance_mm'),
+    ('calibration unknown terminal key',
+     {'c.yaml': lambda env: env['cal'] + 'terminal: {serial: T1, simulated: true, chanels: {}}\n'},
+     WITH_CALIBRATION, 'terminal.chanels'),
     # -- device files -----------------------------------------------------------------------------
     ('device bomb', {'d.yaml': BOMB}, 'simulate --device d.yaml', 'expands to'),
     ('device range bools', {'d.yaml': edited('device', 'range_mm: [250.0,', 'range_mm: [true,')},
@@ -187,7 +203,29 @@ CASES = [
     ('device binary', {'d.yaml': b'\xfe\xff\x00' * 30}, 'workspace --device d.yaml', 'not a text file'),
     ('device joints text', {'d.yaml': edited('device', '[98.4808, -17.3648, 0.0]', '[a, b, c]')},
      'error-budget --device d.yaml', 'joints.upper_design_mm'),
+    ('device unknown key', {'d.yaml': edited('device', 'terminal:\n', 'termnal:\n')},
+     'simulate --device d.yaml', 'did you mean terminal'),
+    ('device unknown section key', {'d.yaml': edited('device', 'fixed_length_mm:', 'fixed_lenght_mm:')},
+     'workspace --device d.yaml', 'bars.fixed_lenght_mm'),
+    ('device unknown channel key', {'d.yaml': edited('device', 'role: unused}', 'role: unused, bars: 7}')},
+     'simulate --device d.yaml', 'terminal.channels[7].bars'),
+    ('device unknown pair key', {'d.yaml': edited('device', '{name: dr1,', '{name: dr1, sigma_um: 1,')},
+     'error-budget --device d.yaml', 'reference_plate.pairs[0].sigma_um'),
+    # -- machine descriptions and test programs ---------------------------------------------------
+    ('machine unknown axis key', {'x.yaml': lambda env: MACHINE.replace('direction: [1, 0, 0]', 'directon: [1, 0, 0]', 1)},
+     'machine analyze {log} --machine x.yaml', 'axes[0].directon'),
+    ('machine unknown mmd key', {'x.yaml': lambda env: MACHINE.replace('upper_offset_mm', 'upper_ofset_mm')},
+     'machine analyze {log} --machine x.yaml', 'did you mean upper_offset_mm'),
+    ('machine unknown key', {'x.yaml': lambda env: MACHINE + 'chain: {}\n'},
+     'machine analyze {log} --machine x.yaml', 'did you mean chains'),
+    ('program unknown key', {'p.yaml': 'runs: [{axis: X, targets_mm: [1, 2, 3], folow: true}]\n'},
+     'machine analyze {log} --machine machine_xyzac.yaml --program p.yaml', 'did you mean follow'),
+    ('program follow text', {'p.yaml': 'runs: [{axis: X, targets_mm: [1, 2, 3], follow: "no"}]\n'},
+     'machine analyze {log} --machine machine_xyzac.yaml --program p.yaml', 'runs[0].follow'),
     # -- ambient profiles -------------------------------------------------------------------------
+    ('ambient unknown key', {'a.yaml': 'initial_cc: 20\n'}, 'simulate --ambient a.yaml', 'did you mean initial_c'),
+    ('ambient unknown ramp key', {'a.yaml': 'initial_c: 20\nramps: [{duration_s: 5, end_c: 21, time_constant: 9}]\n'},
+     'simulate --ambient a.yaml', 'ramps[0].time_constant'),
     ('ambient bomb', {'a.yaml': BOMB}, 'simulate --ambient a.yaml', 'expands to'),
     ('ambient initial nan', {'a.yaml': 'initial_c: .nan\n'}, 'simulate --ambient a.yaml', 'initial_c'),
     ('ambient ramp inf', {'a.yaml': 'initial_c: 20\nramps: [{duration_s: .inf, end_c: 21, time_constant_s: 9}]\n'},
@@ -200,6 +238,7 @@ CASES = [
     ('log model bomb', {}, 'process --json {logs}/model_bomb.mcap', 'expands to'),
     ('log model nan', {}, 'process --json {logs}/model_nan.mcap', 'length_sigma_um'),
     ('log device not mapping', {}, 'process {logs}/device_list.mcap', 'device_description'),
+    ('log device unknown key', {}, 'process {logs}/device_typo.mcap', 'did you mean fixed_length_mm'),
     ('log channel names', {}, 'process {logs}/wrong_names.mcap', 'do not match'),
     ('log metadata json', {}, 'process {logs}/bad_metadata.mcap', 'not valid JSON'),
     ('log stamps backwards', {}, 'process {logs}/backwards.mcap', 'go backwards'),
@@ -222,6 +261,8 @@ CASES = [
     ('simulate seed negative', {}, 'simulate --seed -1', '--seed'),
     ('simulate effect nan', {}, 'simulate --effect hysteresis_m=nan', 'hysteresis_m'),
     ('simulate unknown param', {}, 'simulate --param nonsense=1', 'nonsense'),
+    ('simulate param typo', {}, 'simulate --scenario hold --param duraton_s=1', 'did you mean duration_s'),
+    ('simulate effect typo', {}, 'simulate --effect hysteresis=1e-6', 'did you mean hysteresis_m'),
     ('simulate param alias bomb', {}, ['simulate', '--scenario', 'hold', '--param',
                                        'pose=[&a [1,1,1,1,1,1,1,1,1], &b [*a,*a,*a,*a,*a,*a,*a,*a,*a], '
                                        '&c [*b,*b,*b,*b,*b,*b,*b,*b,*b], &d [*c,*c,*c,*c,*c,*c,*c,*c,*c], '
@@ -269,9 +310,10 @@ DEFAULT_OUT = {'process': ['--out', '{out}/p.mcap', '--csv', '{out}/p.csv'],
 def test_the_table_covers_every_command_and_file_kind():
     assert len(CASES) >= 60
     commands = {(c[2] if isinstance(c[2], str) else ' '.join(c[2])).split()[0] for c in CASES}
-    assert commands == {'process', 'simulate', 'analyze', 'iso230-2', 'error-budget', 'workspace', 'replay'}
+    assert commands == {'process', 'simulate', 'analyze', 'iso230-2', 'error-budget', 'workspace', 'replay',
+                        'machine'}
     names = ' '.join(c[0] for c in CASES)
-    for kind in ('model', 'calibration', 'device', 'ambient', 'log'):
+    for kind in ('model', 'calibration', 'device', 'ambient', 'log', 'machine', 'program'):
         assert kind in names
 
 

@@ -4,7 +4,8 @@ One ``pose_node`` (the whole pipeline, recording) runs on the simulated terminal
 counters started just below the 32-bit wrap and a room that warms by 4 °C. The test pulls the
 cable, corrupts frames, drops samples, resets the terminal's counters (and re-references the
 bars through ``/mmd/calibrate_bar``), corrupts the calibration file, holds a bar beyond its
-calibrated range and finally SIGKILLs the node. Checks: poses match the twin across counter wraps and reconnects; the only samples
+calibrated range, takes a bar's encoder signal away for a moment (its samples recorded with
+their codes, and no pose offline either) and finally SIGKILLs the node. Checks: poses match the twin across counter wraps and reconnects; the only samples
 missing from ``/mmd/raw_counts`` are those lost on the wire, as counted by the driver; every
 fault shows up in ``/diagnostics``; the log is recovered up to its last flush.
 """
@@ -18,6 +19,8 @@ import numpy as np
 import pytest
 from test_nodes_support import Nodes, gaps_from_stamps, needs_ros, params, seen
 
+from mmd_ros.core.model import Model
+from mmd_ros.core.pipeline import Pipeline
 from mmd_ros.logs.layout import read_run
 from mmd_ros.logs.reader import LogReader
 
@@ -164,6 +167,13 @@ def test_pose_node_through_every_fault(tmp_path):
         assert client.set_param('pose_node', 'sim_command', 'mount')[0]
         assert client.wait_for(lambda: len(client.poses) > n_poses + 200, 20)
 
+        # bar3's encoder signal lost for a moment: those samples are recorded with their codes,
+        # and offline (mmd process's pipeline) give no pose, as live
+        assert client.set_param('pose_node', 'sim_command', 'signal_lost bar3')[0]
+        time.sleep(0.3)
+        assert client.set_param('pose_node', 'sim_command', 'signal_ok bar3')[0]
+        assert client.wait_for(lambda: int(client.status(': terminal')['values']['samples_flagged']) > 0, 20)
+
         # SIGKILL: the log reads back up to its last flush
         time.sleep(1.5)
         with client._lock:
@@ -179,6 +189,13 @@ def test_pose_node_through_every_fault(tmp_path):
             got = [s for s in client.raw_stamps if s <= run.stamps_ns[-1]]
         assert all(s in recorded for s in got)  # everything published up to there was recorded
         check_machine_joints(run, 20)
+        flagged = run.no_signal
+        assert run.status is not None and flagged.sum() > 50, None if run.status is None else flagged.sum()
+        assert set(np.flatnonzero(run.status[flagged].any(axis=0))) == {2}   # bar3's channel only
+        part = slice(max(0, int(np.flatnonzero(flagged)[0]) - 2000), None)   # after the re-reference
+        result = Pipeline(run.device, run.calibration, Model()).process(
+            run.times_s[part], run.counts[part], status=run.status[part])
+        assert not result.valid[flagged[part]].any() and result.valid[~flagged[part]].any()
     except BaseException:
         print(nodes.dump())
         raise

@@ -11,6 +11,7 @@
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import replace
 
 import numpy as np
@@ -100,6 +101,54 @@ def stage(device, path, *, any_terminal=False, terminal=None, factory=None, refu
                           terminal=terminal, on_refused=refused)
     st.start()
     return st, published
+
+
+@needs_ros
+def test_the_stage_restores_a_calibration_an_interrupted_save_left_as_bak(device, source, tmp_path):
+    """Killed between the old writer's two renames, only cal.yaml.bak and a temporary remain:
+    the next start uses the complete earlier calibration (not a new factory one), puts the
+    file back, and says so in the log and the diagnostics until the next save."""
+    roles = channel_roles(device.channels)
+    path = tmp_path / 'cal.yaml'
+    old = bound(source.factory_calibration(), 'MMD-SIM-0001', True, device)
+    old = replace(old, created='2026-01-01T00:00:00Z')
+    old.save(path)
+    os.rename(path, tmp_path / 'cal.yaml.bak')
+    (tmp_path / '.cal.yaml.99.beef.tmp').write_text(old.to_yaml()[:300])
+
+    def factory():
+        raise AssertionError('a new factory calibration written over the recoverable one')
+
+    st, published = stage(device, path, terminal=TerminalBinding('MMD-SIM-0001', True, roles),
+                          factory=factory)
+    assert st.routine.calibration is not None and st.routine.calibration.created == old.created
+    assert published[0].bars == old.bars
+    assert load_calibration(path) == old and load_calibration(tmp_path / 'cal.yaml.bak') == old
+    warned = [text for level, text in st.log.lines if level == 'warn']
+    assert any('restored' in t and 'cal.yaml.bak' in t for t in warned), st.log.lines
+    r = st.report()
+    assert r.level == 1 and 'restored' in r.message and 'cal.yaml.bak' in r.values['recovered']
+    st._save(st.routine.calibration)           # the next save: the warning has done its work
+    assert st.report().level == 0 and st.report().values['recovered'] == ''
+    # the file damaged by hand: refused by name, the calibration in use stays; the .bak copied
+    # over it (recovery.md) is reloaded at the next poll and published
+    in_use = st.routine.calibration
+    path.write_text(path.read_text().replace('counts:', 'counts: [1, 2]\n    x:', 1))
+    st.poll_file()
+    assert st.routine.calibration is in_use and st.report().level == 2
+    assert str(path) in st.report().message
+    n = len(published)
+    path.write_bytes((tmp_path / 'cal.yaml.bak').read_bytes())
+    st.poll_file()
+    assert not st.file_problem and len(published) == n + 1 and published[-1].bars == old.bars
+    # a backup that is no calibration: ERROR, said, and the simulator's factory takes over
+    os.unlink(path)
+    (tmp_path / 'cal.yaml.bak').write_text('not: a calibration\n')
+    st, published = stage(device, path, terminal=TerminalBinding('MMD-SIM-0001', True, roles),
+                          factory=source.factory_calibration)
+    errors = [text for level, text in st.log.lines if level == 'error']
+    assert any('cal.yaml.bak, which cannot be used' in t for t in errors), st.log.lines
+    assert (tmp_path / 'cal.yaml.bak').read_text() == 'not: a calibration\n'
 
 
 @needs_ros

@@ -30,6 +30,25 @@ def test_invalid_parameters_are_refused_by_name(tmp_path, name, args, expected):
 
 
 @needs_ros
+def test_an_unknown_parameter_in_a_parameters_file_is_refused(tmp_path):
+    """A typo in a parameters file stops the node naming the file, the key and the close match;
+    a parameter of another mmd_ros node, and rclpy's own, are accepted by the check."""
+    from mmd_ros.nodes.params import unknown_overrides
+    assert unknown_overrides(['flush_period_s', 'use_sim_time', 'qos_overrides./mmd/pose.publisher.depth',
+                              'sim_effects'], []) is None
+    nodes = Nodes(tmp_path)
+    path = tmp_path / 'my_params.yaml'
+    path.write_text('/**:\n  ros__parameters:\n    sim_efects: none\n')
+    out = subprocess.run(command('encoder_node') + ['--ros-args', '--params-file', str(path)],
+                         env=nodes.env, cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 2, out.stdout + out.stderr
+    line = out.stderr.strip().splitlines()[-1]
+    assert f'parameter sim_efects (from {path} or -p)' in line and 'did you mean sim_effects?' in line, \
+        out.stderr
+    assert 'Traceback' not in out.stderr
+
+
+@needs_ros
 def test_a_device_in_another_namespace(tmp_path):
     from mmd_ros.nodes.client import MmdClient
     nodes = Nodes(tmp_path)

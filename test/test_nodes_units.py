@@ -162,3 +162,22 @@ def test_the_scenario_restarts_when_it_ends(device):
     t = np.concatenate([src.read(n)[0] for n in [5, 300, 1, 900, 37, 800]])
     assert src.restarts == 2 and t.size == 2043
     assert np.isfinite(src.reference_at(t[-1000:])).all()
+
+
+@needs_ros
+def test_sim_effects_takes_every_preset_of_the_cli(device):
+    """``sim_effects:=none`` gives the twin the CLI's ``--effects none`` (no error source at all);
+    every preset of the twin is a value of the parameter, and nothing else is."""
+    from mmd_ros.nodes.params import check
+    from mmd_ros.nodes.terminal import TERMINAL_PARAMS, TerminalConfig, TerminalStage
+    from mmd_ros.twin.effects import PRESETS
+    param = next(p for p in TERMINAL_PARAMS if p.name == 'sim_effects')
+    assert all(check(param, name) is None for name in PRESETS) and 'none' in PRESETS
+    assert 'must be one of' in check(param, 'nothing')
+    values = {p.name: p.default for p in TERMINAL_PARAMS} | {'sim_effects': 'none',
+                                                            'sim_scenario': 'hold'}
+    stage = TerminalStage(TerminalConfig.from_values(values), device, None, None, None, None)
+    assert stage.source.twin.effects == Effects.none()
+    _, counts = stage.source.read(2000)
+    # no read noise, no drift, a room at 20 °C: the bars held still read one count each
+    assert np.ptp(counts[:, :6], axis=0).max() == 0

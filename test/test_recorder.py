@@ -159,6 +159,32 @@ def test_a_killed_recording_reads_back_to_its_last_flush(tmp_path):
     assert js.stamps_ns.size == 500  # the flushed half; the unflushed chunk died with the process
 
 
+def test_a_restarted_recording_never_writes_over_the_earlier_one(tmp_path):
+    """After a crash the node is started again with the same ``output``: the crashed log (and
+    its rotation parts) stay as they were; the new recording goes beside them."""
+    path = tmp_path / 'run.mcap'
+    stamps, payload = rows(200)
+
+    def record() -> Recorder:     # two files: the second after 2 s
+        clock = FakeClock()
+        rec = Recorder(path, max_duration_s=2.0, clock=clock)
+        for part in (slice(0, 100), slice(100, 200)):
+            rec.write_rows([('/mmd/raw_counts', 'sensor_msgs/msg/JointState', payload[part])],
+                           stamps[part])
+            clock.t += 2.5
+            rec.poll()
+        rec.close()
+        return rec
+
+    first = record()
+    assert [p.name for p in first.files][:2] == ['run.mcap', 'run_1.mcap']
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    again = record()
+    assert [p.name for p in again.files][:2] == ['run.1.mcap', 'run_1.1.mcap']
+    assert {name: (tmp_path / name).read_bytes() for name in before} == before
+    assert LogReader(tmp_path / 'run.1.mcap').joint_states('/mmd/raw_counts').stamps_ns.size == 100
+
+
 def test_replay_schedule():
     stamps = T0 + np.arange(0, 1000, dtype=np.int64) * 1_000_000  # 1 s at 1 kHz
     s = ReplaySchedule(stamps, 2.0)

@@ -86,14 +86,20 @@ class Processed:
 
 def run_pipeline(device: DeviceDescription, calibration: Calibration, model: Model,
                  times_s: FloatArray, counts: FloatArray,
-                 progress: Callable[[int], None] | None = None) -> Processed:
-    """The live pipeline over a whole run, block by block in time order (as ``mmd process``)."""
+                 progress: Callable[[int], None] | None = None,
+                 status: NDArray[np.uint8] | None = None) -> Processed:
+    """The live pipeline over a whole run, block by block in time order (as ``mmd process``).
+
+    status : (N, 8) the terminal's channel status codes (``RunLog.status``): flagged samples
+        get no pose (``valid`` False), as live; None when every sample is good
+    """
     pipeline = Pipeline(device, calibration, model)  # its own copy of the terms' state
     lo, hi = pipeline.cdfs.distances_m.min(axis=1), pipeline.cdfs.distances_m.max(axis=1)
     parts = []
     for start in range(0, times_s.size, BLOCK):
         stop = start + BLOCK
-        res = pipeline.process(times_s[start:stop], counts[start:stop])
+        res = pipeline.process(times_s[start:stop], counts[start:stop],
+                               status=None if status is None else status[start:stop])
         comp = res.compensated
         parts.append((res.poses, res.valid, comp.lengths_m, comp.cdf_lengths_m,
                       comp.cdf_lengths_m - comp.thermal.bar_error_m, comp.thermal.reference_error_m,

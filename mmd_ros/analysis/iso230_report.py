@@ -133,7 +133,8 @@ def iso230_of_run(run: RunLog, axis: str | None = None, models: dict[str, Model]
     for number, (label, model) in enumerate(models.items()):
         done = number * run.times_s.size
         tick = None if progress is None else (lambda n, done=done: progress((done + n) / total))
-        proc = run_pipeline(run.device, calibration, model, run.times_s, run.counts, progress=tick)
+        proc = run_pipeline(run.device, calibration, model, run.times_s, run.counts, progress=tick,
+                            status=run.status)
         pose = np.where(proc.valid, proc.poses[:, k], np.nan)
         if 'mmd' in instruments:
             signals[label] = pose

@@ -50,11 +50,17 @@ def run_command(args: argparse.Namespace) -> int:
             print(f'[{time.perf_counter() - started:6.1f} s] {text}', file=sys.stderr, flush=True)
 
     runs = []
+    flagged_samples = {}
     for path in args.logs:
         say(f'reading {path}')
         run = read_run(path, segment=args.segment)
         if run.problem:
             print(f'warning: {path}: {run.problem}', file=sys.stderr)
+        run, flagged = run.without_flagged()
+        flagged_samples[str(path)] = flagged
+        if flagged:
+            print(f'warning: {path}: {flagged} sample(s) the terminal flagged (encoder signal '
+                  'lost) are not measurements: left out of the analysis', file=sys.stderr)
         runs.append(run)
     model = load_model(args.model) if args.model else (runs[0].model or Model())
     calibration = load_calibration(args.calibration) if args.calibration else None
@@ -72,6 +78,7 @@ def run_command(args: argparse.Namespace) -> int:
     if args.json:
         data = result.as_dict()
         data['model_file'] = str(written['model']) if 'model' in written else None
+        data['flagged_samples_left_out'] = flagged_samples
         jsonio.dump(data, sys.stdout)
         return 0
     print(format_summary(result))

@@ -64,7 +64,9 @@ def run_command(args: argparse.Namespace) -> int:
         return 0
     print(f'{summary["samples"]} samples over {summary["duration_s"]:.1f} s: '
           f'{summary["valid"]} valid poses, {summary["not_converged"]} not converged, '
-          f'{summary["out_of_range"]} with a bar out of its calibrated range')
+          f'{summary["out_of_range"]} with a bar out of its calibrated range'
+          + (f', {summary["no_signal"]} without encoder signal (flagged by the terminal: no pose)'
+             if summary['no_signal'] else ''))
     print(f'wrote {out}' + (f' and {args.csv}' if args.csv else '')
           + f' in {elapsed:.2f} s ({summary["samples_per_s"]:.0f} samples/s)')
     if 'pose_error' in summary:

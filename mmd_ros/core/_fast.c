@@ -6,8 +6,8 @@
  *   solve_batch         ForwardKinematics._solve_chunk and solve_series, samples on their own
  *   pose_covariance     propagate_covariance, J^-1 S J^-T per sample (kinematics.py)
  *   cdf_eval            CdfBank.__call__, the piecewise-linear CDFs of Eq. (10) (calibration.py)
- *   play_directions     HysteresisTerm.directions, the play operator (model.py)
- *   play_positions      play_positions, the play's output (terms.py)
+ *   play                the play operator: play_positions (terms.py) and
+ *                       HysteresisTerm.directions (model.py)
  *   dahl_state          dahl_state, Dahl's friction state along it (terms.py)
  *   match_rows          rows_match, the fixed bytes of messages read from a log (logs/cdr.py)
  *   decode_continuing   FrameStream.feed for a transfer that continues the stream
@@ -805,135 +805,81 @@ static PyObject *match_rows(PyObject *self, PyObject *args)
     return PyBool_FromLong(ok);
 }
 
-PyDoc_STRVAR(play_directions_doc,
-"play_directions(lengths, travel, play, direction, out) -> None\n\n"
-"HysteresisTerm.directions: the play (backlash) operator of half-width travel [m] on each\n"
-"column of lengths (N, k) float64, from play (k,) and direction (k,) float64 (updated in\n"
-"place); out (N, k) float64 gets the direction (-1, 0, +1) of every sample. Releases the GIL.");
-
-static PyObject *play_directions(PyObject *self, PyObject *args)
+/* Shape of an (N, k) float64 buffer whose k columns each have a state entry in a (k,) float64
+ * buffer: sets n and k, or returns -1 (error set). */
+static int columns_of(PyObject *data, PyObject *state, const char *name, Py_ssize_t *n,
+                      Py_ssize_t *k)
 {
-    (void)self;
-    PyObject *o[4];
-    double w;
-    if (!PyArg_ParseTuple(args, "OdOOO", &o[0], &w, &o[1], &o[2], &o[3]))
-        return NULL;
     Py_buffer view;
-    if (get_buffer(o[1], &view, 0, -1, 8, "d", "play") < 0)
-        return NULL;
-    const Py_ssize_t k = view.len / 8;
+    if (get_buffer(state, &view, 0, -1, 8, "d", "state") < 0)
+        return -1;
+    *k = view.len / 8;
     PyBuffer_Release(&view);
-    if (get_buffer(o[0], &view, 0, -1, 8, "d", "lengths") < 0)
-        return NULL;
+    if (get_buffer(data, &view, 0, -1, 8, "d", name) < 0)
+        return -1;
     const Py_ssize_t total = view.len / 8;
     PyBuffer_Release(&view);
-    if (k < 1 || total % k) {
-        PyErr_SetString(PyExc_ValueError, "lengths: need shape (N, k) with play (k,)");
-        return NULL;
+    if (*k < 1 || total % *k) {
+        PyErr_Format(PyExc_ValueError, "%s: need shape (N, k) with a state of shape (k,)", name);
+        return -1;
     }
-    const Py_ssize_t n = total / k;
+    *n = total / *k;
+    return 0;
+}
+
+PyDoc_STRVAR(play_doc,
+"play(lengths, deadband, play, direction, positions, directions) -> None\n\n"
+"The play (backlash) operator of half-width deadband [m] on each column of lengths (N, k)\n"
+"float64, from play (k,) float64 (updated in place): its output into positions (N, k), and the\n"
+"direction (-1, 0, +1) of its last move into directions (N, k), from direction (k,) (updated\n"
+"in place). direction, positions and directions may be None. terms.play_positions and\n"
+"HysteresisTerm.directions (model.py). Releases the GIL.");
+
+static PyObject *play(PyObject *self, PyObject *args)
+{
+    (void)self;
+    PyObject *o[5];
+    double w;
+    if (!PyArg_ParseTuple(args, "OdOOOO", &o[0], &w, &o[1], &o[2], &o[3], &o[4]))
+        return NULL;
+    Py_ssize_t n, k;
+    if (columns_of(o[0], o[1], "lengths", &n, &k) < 0)
+        return NULL;
     Spec spec[] = {
         {o[0], 0, n * k, 8, "d", "lengths", 0},
         {o[1], 1, k, 8, "d", "play", 0},
-        {o[2], 1, k, 8, "d", "direction", 0},
-        {o[3], 1, n * k, 8, "d", "out", 0},
+        {o[2], 1, k, 8, "d", "direction", 1},
+        {o[3], 1, n * k, 8, "d", "positions", 1},
+        {o[4], 1, n * k, 8, "d", "directions", 1},
     };
     Buffers bufs = {.got = 0};
-    void *ptr[4];
-    if (acquire(&bufs, spec, 4, ptr) < 0) {
+    void *ptr[5];
+    if (acquire(&bufs, spec, 5, ptr) < 0) {
         release(&bufs);
         return NULL;
     }
     const double *x = ptr[0];
-    double *play = ptr[1], *dir = ptr[2], *out = ptr[3];
+    double *play = ptr[1], *dir = ptr[2], *pos = ptr[3], *dirs = ptr[4];
     Py_BEGIN_ALLOW_THREADS
     for (Py_ssize_t j = 0; j < k; j++) {
-        double p = play[j], d = dir[j];
+        double p = play[j], d = dir ? dir[j] : 0.0;
         for (Py_ssize_t i = 0; i < n; i++) {
             const double v = x[i * k + j];
-            if (p < v - w) {
+            if (p < v - w) {        /* the Python expressions, so that rounding agrees */
                 p = v - w;
                 d = 1.0;
             } else if (p > v + w) {
                 p = v + w;
                 d = -1.0;
             }
-            out[i * k + j] = d;
+            if (pos)
+                pos[i * k + j] = p;
+            if (dirs)
+                dirs[i * k + j] = d;
         }
         play[j] = p;
-        dir[j] = d;
-    }
-    Py_END_ALLOW_THREADS
-    release(&bufs);
-    Py_INCREF(Py_None);
-    return Py_None;
-}
-
-/* (N, k) float64 lengths and their k columns' state buffers: the rows N, or -1 (error set). */
-static Py_ssize_t columns_of(PyObject *data, PyObject *state, const char *name)
-{
-    Py_buffer view;
-    if (get_buffer(state, &view, 0, -1, 8, "d", "state") < 0)
-        return -1;
-    const Py_ssize_t k = view.len / 8;
-    PyBuffer_Release(&view);
-    if (get_buffer(data, &view, 0, -1, 8, "d", name) < 0)
-        return -1;
-    const Py_ssize_t total = view.len / 8;
-    PyBuffer_Release(&view);
-    if (k < 1 || total % k) {
-        PyErr_Format(PyExc_ValueError, "%s: need shape (N, k) with a state of shape (k,)", name);
-        return -1;
-    }
-    return total / k;
-}
-
-PyDoc_STRVAR(play_positions_doc,
-"play_positions(lengths, deadband, play, out) -> None\n\n"
-"terms.play_positions: the output of a play of half-width deadband [m] on each column of\n"
-"lengths (N, k) float64, from play (k,) float64 (updated in place) into out (N, k) float64.\n"
-"Releases the GIL.");
-
-static PyObject *play_positions(PyObject *self, PyObject *args)
-{
-    (void)self;
-    PyObject *o[3];
-    double w;
-    if (!PyArg_ParseTuple(args, "OdOO", &o[0], &w, &o[1], &o[2]))
-        return NULL;
-    const Py_ssize_t n = columns_of(o[0], o[1], "lengths");
-    if (n < 0)
-        return NULL;
-    Py_buffer view;
-    if (get_buffer(o[1], &view, 0, -1, 8, "d", "play") < 0)
-        return NULL;
-    const Py_ssize_t k = view.len / 8;
-    PyBuffer_Release(&view);
-    Spec spec[] = {
-        {o[0], 0, n * k, 8, "d", "lengths", 0},
-        {o[1], 1, k, 8, "d", "play", 0},
-        {o[2], 1, n * k, 8, "d", "out", 0},
-    };
-    Buffers bufs = {.got = 0};
-    void *ptr[3];
-    if (acquire(&bufs, spec, 3, ptr) < 0) {
-        release(&bufs);
-        return NULL;
-    }
-    const double *x = ptr[0];
-    double *play = ptr[1], *out = ptr[2];
-    Py_BEGIN_ALLOW_THREADS
-    for (Py_ssize_t j = 0; j < k; j++) {
-        double p = play[j];
-        for (Py_ssize_t i = 0; i < n; i++) {
-            const double v = x[i * k + j];
-            if (v > p + w)          /* the Python expressions, so that rounding agrees */
-                p = v - w;
-            else if (v < p - w)
-                p = v + w;
-            out[i * k + j] = p;
-        }
-        play[j] = p;
+        if (dir)
+            dir[j] = d;
     }
     Py_END_ALLOW_THREADS
     release(&bufs);
@@ -954,14 +900,9 @@ static PyObject *dahl_state(PyObject *self, PyObject *args)
     double travel;
     if (!PyArg_ParseTuple(args, "OdOOOOO", &o[0], &travel, &o[1], &o[2], &o[3], &o[4], &o[5]))
         return NULL;
-    const Py_ssize_t n = columns_of(o[0], o[1], "positions");
-    if (n < 0)
+    Py_ssize_t n, k;
+    if (columns_of(o[0], o[1], "positions", &n, &k) < 0)
         return NULL;
-    Py_buffer view;
-    if (get_buffer(o[1], &view, 0, -1, 8, "d", "last") < 0)
-        return NULL;
-    const Py_ssize_t k = view.len / 8;
-    PyBuffer_Release(&view);
     Spec spec[] = {
         {o[0], 0, n * k, 8, "d", "positions", 0},
         {o[1], 1, k, 8, "d", "last", 0},
@@ -1251,8 +1192,7 @@ static PyMethodDef methods[] = {
     {"solve_batch", solve_batch, METH_VARARGS, solve_batch_doc},
     {"pose_covariance", pose_covariance, METH_VARARGS, pose_covariance_doc},
     {"cdf_eval", cdf_eval, METH_VARARGS, cdf_eval_doc},
-    {"play_directions", play_directions, METH_VARARGS, play_directions_doc},
-    {"play_positions", play_positions, METH_VARARGS, play_positions_doc},
+    {"play", play, METH_VARARGS, play_doc},
     {"dahl_state", dahl_state, METH_VARARGS, dahl_state_doc},
     {"match_rows", match_rows, METH_VARARGS, match_rows_doc},
     {"decode_continuing", decode_continuing, METH_VARARGS, decode_continuing_doc},

@@ -27,12 +27,21 @@ from mmd_ros.core.compiled import fast, use_compiled
 from mmd_ros.core.errors import CalibrationError, ConfigError
 from mmd_ros.core.uncertainty import CalibrationUncertainty
 from mmd_ros.core.units import M_PER_MM
-from mmd_ros.core.yamlio import atomic_write_text, parse_yaml, read_yaml
+from mmd_ros.core.yamlio import (
+    atomic_write_text, interrupted_saves, parse_yaml, read_text_file, read_yaml,
+)
 
-__all__ = ['BarCalibration', 'Calibration', 'CdfBank', 'CentreDistanceFunction', 'TerminalBinding',
-           'binding_problem', 'channel_roles', 'load_calibration']
+__all__ = ['BarCalibration', 'Calibration', 'CdfBank', 'CentreDistanceFunction', 'RecoveredCalibration',
+           'TerminalBinding', 'binding_problem', 'channel_roles', 'load_calibration',
+           'recover_interrupted_save']
 
 FloatArray = NDArray[np.float64]
+#: The keys of a calibration file, of one bar's points and of the terminal it was made with;
+#: anything else is refused as a typo (``quality`` is free-form: the routine's notes).
+CALIBRATION_KEYS = ('format_version', 'device', 'created', 'valid', 'ambient_c', 'thermal_zero_um',
+                    'bars', 'quality', 'terminal', 'uncertainty')
+BAR_KEYS = ('pairs', 'counts', 'distances_mm')
+TERMINAL_KEYS = ('serial', 'simulated', 'channels')
 
 
 class CentreDistanceFunction:
@@ -148,6 +157,7 @@ class TerminalBinding:
     def from_dict(cls, data: Any, source: str) -> TerminalBinding:
         if not isinstance(data, dict):
             raise ConfigError(source, 'terminal', 'must map serial, simulated and channels')
+        validate.known_keys(data, TERMINAL_KEYS, source, 'terminal.')
         serial, simulated = data.get('serial', ''), data.get('simulated')
         channels = data.get('channels') or {}
         if not isinstance(serial, str):
@@ -261,12 +271,14 @@ class Calibration:
         f = validate.Fields(source)
         if not isinstance(data, dict) or data.get('format_version') != 1:
             raise f.fail('format_version', 'not a calibration file of format 1')
+        f.known_keys(data, CALIBRATION_KEYS)
         bars_raw = f.get(data, 'bars')
         if not isinstance(bars_raw, dict) or not bars_raw:
             raise f.fail('bars', 'must map channel names to calibration points')
         bars = {}
         for name, item in bars_raw.items():
             path = f'bars.{name}'
+            f.known_keys(validate.mapping(item, source, path), BAR_KEYS, path)
             pairs = f.get(item, 'pairs', path)
             if not isinstance(pairs, list) or not all(isinstance(p, str) for p in pairs):
                 raise f.fail(f'{path}.pairs', f'must be a list of reference pair names, got {pairs!r}')
@@ -308,6 +320,67 @@ class Calibration:
 def load_calibration(path: str | os.PathLike[str]) -> Calibration:
     """Read a calibration file; a missing or corrupt one raises :class:`ConfigError` naming it."""
     return Calibration.from_dict(read_yaml(path), str(path))
+
+
+@dataclass(frozen=True)
+class RecoveredCalibration:
+    """What :func:`recover_interrupted_save` did.
+
+    calibration : the calibration restored to the file (None when nothing could be restored)
+    source : the file it came from (``<file>.bak``), or None
+    ignored : what else the interrupted save left (temporaries), not used
+    problem : why the backup could not be used ('' when it was)
+    """
+
+    calibration: Calibration | None
+    source: Path | None
+    ignored: tuple[Path, ...]
+    problem: str = ''
+
+    def describe(self, path: str | os.PathLike[str]) -> str:
+        """One line for the log and the diagnostics."""
+        names = ', '.join(q.name for q in self.ignored)
+        rest = (f'; not used: {names} (a temporary file may be incomplete: check it)'
+                if self.ignored else '')
+        if self.source is None:
+            return (f'calibration file {path} is missing; an interrupted save left only {names}, '
+                    f'not used (a temporary file may be incomplete): check it and copy it to '
+                    f'{Path(path).name} to use it')
+        if self.calibration is None:
+            return (f'calibration file {path} is missing; an interrupted save left '
+                    f'{self.source.name}, which cannot be used: {self.problem}{rest}')
+        return (f'calibration file {path} was missing (an interrupted save): restored the complete '
+                f'earlier calibration from {self.source.name} (created {self.calibration.created or "?"})'
+                + rest)
+
+
+def recover_interrupted_save(path: str | os.PathLike[str]) -> RecoveredCalibration | None:
+    """Restore a calibration file that a save killed mid-way left missing.
+
+    The writer of older versions moved the file to ``<file>.bak`` and then renamed the new one
+    in; killed between the two, only the backup and a temporary remain. When ``path`` does not
+    exist and ``<file>.bak`` does, the backup — a file that was complete and in use — is
+    validated (every field, :meth:`Calibration.from_dict`) and written back to ``path``
+    atomically; the backup stays. A temporary is never used: it may have been cut short, and a
+    YAML file cut after a complete entry still parses. Returns None when ``path`` exists or
+    nothing was left beside it; otherwise what was done (``calibration`` None when the backup
+    is not a usable calibration, and then nothing is written).
+    """
+    p = Path(path)
+    if p.exists():
+        return None
+    left = interrupted_saves(p)
+    backup = p.with_name(p.name + '.bak')
+    others = tuple(q for q in left if q != backup)
+    if backup not in left:
+        return RecoveredCalibration(None, None, others, 'no backup') if others else None
+    try:
+        text = read_text_file(backup, 'calibration')
+        cal = Calibration.from_yaml(text, str(backup))
+    except ConfigError as exc:
+        return RecoveredCalibration(None, backup, others, str(exc))
+    atomic_write_text(p, text)
+    return RecoveredCalibration(cal, backup, others)
 
 
 class CdfBank:

@@ -30,6 +30,21 @@ __all__ = [
 ]
 
 ROLES = ('measuring', 'reference', 'unused')
+#: The keys a device description may hold, per section (``inherit`` is resolved before);
+#: anything else is refused as a typo (:func:`mmd_ros.core.validate.known_keys`).
+DEVICE_KEYS = ('format_version', 'name', 'joints', 'reference_plate', 'bars', 'plates', 'limits',
+               'terminal')
+SECTION_KEYS = {
+    'joints': ('use', 'upper_design_mm', 'upper_measured_mm', 'lower_design_mm', 'lower_measured_mm'),
+    'reference_plate': ('use', 'cte_ppm_per_c', 'distance_uncertainty_um', 'pairs'),
+    'bars': ('range_mm', 'encoder_resolution_nm', 'scale_cte_ppm_per_c', 'rod_cte_ppm_per_c',
+             'fixed_length_mm', 'thermal_mismatch_fraction'),
+    'plates': ('position_layer_cte_ppm_per_c',),
+    'limits': ('upper_tilt_deg', 'lower_tilt_deg', 'min_bar_separation_mm'),
+    'terminal': ('sample_rate_hz', 'counter_bits', 'channels'),
+}
+PAIR_KEYS = ('name', 'sockets', 'design_mm', 'measured_mm', 'uncertainty_um')
+CHANNEL_KEYS = ('name', 'role', 'bar', 'pair')
 N_CHANNELS = 8
 #: How far a reference distance may lie outside the nominal bar range [m].
 RANGE_SLACK_M = 1e-3
@@ -166,6 +181,9 @@ def parse_device(data: dict[str, Any], source: str = '<device>') -> DeviceDescri
     r = _Reader(source)
     if data.get('format_version') != 1:
         raise r.fail('format_version', f'must be 1, got {data.get("format_version")!r}')
+    r.known_keys(data, DEVICE_KEYS)
+    for section, keys in SECTION_KEYS.items():
+        r.known_keys(r.mapping(data, section), keys, section)
     name = r.get(data, 'name', '')
     if not isinstance(name, str) or not name:
         raise r.fail('name', 'must be a non-empty string')
@@ -196,6 +214,7 @@ def parse_device(data: dict[str, Any], source: str = '<device>') -> DeviceDescri
     pairs = []
     for j, item in enumerate(raw_pairs):
         path = f'reference_plate.pairs[{j}]'
+        r.known_keys(validate.mapping(item, source, path), PAIR_KEYS, path)
         pname = r.get(item, 'name', path)
         sockets = r.get(item, 'sockets', path)
         if not (isinstance(sockets, list) and len(sockets) == 2 and sockets[0] != sockets[1]):
@@ -230,6 +249,7 @@ def parse_device(data: dict[str, Any], source: str = '<device>') -> DeviceDescri
     channels = []
     for k, item in enumerate(raw_channels):
         path = f'terminal.channels[{k}]'
+        r.known_keys(validate.mapping(item, source, path), CHANNEL_KEYS, path)
         cname = r.get(item, 'name', path)
         role = r.choice(item, 'role', path, ROLES)
         bar = pair = None

@@ -34,6 +34,7 @@ import numpy as np
 import yaml
 from numpy.typing import NDArray
 
+from mmd_ros.core import validate
 from mmd_ros.core.errors import ConfigError
 from mmd_ros.core.units import M_PER_MM, M_PER_UM
 from mmd_ros.core.yamlio import read_yaml
@@ -46,6 +47,13 @@ FloatArray = NDArray[np.float64]
 AXIS_LETTERS = {'X': 'linear', 'Y': 'linear', 'Z': 'linear', 'U': 'linear', 'V': 'linear',
                 'W': 'linear', 'A': 'rotary', 'B': 'rotary', 'C': 'rotary'}
 SIDES = ('tool', 'workpiece')
+#: The keys of a machine description, of its axes (linear and rotary) and of its ``mmd``
+#: section; anything else is refused as a typo.
+MACHINE_KEYS = ('format_version', 'name', 'description', 'axes', 'chains', 'mmd')
+AXIS_KEYS = {'linear': ('name', 'type', 'carried_by', 'direction', 'reference_mm', 'travel_mm'),
+             'rotary': ('name', 'type', 'carried_by', 'direction', 'pivot_mm', 'reference_deg',
+                        'travel_deg')}
+MMD_KEYS = ('lower_position_mm', 'lower_rpy_deg', 'upper_offset_mm', 'upper_offset_uncertainty_um')
 
 
 @dataclass(frozen=True)
@@ -202,6 +210,7 @@ def parse_machine(data: Any, source: str = '<machine>') -> MachineDescription:
         raise r.fail('(file)', 'must hold a YAML mapping')
     if data.get('format_version', 1) != 1:
         raise r.fail('format_version', f'must be 1, got {data.get("format_version")!r}')
+    validate.known_keys(data, MACHINE_KEYS, source)
     raw_axes = data.get('axes')
     if not isinstance(raw_axes, list) or not raw_axes:
         raise r.fail('axes', 'must be a list of axes, e.g. {name: X, type: linear, ...}')
@@ -218,6 +227,7 @@ def parse_machine(data: Any, source: str = '<machine>') -> MachineDescription:
         kind = str(item.get('type', AXIS_LETTERS[name]))
         if kind not in ('linear', 'rotary'):
             raise r.fail(f'{path}type', f'must be linear or rotary, got {kind!r}')
+        validate.known_keys(item, AXIS_KEYS[kind], source, path)
         side = str(item.get('carried_by', ''))
         if side not in SIDES:
             raise r.fail(f'{path}carried_by', f'must be tool or workpiece, got {item.get("carried_by")!r}')
@@ -247,6 +257,7 @@ def parse_machine(data: Any, source: str = '<machine>') -> MachineDescription:
     chains = data.get('chains')
     if not isinstance(chains, dict):
         raise r.fail('chains', 'must map tool and workpiece to lists of axis names')
+    validate.known_keys(chains, SIDES, source, 'chains.')
     parsed: dict[str, tuple[str, ...]] = {}
     for side in SIDES:
         items = chains.get(side, [])
@@ -268,6 +279,7 @@ def parse_machine(data: Any, source: str = '<machine>') -> MachineDescription:
     mmd = data.get('mmd', {}) or {}
     if not isinstance(mmd, dict):
         raise r.fail('mmd', 'must be a mapping')
+    validate.known_keys(mmd, MMD_KEYS, source, 'mmd.')
     return MachineDescription(
         name=str(data.get('name', 'machine')), source=source,
         description=str(data.get('description', '')), axes=tuple(axes),

@@ -166,8 +166,8 @@ class HysteresisTerm(ModelTerm):
         direction = self._direction.copy()
         w = self.travel_m
         if use_compiled(compiled):
-            fast.play_directions(np.ascontiguousarray(lengths_m, dtype=np.float64), w, play,
-                                 direction, out)
+            fast.play(np.ascontiguousarray(lengths_m, dtype=np.float64), w, play, direction,
+                      None, out)
             self._play, self._direction = play, direction
             return out
         for bar in range(6):  # a sequential recurrence: plain floats beat numpy rows here

@@ -28,9 +28,22 @@ from mmd_ros.core.thermal import (
 )
 from mmd_ros.core.uncertainty import pose_covariance
 
-__all__ = ['Compensated', 'Pipeline', 'ProcessResult', 'SampleResult']
+__all__ = ['Compensated', 'Pipeline', 'ProcessResult', 'SampleResult', 'bars_without_signal']
 
 FloatArray = NDArray[np.float64]
+
+
+def bars_without_signal(device: DeviceDescription, status: NDArray[np.uint8]) -> NDArray[np.bool_]:
+    """Which bars of N samples have no length because the terminal flagged a channel (its
+    status code not 0: encoder signal lost, quadrature error): the bar's own channel, or any
+    reference bar's (its thermal correction, Eq. 11, is then unknown for every bar).
+
+    status : ndarray, shape (N, 8) — the terminal's channel status codes
+    returns : ndarray of bool, shape (N, 6)
+    """
+    bad = np.asarray(status) != 0
+    refs = [c.index for c in device.reference_channels]
+    return bad[:, device.measuring_channels] | bad[:, refs].any(axis=1)[:, None]
 
 
 @dataclass(frozen=True)
@@ -62,6 +75,8 @@ class ProcessResult:
     status : ndarray of int8, shape (N,) — :class:`FkStatus`; OUT_OF_SPAN wherever a bar is out
         of its calibrated span (as live, where such samples are not solved)
     covariance : ndarray, shape (N, 6, 6), or None — pose covariance [m, rad]^2
+    no_signal : ndarray, shape (N,) — the terminal flagged a channel the sample needs
+        (:func:`bars_without_signal`): no length, no pose, status OUT_OF_SPAN (as live)
     """
 
     times_s: FloatArray
@@ -74,6 +89,7 @@ class ProcessResult:
     residual_m: FloatArray
     condition: FloatArray
     covariance: FloatArray | None
+    no_signal: NDArray[np.bool_] | None = None
 
 
 @dataclass(frozen=True)
@@ -210,7 +226,8 @@ class Pipeline:
     # -- batch ---------------------------------------------------------------------------------
     def process(self, times_s: FloatArray, counts: FloatArray, *,
                 with_covariance: bool = False, covariance_every: int = 1,
-                compiled: bool | None = None) -> ProcessResult:
+                compiled: bool | None = None,
+                status: NDArray[np.uint8] | None = None) -> ProcessResult:
         """Poses of N consecutive samples (one run, in time order).
 
         covariance_every : with the covariance, that of every k-th sample only (the others NaN):
@@ -218,29 +235,41 @@ class Pipeline:
             budget still observes every sample)
         compiled : FK and covariance with the compiled helpers (default: when they are in
             use); False: numpy, the reference (the same results, bit for bit)
+        status : (N, 8) the terminal's channel status codes (a log's ``RunLog.status``), or
+            None when every sample is good. A bar without signal (:func:`bars_without_signal`)
+            gets no length (NaN after the model's terms, which still see the sample, as the
+            live compensation does), so its sample no pose: FK leaves it unsolved, status
+            OUT_OF_SPAN, valid False.
         """
         times_s = np.asarray(times_s, dtype=np.float64)
+        lost = None if status is None else bars_without_signal(self.device, status)
+        no_signal = None if lost is None else lost.any(axis=1)
         comp = self.compensate(times_s, counts, compiled=compiled)
         sol = self._solve_batch(comp, with_covariance, compiled)
         if self.needs_pose:
             comp = self.add_pose_terms(comp, times_s, counts, sol.poses)
-            if self._pose_terms:
-                sol = self._solve_batch(comp, with_covariance, compiled)
+        measured = comp   # what the budget sees: every bar's length, before the signal mask
+        if no_signal is not None and no_signal.any():   # (after the terms, as live)
+            comp = Compensated(comp.cdf_lengths_m, np.where(lost, np.nan, comp.lengths_m),
+                               comp.out_of_range, comp.thermal, comp.fit_columns_m)
+        if self._pose_terms or (no_signal is not None and no_signal.any()):
+            sol = self._solve_batch(comp, with_covariance, compiled)
         out_of_range = np.any(comp.out_of_range, axis=1)
-        valid = sol.converged & ~out_of_range
-        status = np.where(out_of_range, np.int8(FkStatus.OUT_OF_SPAN), sol.status)
+        unsolved = out_of_range if no_signal is None else out_of_range | no_signal
+        valid = sol.converged & ~unsolved
+        fk_status = np.where(unsolved, np.int8(FkStatus.OUT_OF_SPAN), sol.status)
         cov = None
         if with_covariance and sol.jacobian_inverse is not None:
             observed = self.budget.observe(comp.cdf_lengths_m, comp.thermal.reference_error_m)
             if covariance_every > 1:
                 rows = slice(None, None, covariance_every)
                 cov = np.full((times_s.size, 6, 6), np.nan)
-                cov[rows] = self.covariance(sol.jacobian_inverse, comp, observed, rows=rows,
+                cov[rows] = self.covariance(sol.jacobian_inverse, measured, observed, rows=rows,
                                             compiled=compiled)
             else:
-                cov = self.covariance(sol.jacobian_inverse, comp, observed, compiled=compiled)
-        return ProcessResult(times_s, comp, sol.poses, sol.converged, valid, status,
-                             sol.iterations, sol.residual_m, sol.condition, cov)
+                cov = self.covariance(sol.jacobian_inverse, measured, observed, compiled=compiled)
+        return ProcessResult(times_s, comp, sol.poses, sol.converged, valid, fk_status,
+                             sol.iterations, sol.residual_m, sol.condition, cov, no_signal)
 
     def _solve_batch(self, comp: Compensated, with_inverse: bool, compiled: bool | None):
         """FK of d / s with the nominal joints, translations times s (the module docstring)."""

@@ -33,7 +33,7 @@ from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.errors import MmdError
 from mmd_ros.core.kinematics import FkStatus, ForwardKinematics
 from mmd_ros.core.model import Model
-from mmd_ros.core.pipeline import Pipeline
+from mmd_ros.core.pipeline import Pipeline, bars_without_signal
 from mmd_ros.core.uncertainty import pose_covariance
 from mmd_ros.core.validity import Validity
 
@@ -112,8 +112,6 @@ class Compensator:
         fit_terms = [t for group in fit.directions for t in group] if fit is not None else []
         self.needs_pose = any(getattr(t, 'needs_pose', False) for t in model.terms + fit_terms)
         self.reference_names = [c.name for c in device.reference_channels]
-        self._measuring = list(device.measuring_channels)
-        self._references = [c.index for c in device.reference_channels]
         self._lock = threading.Lock()
         self._pipeline: Pipeline | None = None
         self._fk: ForwardKinematics | None = None
@@ -202,8 +200,7 @@ class Compensator:
         lengths = np.where(out, np.nan, comp.lengths_m)
         no_signal = None
         if status is not None:
-            bad = np.asarray(status) != 0
-            no_signal = bad[:, self._measuring] | bad[:, self._references].any(axis=1)[:, None]
+            no_signal = bars_without_signal(self.device, status)
             lengths[no_signal] = np.nan
         result = CompensationOut(lengths, out, comp.thermal.reference_error_m,
                                  comp.thermal.temp_change_c, comp.thermal.plate_scale, no_signal,

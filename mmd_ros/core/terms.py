@@ -182,15 +182,15 @@ def play_positions(lengths_m: FloatArray, deadband_m: float, start: FloatArray |
     p0 = x[0] if start is None else start
     w = deadband_m
     if use_compiled(compiled):
-        fast.play_positions(x, float(w), np.array(p0, dtype=np.float64), out)
+        fast.play(x, float(w), np.array(p0, dtype=np.float64), None, out, None)
         return out
     for j in range(m):   # a sequential recurrence: plain floats beat numpy rows here
         p, column = float(p0[j]), x[:, j].tolist()
         pos = [0.0] * n
         for k, v in enumerate(column):
-            if v > p + w:
+            if p < v - w:
                 p = v - w
-            elif v < p - w:
+            elif p > v + w:
                 p = v + w
             pos[k] = p
         out[:, j] = pos

@@ -10,7 +10,7 @@ for keys it does not know (a typo such as ``thermall:`` is refused, with the key
 
 - :func:`number_problem` and :func:`describe` phrase the rule ("an integer in [1, 1000]");
   :func:`number`, :func:`integer`, :func:`boolean`, :func:`choice`, :func:`floats`,
-  :func:`mapping` and :func:`known_keys` raise :class:`~mmd_ros.core.errors.ConfigError`
+  :func:`mapping` and :func:`known_keys` (:func:`unknown_key` says why) raise :class:`~mmd_ros.core.errors.ConfigError`
   naming the source (a file, a log topic) and the key.
 - :func:`arg_number` makes an argparse ``type=`` that applies the same rule to an option
   (argparse then prints ``argument --blocks: must be an integer >= 1, got '0'`` and exits 2).
@@ -32,7 +32,7 @@ from mmd_ros.core.errors import ConfigError
 
 __all__ = [
     'Fields', 'arg_number', 'arg_numbers', 'boolean', 'choice', 'describe', 'floats', 'integer',
-    'known_keys', 'mapping', 'number', 'number_problem',
+    'known_keys', 'mapping', 'number', 'number_problem', 'unknown_key',
 ]
 
 _MISSING = object()
@@ -154,15 +154,25 @@ def _short(value: Any, limit: int = 80) -> str:
     return text_ if len(text_) <= limit else text_[:limit - 3] + '...'
 
 
-def known_keys(data: dict[str, Any], allowed: Iterable[str], source: str, prefix: str = '') -> None:
-    """Refuse a key of ``data`` outside ``allowed``, naming it and the known key it resembles."""
-    allowed = list(allowed)
-    for key in data:
+def unknown_key(keys: Iterable[Any], allowed: Iterable[str], what: str = 'key',
+                of: str = '') -> tuple[str, str] | None:
+    """The first of ``keys`` outside ``allowed`` and why, with the known key it resembles
+    (``('thermall', 'is not a known key (did you mean thermal?); known keys: ...')``), or None.
+    ``what`` names a key ('parameter'), ``of`` what it would belong to (' of Ramp')."""
+    allowed = [str(a) for a in allowed]
+    for key in keys:
         if key not in allowed:
             close = difflib.get_close_matches(str(key), allowed, n=1)
             hint = f' (did you mean {close[0]}?)' if close else ''
-            raise ConfigError(source, f'{prefix}{key}',
-                              f'is not a known key{hint}; known keys: {", ".join(allowed)}')
+            return str(key), f'is not a known {what}{of}{hint}; known {what}s: {", ".join(allowed)}'
+    return None
+
+
+def known_keys(data: dict[str, Any], allowed: Iterable[str], source: str, prefix: str = '') -> None:
+    """Refuse a key of ``data`` outside ``allowed``, naming it and the known key it resembles."""
+    found = unknown_key(data, allowed)
+    if found:
+        raise ConfigError(source, f'{prefix}{found[0]}', found[1])
 
 
 class Fields:

@@ -21,7 +21,8 @@ from mmd_ros.core.compiled import fast, use_compiled
 from mmd_ros.core.rotation import angles_to_quaternion
 
 __all__ = [
-    'JointStateLayout', 'PendingRows', 'PoseLayout', 'decode_string', 'encode_string',
+    'JointStateLayout', 'PendingRows', 'PoseLayout', 'decode_string', 'encode_joint_state',
+    'encode_string',
     'fixed_runs', 'rows_match', 'split_stamps',
 ]
 
@@ -197,6 +198,27 @@ class PoseLayout(_Layout):
         if covariance is not None:
             parts.append(np.asarray(covariance, dtype=np.float64).reshape(len(p), 36))
         return np.concatenate(parts, axis=1)
+
+
+def encode_joint_state(names: list[str], stamp_ns: int, position: NDArray[np.float64], *,
+                       effort: NDArray[np.float64] | None = None, frame_id: str = '') -> bytes:
+    """One sensor_msgs/msg/JointState with ``position`` (and ``effort``, e.g. the terminal's
+    channel status codes of a flagged ``/mmd/raw_counts`` sample) of ``len(names)`` values and
+    an empty ``velocity``; for the messages that do not fit a batch's layout."""
+    sec, nsec = split_stamps(np.array([stamp_ns], dtype=np.int64))
+    buf = _Buffer()
+    buf.data.extend(struct.pack('<iI', int(sec[0]), int(nsec[0])))
+    buf.string(frame_id)
+    buf.u32(len(names))
+    for name in names:
+        buf.string(name)
+    for values in (position, (), () if effort is None else effort):
+        values = np.asarray(values, dtype='<f8').ravel()
+        buf.u32(values.size)
+        if values.size:
+            buf.align(8)
+            buf.data.extend(values.tobytes())
+    return ENCAPSULATION + bytes(buf.data)
 
 
 def encode_string(text: str) -> bytes:

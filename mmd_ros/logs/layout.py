@@ -11,7 +11,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -23,6 +23,7 @@ from mmd_ros.core.calibration import Calibration
 from mmd_ros.core.device import DeviceDescription, parse_device
 from mmd_ros.core.model import Model
 from mmd_ros.core.yamlio import parse_yaml
+from mmd_ros.logs.cdr import encode_joint_state
 from mmd_ros.logs.chunked import ChunkedReader
 from mmd_ros.logs.errors import LogFormatError, StampsNotIncreasing
 from mmd_ros.logs.reader import JointStates, LogProblem, LogReader
@@ -33,8 +34,8 @@ __all__ = [
     'TOPIC_BAR_LENGTHS',
     'TOPIC_CALIBRATION', 'TOPIC_DEVICE', 'TOPIC_DIAGNOSTICS', 'TOPIC_FK_STATUS', 'TOPIC_MODEL',
     'TOPIC_POSE', 'TOPIC_POSE_COV', 'TOPIC_RAW', 'TOPIC_REF_LENGTHS', 'TOPIC_REF_POSE',
-    'TOPIC_MACHINE_JOINTS', 'TOPIC_THERMAL', 'MachineJoints', 'RunStream', 'monotonic_runs',
-    'open_run', 'read_run', 'write_run',
+    'TOPIC_MACHINE_JOINTS', 'TOPIC_THERMAL', 'MachineJoints', 'RunStream', 'flag_runs',
+    'monotonic_runs', 'open_run', 'read_run', 'write_run',
 ]
 
 TOPIC_DEVICE = '/mmd/device_description'
@@ -67,12 +68,13 @@ RUN_METADATA = 'mmd_run'
 class RunBlock:
     """Consecutive samples of a run: stamps_ns (N,) [ns], counts (N, 8), and the reference
     pose (N, 6) [m, rad] and bar lengths (N, 6) [m] at those stamps, or None when the log has
-    none."""
+    none; status (N, 8) the terminal's channel status codes (:attr:`RunLog.status`) or None."""
 
     stamps_ns: NDArray[np.int64]
     counts: NDArray[np.float64]
     reference_pose: NDArray[np.float64] | None = None
     reference_lengths: NDArray[np.float64] | None = None
+    status: NDArray[np.uint8] | None = None
 
 
 @dataclass
@@ -100,6 +102,10 @@ class RunLog:
     problem : what was lost reading the log (damage, an unclean end), or None
     segment : (k, n) — the k-th of the log's n segments of increasing stamps
     machine_joints : the machine tool's axis values (``/mmd/machine/joint_states``), or None
+    status : (N, 8) uint8 — the terminal's channel status codes of the samples it flagged (the
+        ``effort`` of ``/mmd/raw_counts``: 1 encoder signal lost, 2 quadrature error, 3 both;
+        0 good), or None when no sample was flagged. A flagged sample is not a measurement:
+        the pipeline gives it no pose (``Pipeline.process(status=...)``), as live.
     """
 
     path: Path
@@ -115,16 +121,45 @@ class RunLog:
     problem: LogProblem | None = None
     segment: tuple[int, int] = (1, 1)
     machine_joints: MachineJoints | None = None
+    status: NDArray[np.uint8] | None = None
+    #: the hash of the run as recorded, when this holds only part of its samples
+    recorded_hash: str | None = None
+
+    @property
+    def no_signal(self) -> NDArray[np.bool_]:
+        """(N,) — samples the terminal flagged on some channel (not measurements)."""
+        if self.status is None:
+            return np.zeros(self.n_samples, dtype=bool)
+        return np.any(self.status != 0, axis=1)
 
     def content_hash(self) -> str:
         """Identity of the run: a hash of its raw counts and their stamps (16 hex digits).
 
         Two logs of the same run (a copy, a renamed file, the log re-written by ``mmd process``)
-        have the same hash; a model file names the runs it was fitted on by it."""
+        have the same hash; a model file names the runs it was fitted on by it. A run
+        without its flagged samples (:meth:`without_flagged`) keeps the recorded run's hash."""
+        if self.recorded_hash is not None:
+            return self.recorded_hash
         h = hashlib.sha256()
         h.update(np.ascontiguousarray(self.stamps_ns, dtype=np.int64).tobytes())
         h.update(np.ascontiguousarray(self.counts, dtype=np.float64).tobytes())
         return h.hexdigest()[:16]
+
+    def without_flagged(self) -> tuple[RunLog, int]:
+        """The run without the samples the terminal flagged (:attr:`no_signal`: not
+        measurements), and how many were left out; the run itself when there are none. For
+        the analyses that take whole arrays of counts (``mmd analyze``): a flagged sample is
+        then a gap in the record, as a lost message would be."""
+        drop = self.no_signal
+        n = int(drop.sum())
+        if n == 0:
+            return self, 0
+        keep = ~drop
+        return replace(
+            self, stamps_ns=self.stamps_ns[keep], counts=self.counts[keep],
+            reference_pose=None if self.reference_pose is None else self.reference_pose[keep],
+            reference_lengths=None if self.reference_lengths is None else self.reference_lengths[keep],
+            status=None, recorded_hash=self.content_hash()), n
 
     @property
     def times_s(self) -> NDArray[np.float64]:
@@ -147,7 +182,8 @@ class RunLog:
             part = slice(start, start + size)
             yield RunBlock(self.stamps_ns[part], self.counts[part],
                            None if self.reference_pose is None else self.reference_pose[part],
-                           None if self.reference_lengths is None else self.reference_lengths[part])
+                           None if self.reference_lengths is None else self.reference_lengths[part],
+                           None if self.status is None else self.status[part])
 
 
 def write_run(path: str | os.PathLike[str], device: DeviceDescription,
@@ -155,10 +191,16 @@ def write_run(path: str | os.PathLike[str], device: DeviceDescription,
               counts: NDArray[np.float64], *, reference_pose: NDArray[np.float64] | None = None,
               reference_lengths: NDArray[np.float64] | None = None,
               metadata: dict[str, Any] | None = None, model: Model | None = None,
-              chunk_size: int = 1 << 20) -> Path:
-    """Write a run log (device, calibration, raw counts, reference) in our layout."""
+              chunk_size: int = 1 << 20, status: NDArray[np.uint8] | None = None) -> Path:
+    """Write a run log (device, calibration, raw counts, reference) in our layout.
+
+    status : (N, 8) channel status codes; a sample with a code other than 0 is written with
+        them in its ``effort``, as the live terminal stage publishes a flagged sample
+    """
     stamps = np.asarray(stamps_ns, dtype=np.int64)
     t0 = int(stamps[0]) if stamps.size else 0
+    flagged = (np.zeros(stamps.size, dtype=bool) if status is None
+               else np.any(np.asarray(status) != 0, axis=1))
     with LogWriter(path, chunk_size=chunk_size) as log:
         log.write_string(TOPIC_DEVICE, t0, device.to_yaml())
         if calibration is not None:
@@ -167,16 +209,34 @@ def write_run(path: str | os.PathLike[str], device: DeviceDescription,
             log.write_string(TOPIC_MODEL, t0, model.to_yaml())
         if metadata:
             log.write_metadata(RUN_METADATA, {k: json.dumps(v) for k, v in metadata.items()})
-        streams = [(TOPIC_RAW, 'sensor_msgs/msg/JointState',
-                    log.joint_state_rows(device.channel_names, stamps, counts))]
-        if reference_pose is not None:
-            streams.append((TOPIC_REF_POSE, 'sensor_msgs/msg/JointState',
-                            log.joint_state_rows(REFERENCE_POSE_NAMES, stamps, reference_pose, FRAME_LOWER)))
-        if reference_lengths is not None:
-            streams.append((TOPIC_REF_LENGTHS, 'sensor_msgs/msg/JointState',
-                            log.joint_state_rows(BAR_NAMES, stamps, reference_lengths)))
-        log.write_rows(streams, stamps)
+        for a, b in flag_runs(flagged):
+            part = slice(a, b)
+            streams = []
+            if flagged[a]:
+                for i in range(a, b):
+                    log.write_raw(TOPIC_RAW, 'sensor_msgs/msg/JointState', int(stamps[i]),
+                                  encode_joint_state(device.channel_names, int(stamps[i]), counts[i],
+                                                     effort=np.asarray(status[i], dtype=np.float64)))
+            else:
+                streams.append((TOPIC_RAW, 'sensor_msgs/msg/JointState',
+                                log.joint_state_rows(device.channel_names, stamps[part], counts[part])))
+            if reference_pose is not None:
+                streams.append((TOPIC_REF_POSE, 'sensor_msgs/msg/JointState',
+                                log.joint_state_rows(REFERENCE_POSE_NAMES, stamps[part],
+                                                     reference_pose[part], FRAME_LOWER)))
+            if reference_lengths is not None:
+                streams.append((TOPIC_REF_LENGTHS, 'sensor_msgs/msg/JointState',
+                                log.joint_state_rows(BAR_NAMES, stamps[part], reference_lengths[part])))
+            if streams:
+                log.write_rows(streams, stamps[part])
     return Path(path)
+
+
+def flag_runs(flags: NDArray[np.bool_]) -> list[tuple[int, int]]:
+    """[a, b) ranges of equal values of ``flags``, in order (flagged and good samples)."""
+    edges = np.flatnonzero(np.diff(np.asarray(flags).astype(np.int8))) + 1
+    bounds = np.r_[0, edges, np.size(flags)]
+    return [(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]
 
 
 def monotonic_runs(stamps_ns: NDArray[np.int64]) -> list[tuple[int, int]]:
@@ -224,9 +284,11 @@ def read_run(path: str | os.PathLike[str], *, segment: int | None = None) -> Run
                              f'{len(runs)} segment(s) of increasing stamps), got {segment}')
     a, b = runs[segment - 1] if segment is not None else (0, raw.stamps_ns.size)
     values = raw.values if raw.values.size else np.zeros((0, 8))
-    sel = JointStates(raw.stamps_ns[a:b], raw.names, values[a:b])
+    status = raw.status[a:b] if raw.status is not None and raw.status[a:b].any() else None
+    sel = JointStates(raw.stamps_ns[a:b], raw.names, values[a:b], status)
     run = RunLog(Path(path), device, calibration, model, sel.stamps_ns, sel.values,
-                 device.channel_names, problem=reader.problem, segment=(segment or 1, len(runs)))
+                 device.channel_names, problem=reader.problem, segment=(segment or 1, len(runs)),
+                 status=status)
     for topic, names, attr in ((TOPIC_REF_POSE, REFERENCE_POSE_NAMES, 'reference_pose'),
                                (TOPIC_REF_LENGTHS, BAR_NAMES, 'reference_lengths')):
         if reader.has_topic(topic):
@@ -313,8 +375,13 @@ class RunStream:
             nonlocal raw, pending
             stamps = np.concatenate([r.stamps_ns for r in raw])
             values = np.concatenate([r.values for r in raw])
+            status = (np.concatenate([np.zeros(r.values.shape, np.uint8) if r.status is None
+                                      else r.status for r in raw])
+                      if any(r.status is not None for r in raw) else None)
             out_s, out_v = stamps[:n], values[:n]
-            raw = [JointStates(stamps[n:], raw[0].names, values[n:])] if n < stamps.size else []
+            out_status = status[:n] if status is not None and status[:n].any() else None
+            raw = [JointStates(stamps[n:], raw[0].names, values[n:],
+                               None if status is None else status[n:])] if n < stamps.size else []
             pending -= n
             aligned = {}
             for topic, names in ((TOPIC_REF_POSE, REFERENCE_POSE_NAMES), (TOPIC_REF_LENGTHS, BAR_NAMES)):
@@ -327,7 +394,8 @@ class RunStream:
                 aligned[topic] = _aligned(ref, JointStates(out_s, [], out_v), names, source)
                 later = ref.stamps_ns > out_s[-1]
                 refs[topic] = [JointStates(ref.stamps_ns[later], ref.names, ref.values[later])]
-            return RunBlock(out_s, out_v, aligned.get(TOPIC_REF_POSE), aligned.get(TOPIC_REF_LENGTHS))
+            return RunBlock(out_s, out_v, aligned.get(TOPIC_REF_POSE), aligned.get(TOPIC_REF_LENGTHS),
+                            out_status)
 
         for chunk in self._reader.chunks():
             for topic in has_ref & chunk.keys():

@@ -91,6 +91,8 @@ class ProcessedRun:
     covariance: NDArray[np.float64] | None
     #: the uncertainty budget's numbers and notes after these samples (with the covariance)
     budget: dict[str, Any] | None = None
+    #: (N,) samples the terminal flagged (encoder signal lost on a channel they need): no pose
+    no_signal: NDArray[np.bool_] | None = None
 
     @classmethod
     def concatenate(cls, parts: list[ProcessedRun]) -> ProcessedRun:
@@ -137,13 +139,15 @@ def process_blocks(source: RunSource, model: Model, *, calibration: Calibration 
     for part in itertools.chain([first], parts):
         times = (part.stamps_ns - t0).astype(np.float64) * 1e-9
         res = pipeline.process(times, part.counts, with_covariance=with_covariance,
-                               covariance_every=covariance_every, compiled=compiled)
+                               covariance_every=covariance_every, compiled=compiled,
+                               status=part.status)
         comp = res.compensated
         yield part, ProcessedRun(
             part.stamps_ns, comp.lengths_m, res.poses, res.converged, res.valid, res.status,
             comp.out_of_range, res.iterations, res.residual_m, res.condition,
             comp.thermal.reference_error_m, comp.thermal.temp_change_c, res.covariance,
-            pipeline.budget.summary() if with_covariance else None)
+            pipeline.budget.summary() if with_covariance else None,
+            res.no_signal if res.no_signal is not None else np.zeros(part.stamps_ns.size, bool))
 
 
 def process_run(run: RunLog, model: Model, *, calibration_path: str | None = None,
@@ -171,6 +175,7 @@ class RunSummary:
         self.valid = 0
         self.not_converged = 0
         self.out_of_range = 0
+        self.no_signal = 0
         self.max_iterations = 0
         self.first_ns: int | None = None
         self.last_ns: int | None = None
@@ -189,6 +194,8 @@ class RunSummary:
         self.valid += int(result.valid.sum())
         self.not_converged += int((~result.converged).sum())
         self.out_of_range += int(result.out_of_range.any(axis=1).sum())
+        if result.no_signal is not None:
+            self.no_signal += int(result.no_signal.sum())
         self.max_iterations = max(self.max_iterations, int(result.iterations.max()))
         self.status += np.bincount(result.status, minlength=len(FkStatus))
         if self.first_ns is None:
@@ -225,6 +232,7 @@ class RunSummary:
             'not_converged': self.not_converged,
             'fk_status': {s.name.lower(): int(c) for s, c in zip(FkStatus, self.status) if c},
             'out_of_range': self.out_of_range,
+            'no_signal': self.no_signal,
             'max_fk_iterations': self.max_iterations,
         }
         if source.problem:

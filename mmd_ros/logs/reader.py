@@ -36,7 +36,7 @@ from numpy.typing import NDArray
 from mmd_ros.logs.cdr import JointStateLayout, PoseLayout, decode_string, rows_match
 from mmd_ros.logs.errors import LogError, LogFormatError
 
-__all__ = ['JointStates', 'LogProblem', 'LogReader', 'SkippedSpan', 'Topic']
+__all__ = ['JointStates', 'LogProblem', 'LogReader', 'SkippedSpan', 'Topic', 'status_codes']
 
 MAGIC = b'\x89MCAP0\r\n'
 OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK = 1, 2, 3, 4, 5, 6
@@ -67,13 +67,24 @@ class Topic:
     count: int = 0
 
 
+def status_codes(effort: Any) -> NDArray[np.uint8]:
+    """Channel status codes from the ``effort`` of a ``/mmd/raw_counts`` message: 0 good, any
+    other value (NaN included) not good, kept as a code 1..255."""
+    e = np.asarray(effort, dtype=np.float64)
+    return np.where(e == 0, 0, np.clip(np.nan_to_num(e, nan=255.0), 1, 255)).astype(np.uint8)
+
+
 @dataclass(frozen=True)
 class JointStates:
-    """Messages of one JointState topic: stamps (N,) [ns], names (k), values (N, k)."""
+    """Messages of one JointState topic: stamps (N,) [ns], names (k), values (N, k) (the
+    ``position`` fields), and status (N, k) uint8 — the ``effort`` codes of the messages that
+    carry one per name (``/mmd/raw_counts`` of a sample the terminal flagged: 1 encoder signal
+    lost, 2 quadrature error, 3 both; 0 good), 0 elsewhere — or None when no message does."""
 
     stamps_ns: NDArray[np.int64]
     names: list[str]
     values: NDArray[np.float64]
+    status: NDArray[np.uint8] | None = None
 
     @property
     def times_s(self) -> NDArray[np.float64]:
@@ -785,18 +796,45 @@ class LogReader:
             return JointStates(stamps, [], np.zeros((0, 0)))
         first = self.decode_one(topic, bytes(payloads[0]))
         names = list(first.name)
+        layout = JointStateLayout(names, first.header.frame_id)
         rows = self._rows(payloads)
         if rows is not None:
-            decoded = JointStateLayout(names, first.header.frame_id).decode(rows)
+            decoded = layout.decode(rows)
             if decoded is not None:
                 return JointStates(decoded[0], names, decoded[1])
-        msgs = self.decode(topic)
-        if any(list(m.name) != names for m in msgs):
-            raise LogFormatError(f'{topic}: the joint names change within the log')
-        values = np.array([list(m.position) for m in msgs], dtype=np.float64).reshape(len(msgs), len(names))
-        stamps = np.array([m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec for m in msgs],
-                          dtype=np.int64)
-        return JointStates(stamps, names, values)
+        return self._mixed_joint_states(topic, payloads, names, layout)
+
+    def _mixed_joint_states(self, topic: str, payloads: list[bytes] | NDArray[np.uint8],
+                            names: list[str], layout: JointStateLayout) -> JointStates:
+        """Messages of which some do not fit ``layout`` (flagged samples with an ``effort``,
+        another tool's messages): those that fit are decoded together, the others one by one
+        with the generic decoder."""
+        n, k = len(payloads), len(names)
+        fits = np.array([len(p) == layout.size for p in payloads], dtype=bool)
+        stamps = np.zeros(n, dtype=np.int64)
+        values = np.zeros((n, k))
+        status = np.zeros((n, k), dtype=np.uint8)
+        idx = np.flatnonzero(fits)
+        if idx.size:
+            block = np.frombuffer(b''.join(bytes(payloads[i]) for i in idx), np.uint8).reshape(idx.size, -1)
+            decoded = layout.decode(block)
+            if decoded is None:
+                fits[:] = False
+            else:
+                stamps[idx], values[idx] = decoded
+        decode = self._decoder(topic)
+        for i in np.flatnonzero(~fits):
+            m = decode(bytes(payloads[i]))
+            if list(m.name) != names:
+                raise LogFormatError(f'{topic}: the joint names change within the log')
+            if len(m.position) != k:
+                raise LogFormatError(f'{topic}: a message has {len(m.position)} positions for '
+                                     f'{k} names')
+            stamps[i] = m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec
+            values[i] = m.position
+            if len(m.effort) == k:
+                status[i] = status_codes(m.effort)
+        return JointStates(stamps, names, values, status if status.any() else None)
 
     def pose_values(self, topic: str) -> tuple[NDArray[np.int64], NDArray[np.float64], str]:
         """A PoseStamped or PoseWithCovarianceStamped topic: stamps (N,) [ns], values (N, 7 or

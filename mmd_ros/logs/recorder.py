@@ -7,6 +7,9 @@ through :class:`~mmd_ros.logs.writer.LogWriter`:
   a SIGKILL or a power cut everything up to the last flush reads back
   (:class:`~mmd_ros.logs.reader.LogReader` reads a log cut short up to the damage);
 - **closed cleanly** by :meth:`Recorder.close` (summary section, indexes): a complete MCAP file;
+- **never over an earlier file**: when ``path`` (or a rotation part's name) is taken — a
+  recording restarted after a crash with the same ``output`` — the recorder writes
+  ``<stem>.1.mcap`` (``.2``, ...) instead (:func:`unused_path`);
 - **rotated** by size (``max_bytes``) or time (``max_duration_s``): the first file is ``path``,
   the next ones ``<stem>_1.mcap``, ``<stem>_2.mcap``, ... next to it. Every file starts with the
   latched messages seen so far (device description, calibration, model), so each one is a
@@ -37,7 +40,7 @@ from numpy.typing import NDArray
 from mmd_ros.logs.errors import LogError
 from mmd_ros.logs.writer import LogWriter
 
-__all__ = ['QueuedRecorder', 'Recorder', 'RecorderStatus', 'part_path']
+__all__ = ['QueuedRecorder', 'Recorder', 'RecorderStatus', 'part_path', 'unused_path']
 
 _log = logging.getLogger(__name__)
 
@@ -50,6 +53,17 @@ def part_path(path: Path, index: int) -> Path:
     if index == 0:
         return path
     return path.with_name(f'{path.stem}_{index}{path.suffix or ".mcap"}')
+
+
+def unused_path(path: Path) -> Path:
+    """``path``, or when a file is there already (an earlier recording: a raw log is never
+    written over), the first of ``<stem>.1<suffix>``, ``<stem>.2<suffix>``, ... that is not."""
+    k = 0
+    target = path
+    while target.exists() or target.is_symlink():
+        k += 1
+        target = path.with_name(f'{path.stem}.{k}{path.suffix or ".mcap"}')
+    return target
 
 
 @dataclass(frozen=True)
@@ -157,7 +171,7 @@ class Recorder:
                 pass
 
     def _open_next(self) -> None:
-        target = part_path(self.base, len(self.files))
+        target = unused_path(part_path(self.base, len(self.files)))
 
         def open_file() -> None:
             self._writer = self._factory(target, chunk_size=self.chunk_size,

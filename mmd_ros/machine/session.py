@@ -32,6 +32,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mmd_ros.analysis.iso230 import Dwell, approaches, detect_dwells
+from mmd_ros.core import validate
 from mmd_ros.core.calibration import load_calibration
 from mmd_ros.core.machine import MachineDescription
 from mmd_ros.core.model import Model
@@ -108,6 +109,10 @@ class Program:
     min_dwell_s: float = MIN_DWELL_S
 
 
+#: The keys of a test program file (each run: axis, targets_mm or targets_deg, follow).
+PROGRAM_KEYS = ('runs', 'min_dwell_s')
+
+
 def load_program(path: str | Path, machine: MachineDescription) -> Program:
     """Read a test program: YAML ``runs: [{axis: X, targets_mm: [...]}, {axis: C, targets_deg:
     [...], follow: true}]`` (optional ``min_dwell_s``), or CSV lines ``axis,target`` (mm or
@@ -141,6 +146,7 @@ def load_program(path: str | Path, machine: MachineDescription) -> Program:
     if not isinstance(data, dict) or not isinstance(data.get('runs'), list) or not data['runs']:
         raise MachineAnalysisError(f'{source}: a test program needs "runs:", a list of '
                                    '{axis: X, targets_mm: [...]} entries')
+    validate.known_keys(data, PROGRAM_KEYS, source)
     out = []
     for i, item in enumerate(data['runs']):
         where = f'{source}: runs[{i}]'
@@ -151,6 +157,7 @@ def load_program(path: str | Path, machine: MachineDescription) -> Program:
         except Exception as exc:
             raise MachineAnalysisError(f'{where}: {exc}') from None
         key = 'targets_deg' if axis.rotary else 'targets_mm'
+        validate.known_keys(item, ('axis', key, 'follow'), source, f'runs[{i}].')
         values = item.get(key)
         if not isinstance(values, list) or len(values) < 3:
             raise MachineAnalysisError(f'{where}: {key} must list at least three targets')
@@ -161,8 +168,10 @@ def load_program(path: str | Path, machine: MachineDescription) -> Program:
         t = np.radians(t) if axis.rotary else t * M_PER_MM
         if np.any(np.diff(t) <= 0):
             raise MachineAnalysisError(f'{where}: {key} must increase')
-        out.append(ProgramRun(axis.name, t, bool(item.get('follow', axis.rotary))))
-    return Program(tuple(out), float(data.get('min_dwell_s', MIN_DWELL_S)))
+        out.append(ProgramRun(axis.name, t, validate.boolean(item.get('follow', axis.rotary), source,
+                                                               f'runs[{i}].follow')))
+    return Program(tuple(out), validate.number(data.get('min_dwell_s', MIN_DWELL_S), source,
+                                               'min_dwell_s', low=0.0, low_open=True))
 
 
 # -- poses of a log ---------------------------------------------------------------------------
@@ -177,6 +186,8 @@ class LogPoses:
     valid: NDArray[np.bool_]
     pipeline: Pipeline | None = None
     counts: FloatArray | None = None
+    #: (N, 8) the terminal's channel status codes (flagged samples: no pose), or None
+    status: NDArray[np.uint8] | None = None
 
     def covariance(self, sl: slice, at: FloatArray) -> FloatArray:
         """Mean covariance (6, 6) in [dp, dw] of the samples in ``sl`` (a dwell's middle; at
@@ -190,7 +201,8 @@ class LogPoses:
             stop = start + COVARIANCE_SAMPLES
         self.pipeline.reset()
         res = self.pipeline.process(self.times_s[start:stop], self.counts[start:stop],
-                                    with_covariance=True)
+                                    with_covariance=True,
+                                    status=None if self.status is None else self.status[start:stop])
         ok = res.valid & np.all(np.isfinite(res.covariance), axis=(1, 2))
         if not ok.any():
             return np.full((6, 6), np.nan)
@@ -218,7 +230,8 @@ def log_poses(run: RunLog, model: Model | None, *, instrument: str = 'mmd',
     bar.close()                                                                           # term state)
     calibration = load_calibration(calibration_path) if calibration_path else run.calibration
     pipeline = Pipeline(run.device, calibration, model)
-    return LogPoses(str(run.path), times, result.poses, result.valid, pipeline, run.counts)
+    return LogPoses(str(run.path), times, result.poses, result.valid, pipeline, run.counts,
+                    run.status)
 
 
 # -- dwells -----------------------------------------------------------------------------------

@@ -3,7 +3,9 @@
 Used by ``calibration_node`` and ``pose_node``. It keeps the last seconds of raw counts (fed by
 direct call or by a subscription), runs :class:`~mmd_ros.core.calibration_routine.CalibrationRoutine`
 on each service call, and owns the calibration file: loaded at start (a corrupt file is refused
-with its name and the reason, and diagnostics say so), watched for changes made by hand
+with its name and the reason, and diagnostics say so; a file that an interrupted save left
+missing is restored from its ``.bak``, the complete earlier calibration, and the log and the
+diagnostics say so), watched for changes made by hand
 (reloaded, refused if corrupt), written atomically after every change (``Calibration.save``:
 temporary file, fsync, rename; the previous file is kept as ``<file>.bak``; a corrupt file that
 is replaced is kept as ``<file>.corrupt``), and published on the latched ``/mmd/calibration``
@@ -37,7 +39,7 @@ from rclpy.parameter import Parameter
 from std_srvs.srv import Trigger
 
 from mmd_ros.core.calibration import (
-    Calibration, TerminalBinding, binding_problem, load_calibration,
+    Calibration, TerminalBinding, binding_problem, load_calibration, recover_interrupted_save,
 )
 from mmd_ros.core.calibration_routine import CalibrationRoutine, RoutineSettings, Window
 from mmd_ros.core.device import DeviceDescription
@@ -220,6 +222,7 @@ class CalibrationStage:
         self.file_problem = ''
         self.binding_note = ''  # the calibration in use is foreign, used by override
         self.save_problem = ''
+        self.recovery = ''  # what was restored after an interrupted save (until the next save)
         self.foreign = False  # the file holds a calibration refused for its terminal
         self.last_message = ''
         self.captures = self.refused = 0
@@ -321,11 +324,14 @@ class CalibrationStage:
     def _load(self, initial: bool = False) -> bool:
         sig = self._signature()
         self._file_sig = sig
+        if sig is None and initial and self._recover():
+            sig = self._file_sig = self._signature()
         if sig is None:
             if initial:
                 self.file_problem = ''
-                self.log.info(f'no calibration file {self.path} yet: run the calibration '
-                              '(ros2 service call .../calibrate_bar std_srvs/srv/Trigger)')
+                if not self.recovery:
+                    self.log.info(f'no calibration file {self.path} yet: run the calibration '
+                                  '(ros2 service call .../calibrate_bar std_srvs/srv/Trigger)')
             return False
         try:
             cal = load_calibration(self.path)
@@ -354,6 +360,25 @@ class CalibrationStage:
         self.log.info(f'calibration loaded from {self.path} (created {cal.created or "?"}, '
                       f'{"valid" if cal.valid else "INVALID: re-reference the bars"}'
                       + (f', made with {cal.terminal.describe()}' if cal.terminal else '') + ')')
+        return True
+
+    def _recover(self) -> bool:
+        """The file is missing: restore what an interrupted save left (its ``.bak``, the
+        complete earlier calibration; :func:`recover_interrupted_save`), saying so in the log
+        and, until the next save, in the diagnostics (WARN; ERROR when it cannot be used).
+        True when the file is back."""
+        try:
+            done = recover_interrupted_save(self.path)
+        except OSError as exc:  # the backup is fine, but the file cannot be written back
+            self._cannot_save(exc)
+            return False
+        if done is None:
+            return False
+        self.recovery = done.describe(self.path)
+        if done.calibration is None:
+            self.log.error(self.recovery)
+            return False
+        self.log.warn(self.recovery)
         return True
 
     def start(self) -> None:
@@ -388,7 +413,7 @@ class CalibrationStage:
         existed = self.path.exists()
         self.bind(cal).save(self.path)
         self._file_sig = self._signature()
-        self.file_problem, self.foreign, self.save_problem = '', False, ''
+        self.file_problem, self.foreign, self.save_problem, self.recovery = '', False, '', ''
         return (f' Saved to {self.path}' + (f' (previous kept as {self.path.name}.bak)' if existed else '')
                 + note + '.')
 
@@ -505,6 +530,8 @@ class CalibrationStage:
             r.worse(ERROR, self.binding_note)
         if self.save_problem:
             r.worse(ERROR, self.save_problem)
+        if self.recovery:
+            r.worse(WARN if cal is not None else ERROR, self.recovery)
         if cal is None:
             r.worse(WARN, 'no calibration: run the calibration routine (calibrate_bar)')
         else:
@@ -519,6 +546,7 @@ class CalibrationStage:
         r.values.update({
             'file': str(self.path),
             'saved': not self.save_problem,
+            'recovered': self.recovery,
             'terminal': self.terminal.describe() if self.terminal is not None else 'unknown',
             'made_with': made_with.describe() if made_with is not None else 'not recorded',
             'valid': bool(cal is not None and cal.valid and not self.routine.missing_bars()),

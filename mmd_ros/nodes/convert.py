@@ -18,7 +18,7 @@ from std_msgs.msg import Header, String
 
 from mmd_ros.core.rotation import angles_to_quaternion, quaternion_to_angles
 from mmd_ros.logs.cdr import ENCAPSULATION, JointStateLayout, PoseLayout, encode_string, split_stamps
-from mmd_ros.logs.layout import BAR_NAMES, FK_STATUS_NAMES, FRAME_LOWER, REFERENCE_POSE_NAMES
+from mmd_ros.logs.layout import BAR_NAMES, FK_STATUS_NAMES, FRAME_LOWER, REFERENCE_POSE_NAMES, flag_runs
 
 __all__ = [
     'DIAGNOSTIC_ARRAY', 'FK_STATUS_NAMES', 'HEADER', 'JS', 'PATH', 'POSE', 'POSE_COV', 'PathLayout',
@@ -213,6 +213,22 @@ class Rows:
         if self._status_layout is None:
             self._status_layout = _StatusLayout(self.raw.names)
         return self._status_layout.encode(stamps_ns, counts, status)
+
+    def raw_parts(self, stamps_ns: NDArray[np.int64], counts: NDArray[np.float64],
+                  status: NDArray[np.uint8] | None) -> list[tuple[NDArray[np.uint8], NDArray[np.int64]]]:
+        """``raw_counts`` of N samples as (rows, stamps) runs in order: the flagged samples
+        (a status code not 0 on some channel) with their codes in ``effort``, the others
+        without (``status`` None: none flagged)."""
+        if status is None or not np.any(status):
+            return [(self.raw.encode(stamps_ns, counts), stamps_ns)]
+        flagged = np.any(status != 0, axis=1)
+        out = []
+        for a, b in flag_runs(flagged):
+            part = slice(a, b)
+            rows = (self.raw_with_status(stamps_ns[part], counts[part], status[part]) if flagged[a]
+                    else self.raw.encode(stamps_ns[part], counts[part]))
+            out.append((rows, stamps_ns[part]))
+        return out
 
     def poses(self, stamps_ns: NDArray[np.int64], poses: NDArray[np.float64],
               covariance: NDArray[np.float64] | None = None) -> NDArray[np.uint8]:

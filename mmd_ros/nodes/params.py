@@ -12,6 +12,7 @@ the parameter, the value and what is allowed, and the node refuses to start. Par
 from __future__ import annotations
 
 import math
+import sys
 from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
@@ -26,7 +27,8 @@ from rclpy.parameter import Parameter
 from mmd_ros.core import validate
 from mmd_ros.core.errors import MmdError
 
-__all__ = ['Param', 'ParameterError', 'check', 'declare', 'on_set_checker']
+__all__ = ['Param', 'ParameterError', 'check', 'declare', 'every_param_name', 'on_set_checker',
+           'unknown_overrides']
 
 
 class ParameterError(MmdError):
@@ -110,11 +112,56 @@ def check(param: Param, value: Any) -> str | None:
     return None
 
 
+#: Parameters rclpy itself reads, and prefixes of its own (QoS overrides).
+ROS_PARAMS = ('use_sim_time', 'start_type_description_service')
+ROS_PARAM_PREFIXES = ('qos_overrides.',)
+
+
+def every_param_name() -> list[str]:
+    """The parameters some mmd_ros node declares (a parameters file under ``/**`` gives every
+    node all of them: each takes its own and leaves the others)."""
+    from mmd_ros.nodes import compensation_node, fk_node, pose_node, recorder_node, replay_node
+    from mmd_ros.nodes.calibration_stage import CALIBRATION_PARAMS
+    from mmd_ros.nodes.common import COMMON_PARAMS, MODEL_PARAMS
+    from mmd_ros.nodes.recorder_stage import RECORDER_PARAMS
+    from mmd_ros.nodes.terminal import TERMINAL_PARAMS
+    groups = (COMMON_PARAMS, MODEL_PARAMS, TERMINAL_PARAMS, CALIBRATION_PARAMS, RECORDER_PARAMS,
+              compensation_node.PARAMS, fk_node.PARAMS, recorder_node.PARAMS, replay_node.PARAMS,
+              pose_node.POSE_PARAMS)
+    return sorted({p.name for group in groups for p in group})
+
+
+def _params_files(argv: list[str]) -> list[str]:
+    return [argv[i + 1] for i, a in enumerate(argv[:-1]) if a == '--params-file']
+
+
+def unknown_overrides(names: Iterable[str], argv: list[str] | None = None) -> str | None:
+    """Why one of the parameter ``names`` given to a node (``-p``, ``--params-file``) is no
+    parameter of any mmd_ros node, naming the one it resembles and the files, or None.
+
+    A typo in a parameters file (``sim_efects:``) would otherwise leave the default in force,
+    silently: the same rule as for every other file (:func:`mmd_ros.core.validate.known_keys`).
+    """
+    known = every_param_name()
+    given = [n for n in names if n not in ROS_PARAMS and not n.startswith(ROS_PARAM_PREFIXES)]
+    found = validate.unknown_key(given, known, 'parameter', ' of the mmd_ros nodes')
+    if found is None:
+        return None
+    files = _params_files(sys.argv if argv is None else argv)
+    where = f' (from {", ".join(files)} or -p)' if files else ''
+    problem = found[1].split('; known')[0]
+    return f'parameter {found[0]}{where}: {problem}; msg_docs/nodes.md lists them'
+
+
 def declare(node: Node, params: Iterable[Param]) -> dict[str, Any]:
     """Declare ``params`` on ``node`` and return their checked values by name.
 
-    Raises :class:`ParameterError` for the first invalid value.
+    Raises :class:`ParameterError` for the first invalid value, and for a parameter given to
+    the node that no mmd_ros node knows (:func:`unknown_overrides`).
     """
+    why = unknown_overrides(getattr(node, '_parameter_overrides', {}))
+    if why:
+        raise ParameterError(why)
     out: dict[str, Any] = {}
     for p in params:
         try:

@@ -88,6 +88,9 @@ class RecorderStage:
         self._reported_error = False
         if recorder.state == 'error':
             logger.error(f'recorder: {recorder.error}')
+        elif recorder.path != path:
+            logger.warn(f'{path} exists (an earlier recording): it is not written over; '
+                        f'recording into {recorder.path}')
         else:
             logger.info(f'recording into {path}')
 

@@ -182,7 +182,10 @@ class ReplayNode(Node):
                     pass
                 self.held_s += time.monotonic() - held
             stamps = log.stamps_ns[a:b]
-            self.out_raw.rows(self.rows.raw.encode(stamps, log.counts[a:b]), stamps)
+            # a sample the terminal flagged goes out as it was recorded: codes in ``effort``
+            for rows, part in self.rows.raw_parts(stamps, log.counts[a:b],
+                                                  None if log.status is None else log.status[a:b]):
+                self.out_raw.rows(rows, part)
             if ref is not None:
                 known = np.isfinite(ref[a:b]).any(axis=1)
                 if known.any():

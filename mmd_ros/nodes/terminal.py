@@ -34,6 +34,7 @@ from mmd_ros.nodes.outlets import Outlet
 from mmd_ros.nodes.params import Param
 from mmd_ros.nodes.sim_commands import SimCommandError, run_commands
 from mmd_ros.twin import SCENARIOS
+from mmd_ros.twin.effects import PRESETS as EFFECT_PRESETS
 
 __all__ = ['TERMINAL_PARAMS', 'TerminalConfig', 'TerminalStage']
 
@@ -58,8 +59,9 @@ TERMINAL_PARAMS = [
           'are mounted (restarted when it ends)', choices=tuple(sorted(SCENARIOS))),
     Param('sim_scenario_params', 'duration_s=300.0', 'simulation: scenario parameters, '
           'space-separated name=value (see msg_docs/simulation.md)'),
-    Param('sim_effects', 'realistic', 'simulation: physical effects preset',
-          choices=('ideal', 'realistic')),
+    Param('sim_effects', 'realistic', 'simulation: physical effects preset (msg_docs/'
+          'simulation.md): none (no error source at all), ideal or realistic',
+          choices=EFFECT_PRESETS),
     Param('sim_effect_params', '', 'simulation: effect parameters, space-separated name=value'),
     Param('sim_seed', 1, 'simulation: seed of the simulated device', low=0, high=2**31 - 1),
     Param('sim_ambient', 'constant:20.0', 'simulation: room temperature: section_4_1, '
@@ -109,13 +111,6 @@ class TerminalConfig:
 
 #: (stamps_ns (N,), counts (N, 8), channel status codes (N, 8) or None when all are good)
 BatchCallback = Callable[[NDArray[np.int64], NDArray[np.float64], NDArray[np.uint8] | None], None]
-
-
-def runs(flags: NDArray[np.bool_]) -> list[tuple[int, int]]:
-    """[a, b) ranges of equal values of ``flags``, in order."""
-    edges = np.flatnonzero(np.diff(flags.astype(np.int8))) + 1
-    bounds = np.r_[0, edges, flags.size]
-    return [(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]
 
 
 class TerminalStage:
@@ -313,15 +308,9 @@ class TerminalStage:
 
     def _publish_raw(self, stamps: NDArray[np.int64], counts: NDArray[np.float64],
                      dev_t: NDArray[np.int64], status: NDArray[np.uint8] | None) -> None:
-        if status is None:
-            self.raw.rows(self.rows.raw.encode(stamps, counts), stamps)
-        else:
-            # a sample whose channel status is not good carries it in ``effort``
-            flagged = status.any(axis=1)
-            for a, b in runs(flagged):
-                encode = self.rows.raw_with_status if flagged[a] else self.rows.raw.encode
-                args = (stamps[a:b], counts[a:b]) + ((status[a:b],) if flagged[a] else ())
-                self.raw.rows(encode(*args), stamps[a:b])
+        # a sample whose channel status is not good carries it in ``effort``
+        for rows, part in self.rows.raw_parts(stamps, counts, status):
+            self.raw.rows(rows, part)
         if self.source is not None and self.reference is not None and self.cfg.publish_reference:
             ref = self.source.reference_at(dev_t)
             known = np.isfinite(ref).any(axis=1)

@@ -12,7 +12,7 @@ on the reference plate (section 3.2) and the experiments of sections 4.1 and 5.
 """
 
 from mmd_ros.twin.effects import Bump, Effects
-from mmd_ros.twin.errors import TwinError, WorkspaceError
+from mmd_ros.twin.errors import TwinError, TwinParameterError, WorkspaceError
 from mmd_ros.twin.mechanism import bar_legs, rotation_matrices
 from mmd_ros.twin.reference import REFERENCE_KINDS
 from mmd_ros.twin.scenarios import (
@@ -27,6 +27,6 @@ __all__ = [
     'AmbientProfile', 'Bump', 'Effects', 'HOME_POSE', 'Hold', 'IsoLinear', 'IsoRotary',
     'IsoTargets', 'MachineErrors', 'MotionLimits', 'Placement', 'REFERENCE_KINDS',
     'REFERENCE_TEMP_C', 'Ramp', 'RandomMotion', 'SCENARIOS', 'Scenario', 'SimulatedRun',
-    'ThermalSoak', 'Trajectory', 'TwinDevice', 'TwinError', 'WorkspaceError', 'bar_legs',
-    'make_scenario', 'rotation_matrices', 'scenario_from_dict',
+    'ThermalSoak', 'Trajectory', 'TwinDevice', 'TwinError', 'TwinParameterError', 'WorkspaceError',
+    'bar_legs', 'make_scenario', 'rotation_matrices', 'scenario_from_dict',
 ]

@@ -4,7 +4,8 @@ The twin's parameters (:class:`~mmd_ros.twin.effects.Effects`, scenarios, ambien
 go into a log's metadata as plain JSON/YAML values and come back from there or from the
 command line as ``name=value`` assignments (``hysteresis_m=5e-7``, ``limits.speed_m_per_s=0.1``,
 ``bump=6,0.3,0.005,1e-6``). Values are coerced to the field's declared type; an unknown name or
-a value of the wrong kind is refused with a :class:`TwinError` naming the parameter.
+a value of the wrong kind is refused with a :class:`TwinParameterError` naming the parameter
+(unknown names through :func:`mmd_ros.core.validate.unknown_key`, with the name they resemble).
 """
 
 from __future__ import annotations
@@ -18,9 +19,10 @@ from typing import Any, TypeVar
 
 import numpy as np
 
+from mmd_ros.core import validate
 from mmd_ros.core.errors import ConfigError
 from mmd_ros.core.yamlio import parse_yaml
-from mmd_ros.twin.errors import TwinError
+from mmd_ros.twin.errors import TwinParameterError
 
 __all__ = ['assign', 'from_plain', 'to_plain']
 
@@ -50,19 +52,19 @@ def from_plain(cls: type[T], data: Any, path: str = '') -> T:
         data = [item.strip() for item in data.split(',')]
     if isinstance(data, (list, tuple)):
         if len(data) != len(names):
-            raise TwinError(f'{path or cls.__name__}: expected {len(names)} values '
+            raise TwinParameterError(path or cls.__name__, f'expected {len(names)} values '
                             f'({", ".join(names)}), got {len(data)}')
         data = dict(zip(names, data))
     if not isinstance(data, dict):
-        raise TwinError(f'{path or cls.__name__}: expected a mapping of {names}, got {data!r}')
-    unknown = sorted(set(data) - set(names))
+        raise TwinParameterError(path or cls.__name__, f'expected a mapping of {names}, got {data!r}')
+    unknown = validate.unknown_key(sorted(set(data) - set(names), key=str), names, 'parameter',
+                                   f' of {cls.__name__}')
     if unknown:
-        raise TwinError(f'{path}{unknown[0]}: unknown parameter of {cls.__name__}; '
-                        f'known are {", ".join(names)}')
+        raise TwinParameterError(f'{path}{unknown[0]}', unknown[1])
     missing = [f.name for f in dataclasses.fields(cls) if f.name not in data
                and f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING]
     if missing:
-        raise TwinError(f'{path or cls.__name__ + "."}{missing[0]}: required, not given')
+        raise TwinParameterError(f'{path or cls.__name__ + "."}{missing[0]}', 'required, not given')
     hints = typing.get_type_hints(cls)
     kwargs = {k: _coerce(hints[k], v, f'{path}{k}') for k, v in data.items()}
     return cls(**kwargs)
@@ -76,12 +78,12 @@ def assign(obj: T, assignments: Iterable[str]) -> T:
         name, sep, text = item.partition('=')
         name = name.strip()
         if not sep or not name:
-            raise TwinError(f'{item!r}: expected name=value')
+            raise TwinParameterError(repr(item), 'expected name=value')
         try:
             value = parse_yaml(text, name)
         except ConfigError as exc:
             if not exc.problem.startswith('is not valid YAML'):
-                raise TwinError(f'{name}: the value {exc.problem}') from None
+                raise TwinParameterError(name, f'the value {exc.problem}') from None
             value = text
         node = plain
         keys = name.split('.')
@@ -89,7 +91,7 @@ def assign(obj: T, assignments: Iterable[str]) -> T:
             if node.get(key) is None:
                 node[key] = {}
             if not isinstance(node[key], dict):
-                raise TwinError(f'{name}: {key} is not a group of parameters')
+                raise TwinParameterError(name, f'{key} is not a group of parameters')
             node = node[key]
         node[keys[-1]] = value
         plain = to_plain(from_plain(type(obj), plain))  # validate now, and normalise text values
@@ -111,11 +113,11 @@ def _coerce(tp: Any, value: Any, path: str) -> Any:
         if isinstance(value, str):
             value = [v for v in value.strip('[]() ').split(',') if v.strip()]
         if not isinstance(value, (list, tuple)):
-            raise TwinError(f'{path}: expected a list, got {value!r}')
+            raise TwinParameterError(path, f'expected a list, got {value!r}')
         if len(args) == 2 and args[1] is Ellipsis:
             return tuple(_coerce(args[0], v, f'{path}[{i}]') for i, v in enumerate(value))
         if len(args) != len(value):
-            raise TwinError(f'{path}: expected {len(args)} values, got {len(value)}')
+            raise TwinParameterError(path, f'expected {len(args)} values, got {len(value)}')
         return tuple(_coerce(a, v, f'{path}[{i}]') for i, (a, v) in enumerate(zip(args, value)))
     if tp is bool:
         if isinstance(value, (bool, np.bool_)):
@@ -123,21 +125,21 @@ def _coerce(tp: Any, value: Any, path: str) -> Any:
         text = str(value).strip().lower()
         if text in _TRUE | _FALSE:
             return text in _TRUE
-        raise TwinError(f'{path}: expected on/off (true/false), got {value!r}')
+        raise TwinParameterError(path, f'expected on/off (true/false), got {value!r}')
     if tp in (int, float):
         if isinstance(value, bool):
-            raise TwinError(f'{path}: expected a number, got {value!r}')
+            raise TwinParameterError(path, f'expected a number, got {value!r}')
         try:
             number = float(value)
         except (TypeError, ValueError, OverflowError):
-            raise TwinError(f'{path}: expected a number, got {value!r}') from None
+            raise TwinParameterError(path, f'expected a number, got {value!r}') from None
         if not math.isfinite(number):
-            raise TwinError(f'{path}: expected a finite number, got {value!r}')
+            raise TwinParameterError(path, f'expected a finite number, got {value!r}')
         if tp is int:
             if not number.is_integer():
-                raise TwinError(f'{path}: expected an integer, got {value!r}')
+                raise TwinParameterError(path, f'expected an integer, got {value!r}')
             return int(number)
         return number
     if tp is str:
         return str(value)
-    raise TwinError(f'{path}: cannot read a value of type {tp}')  # pragma: no cover
+    raise TwinParameterError(path, f'cannot read a value of type {tp}')  # pragma: no cover

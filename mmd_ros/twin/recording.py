@@ -23,7 +23,7 @@ from mmd_ros.logs.layout import (
 from mmd_ros.logs.outputs import replacing
 from mmd_ros.logs.writer import LogWriter
 from mmd_ros.twin.effects import PRESET_AMBIENT, Effects
-from mmd_ros.twin.errors import TwinError
+from mmd_ros.twin.errors import TwinError, TwinParameterError
 from mmd_ros.twin.scenarios import make_scenario
 from mmd_ros.twin.thermal import AmbientProfile
 from mmd_ros.twin.twin import TwinDevice
@@ -78,6 +78,8 @@ def ambient_profile(spec: str) -> AmbientProfile:
     elif spec.endswith(('.yaml', '.yml')):
         try:
             return AmbientProfile.from_dict(read_yaml(spec))
+        except TwinParameterError as exc:
+            raise ConfigError(spec, exc.key, exc.problem) from None
         except TwinError as exc:
             raise ConfigError(spec, '(file)', f'is not an ambient profile: {exc}') from None
     raise ConfigError('--ambient', spec, 'must be section_4_1, constant:T or a profile .yaml')
