@@ -115,7 +115,7 @@ def machine_step(out_dir: Path) -> None:
     log = out_dir / 'machine_session.mcap'
     t0 = time.perf_counter()
     _, _, summary = simulate_to_log(spec, log, progress=True)
-    print(f'wrote {log}: the ISO runs of X, Y, Z, C (±40°) and A (±15°, Y and Z following) with '
+    print(f'wrote {log}: the ISO runs of X, Y, Z, C (±60°) and A (±15°, Y and Z following) with '
           f'the machine\'s joint states, {summary["duration_s"]:.0f} s at 200 Hz, in '
           f'{time.perf_counter() - t0:.1f} s')
     machine = load_machine('machine_xyzac.yaml')
