@@ -1,5 +1,5 @@
 """``mmd machine analyze`` on a full five-axis session: the ISO 230-2 standard test cycle (11
-targets over 200 mm / 120 mm, 5 bidirectional cycles; C ±40° and A ±15° with 9 targets, the
+targets over 200 mm / 120 mm, 5 bidirectional cycles; C ±60° and A ±15° with 9 targets, the
 linear axes following) of X, Y, Z, C and A of the XYZAC machine at 1 kHz, realistic MMD.
 
 Times the stages (reading the log and computing every sample's pose with its covariance,

@@ -11,7 +11,7 @@
    by the model fitted on the others (leave-one-run-out); ISO 230-2 of the x axis before and
    after on the run kept aside (not used to fit the model).
 4. Live: ``pose_node`` on the simulated terminal; the guided calibration through
-   ``/mmd/calibrate_bar``; 20 s of the live pose stream while it is recorded; the recorded log
+   ``/mmd/calibrate_bar``; 10 s of the live pose stream while it is recorded; the recorded log
    processed and compared with the twin's reference.
 5. Machine tool (``mmd machine``): the MMD in a five-axis XYZAC machine with known errors: a
    short session of the ISO runs of X, Y, Z, C and A with the controller's joint states, the
@@ -115,7 +115,7 @@ def machine_step(out_dir: Path) -> None:
     log = out_dir / 'machine_session.mcap'
     t0 = time.perf_counter()
     _, _, summary = simulate_to_log(spec, log, progress=True)
-    print(f'wrote {log}: the ISO runs of X, Y, Z, C (±40°) and A (±15°, Y and Z following) with '
+    print(f'wrote {log}: the ISO runs of X, Y, Z, C (±60°) and A (±15°, Y and Z following) with '
           f'the machine\'s joint states, {summary["duration_s"]:.0f} s at 200 Hz, in '
           f'{time.perf_counter() - t0:.1f} s')
     machine = load_machine('machine_xyzac.yaml')
@@ -147,8 +147,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--out', default='out/demo', help='folder for the logs and reports')
     parser.add_argument('--no-live', action='store_true', dest='no_live',
                         help='skip the live ROS 2 step (pose_node, calibration service, recording)')
-    parser.add_argument('--live-seconds', type=float, default=20.0, dest='live_seconds',
-                        help='length of the live pose stream [s] (default 20)')
+    parser.add_argument('--live-seconds', type=float, default=10.0, dest='live_seconds',
+                        help='length of the live pose stream [s] (default 10)')
     args = parser.parse_args(argv)
     out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -29,12 +29,15 @@ def zero_truth(machine) -> MachineTruth:
 
 
 def exact_runs(twin: TwinMachine, plans, cycles: int = 2, sigma: float = 0.0,
-               rng: np.random.Generator | None = None) -> list[AxisRun]:
+               rng: np.random.Generator | None = None,
+               resting: dict[str, dict[str, float]] | None = None) -> list[AxisRun]:
     """The approaches of the ISO cycles of ``plans`` with the twin's true poses of {U} in {L}
-    (optionally with pose noise ``sigma`` [m, rad] and that covariance)."""
+    (optionally with pose noise ``sigma`` [m, rad] and that covariance). ``resting``: per run
+    axis, the play state (-1 … 1) of axes that stand still during it (default 0)."""
     m = twin.machine
     out = []
     for plan in plans:
+        still = (resting or {}).get(plan.axis, {})
         k = m.index(plan.axis)
         n = plan.targets.size
         q = np.tile(m.reference, (n, 1))
@@ -49,7 +52,10 @@ def exact_runs(twin: TwinMachine, plans, cycles: int = 2, sigma: float = 0.0,
         for d in (1, -1):
             last = np.where(np.abs(slope) > 1e-12, np.sign(slope) * d, 0).astype(np.int64)
             last[:, k] = d
-            poses = twin.mmd_poses(q, last.astype(float))
+            play = last.astype(float)
+            for other, state in still.items():
+                play[:, m.index(other)] = state
+            poses = twin.mmd_poses(q, play)
             for c in range(cycles):
                 for i in range(n):
                     pose = poses[i] if sigma == 0 else poses[i] + rng.normal(0.0, sigma, 6)
@@ -125,10 +131,20 @@ def session_truth(twin: TwinMachine, plans) -> dict:
         k = m.index(name)
         t = twin.truth.rotary[name]
         perp = [j for j in range(3) if j != a.component]
+        # the twin's line in the machine frame of the definition (the X and Y lines), which is
+        # turned against the twin's coordinates by the straightness errors' residual slopes
+        # over the targets; the analysis places the motion there about the functional point
+        fp = m.functional_point
+        d = a.direction
+        c = fp + frame @ (a.pivot + t.position - fp)
+        d_f = frame @ (d + np.cross(t.orientation, d))
+        d_f /= np.linalg.norm(d_f)
+        at_pivot = c - np.dot(c - a.pivot, d) / np.dot(d_f, d) * d_f
+        tilt = np.cross(d, d_f)
         for j in perp:
-            out['location'][f'E{"XYZ"[j]}0{name}'] = t.position[j]
+            out['location'][f'E{"XYZ"[j]}0{name}'] = (at_pivot - a.pivot)[j]
         for j in perp:
-            out['location'][f'E{"ABC"[j]}0{name}'] = t.orientation[j]
+            out['location'][f'E{"ABC"[j]}0{name}'] = tilt[j]
         only = zero_truth(m)
         only.rotary[name] = replace(t, position=np.zeros(3), orientation=np.zeros(3))
         single = TwinMachine(m, only, twin.setup)

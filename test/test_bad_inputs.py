@@ -218,6 +218,8 @@ CASES = [
      'machine analyze {log} --machine x.yaml', 'did you mean upper_offset_mm'),
     ('machine unknown key', {'x.yaml': lambda env: MACHINE + 'chain: {}\n'},
      'machine analyze {log} --machine x.yaml', 'did you mean chains'),
+    ('machine travel a bool', {'x.yaml': lambda env: MACHINE.replace('travel_mm: [-300, 300]', 'travel_mm: [-300, true]')},
+     'machine analyze {log} --machine x.yaml', 'axes[0].travel_mm'),
     ('program unknown key', {'p.yaml': 'runs: [{axis: X, targets_mm: [1, 2, 3], folow: true}]\n'},
      'machine analyze {log} --machine machine_xyzac.yaml --program p.yaml', 'did you mean follow'),
     ('program follow text', {'p.yaml': 'runs: [{axis: X, targets_mm: [1, 2, 3], follow: "no"}]\n'},

@@ -151,6 +151,63 @@ def test_a_partial_turn_leaves_the_location_open_and_says_so():
     assert any('A: no run' in line for line in result.not_determined())
 
 
+def test_location_uncertainty_covers_the_truth_across_machines():
+    """Four drawn machines (rotary location errors of 6–12 µm and 6–12″, component errors of
+    0.3 µm / 0.5″ over a turn at the pivot, the plates bolted askew, the upper plate's position
+    known to 1 µm), each swept as the session does (C ±60°, A ±15°, the linear axes following):
+    every location error lies within its U of the truth (the uncertainty covers). C's, over the
+    turn the MMD allows, are determined; A's, over ±15°, are not at the default component-error
+    size (1 µm, 1″), and say so; with the table's component errors stated (here the twin's
+    bound) they are, and still covered."""
+    machine = load_machine('machine_xyzac.yaml')
+    ratios = {'default': [], 'stated': []}
+    for seed in range(4):
+        scenario = make_scenario('machine_session', [
+            'n_linear_targets=6', 'n_rotary_targets=5', f'errors.seed={seed}', f'setup_seed={seed}'])
+        twin, plans = scenario.machine(), scenario.plans(machine)
+        assert [np.degrees(p.targets[[0, -1]]).round() for p in plans if p.axis in 'AC'] == \
+            [pytest.approx([-60, 60]), pytest.approx([-15, 15])]
+        runs = exact_runs(twin, plans, sigma=0.05 * UM, rng=np.random.default_rng(seed))
+        truth = session_truth(twin, plans)['location']
+        stated = dict(component_m=0.3 * UM, component_rad=0.5 * ARCSEC)
+        for label, extra in (('default', {}), ('stated', stated)):
+            result = identify(runs, machine, options=IdentifyOptions(draws=16, seed=seed, **extra))
+            for axis in 'CA':
+                for v in result.axes[axis].location:
+                    ratios[label].append(abs(v.value - truth[v.name]) / v.expanded)
+                    assert 0 < v.u_turn <= v.u, v
+                    assert v.determined == (axis == 'C' or label == 'stated'), (label, v)
+                    if not v.determined:
+                        assert 'exceeds the limit' in v.note
+    for label, r in ratios.items():
+        r = np.array(r)
+        assert r.size == 32 and np.mean(r <= 1.0) >= 0.95 and r.max() <= 1.5, (label, r.max())
+
+
+def test_the_other_table_axis_play_is_inside_the_uncertainty():
+    """C has a reversal of 4″; during the linear runs it rests mid-play, during the A run at one
+    side of it (where its last move left it): the table, and with it the A run's motion, is
+    turned 2″ about C's line against the frame. The A location errors move by that much, and
+    their uncertainty (which draws the other table axis' play within its reversal) covers it."""
+    machine = load_machine('machine_xyzac.yaml')
+    truth = zero_truth(machine)
+    truth.rotary['A'] = replace(truth.rotary['A'], position=np.array([0, 8 * UM, -6 * UM]),
+                                orientation=np.array([0, 7 * ARCSEC, -9 * ARCSEC]))
+    truth.rotary['C'] = replace(truth.rotary['C'], reversal=4 * ARCSEC)
+    twin = TwinMachine(machine, truth, MmdSetup.draw(machine, 3))
+    plans = _plans(machine)
+    rng = np.random.default_rng(2)
+    still = exact_runs(twin, plans, sigma=0.02 * UM, rng=rng)
+    turned = exact_runs(twin, plans, sigma=0.02 * UM, rng=np.random.default_rng(2), resting={'A': {'C': 1.0}})
+    options = IdentifyOptions(draws=40, component_m=0.1 * UM, component_rad=0.1 * ARCSEC)
+    ec0a = {label: identify(runs, machine, options=options).value('EC0A')
+            for label, runs in (('still', still), ('turned', turned))}
+    assert abs(ec0a['still'].value + 9 * ARCSEC) < 0.2 * ARCSEC
+    shift = ec0a['turned'].value - ec0a['still'].value
+    assert 1.5 * ARCSEC < abs(shift) < 2.5 * ARCSEC           # the play turns the A line about z
+    assert abs(ec0a['turned'].value + 9 * ARCSEC) <= ec0a['turned'].expanded
+
+
 # -- whole sessions through the MMD -----------------------------------------------------------
 def _simulate(tmp: Path, name: str, params: list[str], effects: str = 'ideal',
               ambient: str = 'constant:20.0') -> Path:
@@ -207,10 +264,12 @@ def test_switched_off_errors_are_found_at_zero(ideal):
         v = result.value(name)
         assert abs(v.value - truth['location'].get(name, truth['squareness'].get(name))) <= v.expanded
         assert abs(v.value) <= v.expanded, name
-    # while the errors that are there stand out of their uncertainty
+    # while the errors that are there stand out of their uncertainty, C's location (±60°)
+    # determined
     for name in ('EB0Z', 'EA0Z', 'EY0C', 'EA0C', 'EB0C'):
         v = result.value(name)
         assert abs(v.value) > v.expanded, (name, v.value, v.expanded)
+    assert all(v.determined for v in result.axes['C'].location)
 
 
 def test_the_mmd_agrees_with_a_perfect_instrument_within_its_own_part(ideal):
@@ -256,8 +315,17 @@ def test_outputs_report_tables_and_round_trip(ideal):
     out = ideal['tmp'] / 'out'
     written = write_outputs(ideal['result'], out, SessionOptions(model=ideal['model']), figures=False)
     report = (out / 'report.md').read_text(encoding='utf-8')
-    for heading in ('## Errors', '## Not determined', 'kept apart', '## Axis C', '## Volumetric error'):
+    for heading in ('## Errors', '## Not determined', 'kept apart', '## Axis C', '## Volumetric error',
+                    'component errors over this span'):
         assert heading in report
+    # each location error's u split: the MMD, the plate's stated position, the partial turn
+    ex0c = ideal['result'].value('EX0C')
+    parts_table = report[report.index('| error | u | the MMD |'):]
+    row = next(line for line in parts_table.splitlines() if line.startswith('| EX0C |')).split('|')
+    parts = [float(c) for c in row[2:6]]
+    assert parts[0] == pytest.approx(ex0c.u * 1e6, abs=0.006)
+    assert parts[2] == pytest.approx(ideal['machine'].upper_offset_uncertainty * 1e6)
+    assert parts[0] ** 2 >= 0.9 * (parts[1] ** 2 + parts[2] ** 2 + parts[3] ** 2)
     for f in ('compensation/comp_X.txt', 'compensation/comp_C.txt', 'compensation/linuxcnc_comp.ini',
               'error_motions.csv', 'location_errors.yaml', 'machine.json', 'volumetric_linear.csv'):
         assert (out / f).is_file(), f
@@ -379,7 +447,7 @@ def test_head_table_machine_end_to_end_through_the_command_line(tmp_path, capsys
 # -- a test program instead of joint states, and what is refused --------------------------------
 def test_a_test_program_matches_the_dwells_as_joint_states_do(tmp_path):
     params = ['machine_file=machine_xyzac.yaml', 'n_linear_targets=5', 'n_rotary_targets=5',
-              'n_cycles=2', 'dwell_s=0.4', 'lead_s=0.5']
+              'n_cycles=2', 'dwell_s=0.4', 'lead_s=0.5', 'rotary_spans_deg=[C:-40:40]']
     logs = [_simulate(tmp_path, axis, params + [f'runs=[{axis}]']) for axis in ('X', 'C')]
     machine = load_machine('machine_xyzac.yaml')
     program = tmp_path / 'program.yaml'
@@ -424,5 +492,9 @@ def test_bad_input_is_refused_with_one_line(tmp_path, capsys):
     assert main(['machine', 'analyze', str(log), '--machine', 'machine_xyzac.yaml', '--quiet']) == 2
     err = capsys.readouterr().err
     assert 'joint_states' in err and 'Traceback' not in err and len(err.strip().splitlines()) == 1
+    assert main(['machine', 'analyze', str(log), '--machine', 'machine_xyzac.yaml', '--quiet',
+                 '--rotary-components', '-1', '1']) == 2
+    err = capsys.readouterr().err
+    assert '--rotary-components' in err and len(err.strip().splitlines()) == 1
     assert main(['machine', 'tables', str(log), '--out', str(tmp_path)]) == 2
     assert 'Traceback' not in capsys.readouterr().err

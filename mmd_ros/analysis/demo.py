@@ -19,7 +19,7 @@ from pathlib import Path
 
 from mmd_ros.analysis.identify import Analysis, analyze
 from mmd_ros.analysis.iso230 import figure_table
-from mmd_ros.analysis.report import write_report
+from mmd_ros.analysis.report import in_range_text, write_report
 from mmd_ros.core.progress import heading
 from mmd_ros.core.model import Model
 from mmd_ros.logs.layout import read_run
@@ -46,7 +46,8 @@ def close_the_loop(logs: list[str | Path], out_dir: str | Path, *,
         print(f'  held-out blocks: {_line(r.before)}  ->  {_line(r.after) if r.after else "unchanged"}')
         if r.loro_before is not None:
             print(f'  predicted by the model fitted on the other runs: {_line(r.loro_before)}  ->  '
-                  f'{_line(r.loro_after)}' + (f' ({r.loro_note})' if r.loro_note else ''))
+                  f'{_line(r.loro_after)}' + (f' ({r.loro_note})' if r.loro_note else '')
+                  + in_range_text(r))
     if not result.found:
         print('nothing written: the model is unchanged')
     for f in result.found:

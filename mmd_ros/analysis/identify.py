@@ -117,9 +117,11 @@ class Candidate:
     mse1: float = math.nan
     basis: FloatArray | None = field(default=None, repr=False)  # (P, r): reduced -> parameters
     norms: FloatArray | None = field(default=None, repr=False)  # (P,): column norms of the fit
+    #: directions dropped as within 2 sigma of zero, (P, w) in unit-norm scale, and their sigma
+    weak: tuple[FloatArray, FloatArray] | None = field(default=None, repr=False)
 
     def as_dict(self) -> dict[str, Any]:
-        out = {k: v for k, v in self.__dict__.items() if k not in ('basis', 'hyper', 'norms')}
+        out = {k: v for k, v in self.__dict__.items() if k not in ('basis', 'hyper', 'norms', 'weak')}
         out['hyper'] = self.hyper
         return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in out.items()}
 
@@ -242,6 +244,11 @@ class RunSummary:
     loro_before: list[ComponentError] | None = None
     loro_after: list[ComponentError] | None = None
     loro_note: str = ''
+    #: the leave-one-run-out "after" on the samples whose six bar lengths all lie within the
+    #: lengths the other runs covered (the range the model written from them is valid for),
+    #: and the share of the run's samples there
+    loro_in_range: list[ComponentError] | None = None
+    loro_in_range_share: float | None = None
     log_problem: dict[str, Any] | None = None  # what was lost reading this log (LogProblem.as_dict)
 
     def as_dict(self) -> dict[str, Any]:
@@ -253,6 +260,8 @@ class RunSummary:
                 'held_out_before': rows(self.before), 'held_out_after': rows(self.after),
                 'leave_one_run_out_before': rows(self.loro_before),
                 'leave_one_run_out_after': rows(self.loro_after), 'leave_one_run_out_note': self.loro_note,
+                'leave_one_run_out_after_in_range': rows(self.loro_in_range),
+                'leave_one_run_out_in_range_share': self.loro_in_range_share,
                 'log_problem': self.log_problem}
 
 
@@ -495,6 +504,8 @@ class _Active:
     #: False for an effect whose whole-pose consequence the data do not determine: it stays in
     #: the fit (the data hold it; leaving it out would bend the others) but is not written
     written: bool = True
+    #: directions dropped as within 2 sigma of zero, (P, w) in unit-norm scale, and their sigma
+    weak: tuple[FloatArray, FloatArray] | None = None
 
 
 class _Selector:
@@ -649,7 +660,7 @@ class _Selector:
         usable = avail & (norms > 0)
         lost = [f'{names[j]} (not exercised)' for j in np.flatnonzero(~usable)]
         out: dict[str, Any] = {'names': names, 'lost': lost, 'note': note,
-                               'basis': np.zeros((len(names), 0)), 'norms': norms}
+                               'basis': np.zeros((len(names), 0)), 'norms': norms, 'weak': None}
         if not usable.any():
             return out
         q, t, yp, qy = self._step_basis()
@@ -692,6 +703,13 @@ class _Selector:
             lost.append(f'{int(wild.sum())} directions that would need implausible values '
                         '(beyond the physical bounds of their parameters)')
         drop = weak | wild
+        # the directions dropped as weak are determined, to be within 2 sigma of zero: their
+        # share of an unseen component's uncertainty is their sigma, not the size of the others
+        # (unit-norm parameter scale, as the basis times its norms)
+        keep_weak = weak & ~wild
+        weak_dirs = np.zeros((len(names), int(keep_weak.sum())))
+        weak_dirs[usable] = vt[keep_weak].T
+        out.update(weak=(weak_dirs, sd[keep_weak]))
         if drop.any():
             e = e + cpv[:, drop] @ beta[drop]
             sv, vt, beta = sv[~drop], vt[~drop], beta[~drop]
@@ -752,7 +770,7 @@ class _Selector:
         basis = fit['basis']
         best = Candidate(effect.name, effect.title, hyper, effect.hyper_label(hyper),
                          len(fit['names']), basis.shape[1], fit['lost'], fit['note'], basis=basis,
-                         norms=fit['norms'])
+                         norms=fit['norms'], weak=fit['weak'])
         if basis.shape[1] == 0:
             best.verdict = 'unidentifiable'
             return best
@@ -794,22 +812,25 @@ class _Selector:
             best.verdict = 'not significant (' + ', '.join(reasons) + ')'
         return best
 
-    def refine(self) -> None:
+    def refine(self, settings: bool = True) -> None:
         """Re-choose the hyperparameters (and identified directions) of each active effect with
         the others in place: a setting chosen before a later effect was added may no longer be
-        the best (backfitting, one pass)."""
+        the best (backfitting, one pass). ``settings=False`` keeps each effect's setting and
+        re-chooses only its identified directions (leave-one-run-out refits the settings the
+        analysis chose)."""
         for k in range(len(self.active)):
             a = self.active[k]
             others = self.active[:k] + self.active[k + 1:]
             self.active = others
-            if len(self.hypers(a.effect)) < 2:
+            if not settings or len(self.hypers(a.effect)) < 2:
                 fit = self.reduce(a.effect, a.hyper)
                 best = (a.hyper, fit) if fit['basis'].shape[1] else None
             else:
                 hyper, fit, ic = self._best_setting(a.effect)
                 best = (hyper, fit) if fit is not None and math.isfinite(ic) else None
             if best is not None:
-                a = _Active(a.effect, best[0], best[1]['basis'], a.step_gain, a.explained, best[1]['norms'])
+                a = _Active(a.effect, best[0], best[1]['basis'], a.step_gain, a.explained, best[1]['norms'],
+                            a.written, best[1]['weak'])
             self.active = others[:k] + [a] + others[k:]
 
     def own_structure_ratio(self, active: _Active, theta: FloatArray, e_pred: FloatArray
@@ -960,7 +981,7 @@ def _select(sel: _Selector, effects: list[Effect], o: AnalysisOptions,
         initial = steps[0][0].mse0 if steps[0] else math.nan
         sel.active.append(_Active(eff, best.hyper, best.basis, best.gain,
                                   (best.mse0 - best.mse1) / initial if initial > 0 else math.nan,
-                                  best.norms))
+                                  best.norms, weak=best.weak))
         if len(sel.active) > 1:
             sel.refine()
     return steps
@@ -976,7 +997,9 @@ def _unchecked(sel: _Selector, a: _Active, theta: FloatArray, cov_beta: FloatArr
     the minimum-norm fit sets the parameter directions the data do not identify to zero, an
     arbitrary choice; with V_n the identified directions in the fit's unit-norm parameter scale,
     the part of b outside them, |b_n - V_n V_n^T b_n|, times the typical size of the identified
-    coordinates, is what the unidentified ones could do. A change larger than the component's
+    coordinates, is what the unidentified ones could do; a direction dropped because its
+    estimate is within ``min_t_param`` sigma of zero is determined (to be small) and counts with
+    its sigma. A change larger than the component's
     noise floor (quantisation propagated, and the MMD's own sample-to-sample noise in that
     component), by more than the analysis' own "at the floor" factor, and less than twice its
     uncertainty is unchecked.
@@ -989,6 +1012,7 @@ def _unchecked(sel: _Selector, a: _Active, theta: FloatArray, cov_beta: FloatArr
     good = norms > 0
     norms[~good] = np.median(norms[good]) if good.any() else 1.0
     v_n = basis * norms[:, None]                   # orthonormal identified directions
+    weak = a.weak
     beta = np.linalg.lstsq(basis, theta, rcond=None)[0]
     scale = float(np.sqrt(np.mean(beta ** 2))) if beta.size else 0.0
     n_p = theta.size // sel.n_groups(a.effect)
@@ -1026,6 +1050,10 @@ def _unchecked(sel: _Selector, a: _Active, theta: FloatArray, cov_beta: FloatArr
             var = np.einsum('nr,rs,ns->n', det, cov_beta, det)
             bn = bc / norms
             perp = bn - (bn @ v_n) @ v_n.T
+            if weak is not None and weak[0].shape[1]:
+                along = bn @ weak[0]                                  # (n, w)
+                perp = perp - along @ weak[0].T
+                var = var + (along ** 2) @ (weak[1] ** 2)
             undet = np.linalg.norm(perp, axis=1) * scale
             u = np.sqrt(np.maximum(var, 0.0) + undet ** 2)
             bad = (np.abs(z) > sel.options.floor_factor * floor[c]) & (np.abs(z) < 2.0 * u)
@@ -1305,17 +1333,35 @@ def _leave_one_out(runs: list[_Run], active: list[_Active], model: Model,
                    unseen: list[ResidualRun] | None = None) -> None:
     """Each log predicted by the effects found (same settings) refitted on the other logs (the
     ones not written stay in the fit, as in the analysis); the pipeline re-run over the whole
-    log with the written ones. Parameters of a calibration or run that no other log shares
-    cannot be predicted and are left out for that log (said in the note)."""
+    log with the written ones that the other logs determine on their own (:func:`_unchecked`).
+    Parameters of a calibration or run that no other log shares cannot be predicted and are
+    left out for that log (said in the note). The figure is also given on the samples within
+    the bar lengths the other logs covered (:func:`_within_lengths`)."""
     for k, r in enumerate(runs):
         others = [x for x in runs if x is not r]
         sel = _Selector(others, o)
         for a in active:
             fit = sel.reduce(a.effect, a.hyper)
             sel.active.append(_Active(a.effect, a.hyper, fit['basis'], a.step_gain, a.explained,
-                                      fit['norms'], a.written))
+                                      fit['norms'], a.written, fit['weak']))
+        # the directions each effect identifies, chosen again with the others in place (as the
+        # analysis does): reduced one after another, an early effect's directions were judged
+        # against a residual still holding the later ones, and lost those it then could not
+        # separate from their scatter
+        sel.refine(settings=False)
         fits, _ = sel.final_fit()
-        refit = [(a, theta) for a, (theta, _s, _c) in zip(sel.active, fits) if a.written]
+        # the model the analysis would write from the other logs: an effect whose consequence on
+        # the components their references do not see is not determined by them is left out, as
+        # the analysis leaves it out (a model fitted on laser runs alone is not applied to the
+        # 6-DOF run with terms only that run determined)
+        refit, unsure = [], []
+        for a, (theta, _s, cb) in zip(sel.active, fits):
+            if not a.written:
+                continue
+            if not o.accept_unchecked and _unchecked(sel, a, theta, cb):
+                unsure.append(a.effect.name)
+                continue
+            refit.append((a, theta))
         missing = [a.effect.name for a, _ in refit if sel.group_index(a.effect, r) is None]
         trial = _build_model(model, _terms_for(sel, refit, r), {})
         after = run_pipeline(r.run.device, r.calibration, trial, r.run.times_s, r.run.counts)
@@ -1327,10 +1373,33 @@ def _leave_one_out(runs: list[_Run], active: list[_Active], model: Model,
             unseen.append(ResidualRun(r.ctx, after, res_a, both))
         summaries[k].loro_before = component_errors(r.obs, res_b, both)
         summaries[k].loro_after = component_errors(r.obs, res_a, both)
+        inside = both[_within_lengths(r, others)[both]]
+        summaries[k].loro_in_range_share = float(inside.size / both.size) if both.size else None
+        if inside.size:
+            summaries[k].loro_in_range = component_errors(r.obs, res_a, inside)
+        notes = []
         if missing:
-            summaries[k].loro_note = ('per-calibration or per-run parameters of ' + ', '.join(missing)
-                                      + ' cannot be predicted for this log (no other log shares its '
-                                      'calibration): left out')
+            notes.append('per-calibration or per-run parameters of ' + ', '.join(missing)
+                         + ' cannot be predicted for this log (no other log shares its '
+                         'calibration): left out')
+        if unsure:
+            notes.append(', '.join(unsure) + ' not applied: what it does to the components the '
+                         'other logs do not see is not determined by them')
+        summaries[k].loro_note = '; '.join(notes)
+
+
+def _within_lengths(run: _Run, others: list[_Run]) -> NDArray[np.bool_]:
+    """Samples of ``run`` whose six CDF bar lengths all lie within the range the usable samples
+    of ``others`` covered (the validity range a model fitted on them records), shape (N,)."""
+    lo = np.full(6, np.inf)
+    hi = np.full(6, -np.inf)
+    for x in others:
+        lengths = x.ctx.base.cdf_lengths_m[x.usable]
+        if lengths.size:
+            lo = np.minimum(lo, lengths.min(axis=0))
+            hi = np.maximum(hi, lengths.max(axis=0))
+    lengths = run.ctx.base.cdf_lengths_m
+    return np.all((lengths >= lo) & (lengths <= hi), axis=1)
 
 
 def _ascii(value: Any) -> Any:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from mmd_ros.analysis.identify import Analysis, ComponentError, Found
+from mmd_ros.analysis.identify import Analysis, ComponentError, Found, RunSummary
 from mmd_ros.core import jsonio
 from mmd_ros.core.jsonio import finite_json  # noqa: F401  (re-exported for older callers)
 
@@ -188,6 +188,19 @@ def _fmt(stats: list[ComponentError] | None) -> str:
     return ', '.join(f'{s.name} {s.rms:.3g} {_u(s.unit)}' for s in stats)
 
 
+def in_range_text(r: RunSummary) -> str:
+    """The leave-one-run-out figure on the samples within the bar lengths the other runs
+    covered, when some of the run lies outside them ('' otherwise)."""
+    share = r.loro_in_range_share
+    if share is None or share >= 1.0:
+        return ''
+    if not r.loro_in_range:
+        return '; no sample lies within the bar lengths the other runs covered'
+    return (f'; {100 * (1 - share):.0f} % of its samples lie outside the bar lengths the other '
+            f'runs covered (where their model is not validated), within them: {_fmt(r.loro_in_range)}')
+
+
+
 def _runs_table(a: Analysis) -> list[str]:
     """Per log: reference, noise floor, RMS before and after (held-out blocks, and each log
     predicted by the model fitted on the others)."""
@@ -197,6 +210,7 @@ def _runs_table(a: Analysis) -> list[str]:
         floor = ', '.join(f'{n} {v:.2g} {_u(u)}' for (n, v), u in zip(r.floor.items(), r.units))
         loro = (f'{_fmt(r.loro_before)} → {_fmt(r.loro_after)}' if r.loro_before is not None
                 else '– (one log)')
+        loro += in_range_text(r)
         if r.loro_note:
             loro += f' ({r.loro_note})'
         lines.append(f'| {Path(r.name).name} | {r.reference} | {floor} | {_fmt(r.before)} → '
@@ -211,7 +225,8 @@ def format_summary(a: Analysis) -> str:
     lines.append(f'validation: {a.validation}')
     for r in a.runs:
         if r.loro_before is not None:
-            lines.append(f'  {Path(r.name).name}: leave-one-run-out {_fmt(r.loro_before)} → {_fmt(r.loro_after)}')
+            lines.append(f'  {Path(r.name).name}: leave-one-run-out {_fmt(r.loro_before)} → {_fmt(r.loro_after)}'
+                         + in_range_text(r))
     for f in a.found:
         lines.append(f'found {f.effect} ({f.title}{", " + f.hyper_label if f.hyper_label else ""}): '
                      + '; '.join(f.interpretation))

@@ -43,6 +43,9 @@ def _progress(enabled: bool):
 
 def _analyze(args: argparse.Namespace) -> int:
     machine = load_machine(args.machine)
+    if min(args.rotary_components) < 0:
+        raise MachineAnalysisError(f'--rotary-components must be two numbers >= 0 (µm, arc-seconds), '
+                                   f'got {args.rotary_components}')
     quiet = args.json or args.quiet
     options = SessionOptions(
         model=load_model(args.model) if args.model else None, model_path=args.model,
@@ -51,7 +54,9 @@ def _analyze(args: argparse.Namespace) -> int:
         identify=IdentifyOptions(draws=args.draws, limit_m=args.limit_um * 1e-6,
                                  limit_rad=args.limit_arcsec / ARCSEC_PER_RAD,
                                  mmd_bound_m=args.mmd_accuracy_um * 1e-6,
-                                 mmd_bound_rad=args.mmd_accuracy_arcsec / ARCSEC_PER_RAD),
+                                 mmd_bound_rad=args.mmd_accuracy_arcsec / ARCSEC_PER_RAD,
+                                 component_m=args.rotary_components[0] * 1e-6,
+                                 component_rad=args.rotary_components[1] / ARCSEC_PER_RAD),
         calibration_path=args.calibration, progress=not quiet)
     result = analyze_session(args.logs, machine, options, progress=_progress(not quiet))
     written = None
@@ -167,6 +172,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                    'data sheet), added to its pose covariance (default 0: the covariance alone)')
     a.add_argument('--mmd-accuracy-arcsec', type=float, default=0.0, dest='mmd_accuracy_arcsec',
                    help='likewise for its rotations [arc-seconds]')
+    a.add_argument('--rotary-components', type=float, nargs=2, metavar=('UM', 'ARCSEC'),
+                   default=(1.0, 1.0), dest='rotary_components',
+                   help='size (RMS over a full turn) of the rotary axes\' component error motions '
+                   '(radial/axial, tilt/positioning), e.g. from the table\'s acceptance test: over '
+                   'a partial turn they can pass for location errors, which are uncertain by that '
+                   'much (default 1 µm 1″)')
     a.add_argument('--units', choices=['mm', 'inch'], default='mm',
                    help='machine units of the LinuxCNC compensation files (default mm)')
     a.add_argument('--no-figures', action='store_true', help='skip the figures')

@@ -278,12 +278,15 @@ class FlowControl:
         return behind
 
     def drained(self, quiet_s: float = 2.0) -> bool:
-        """Every stage has taken everything published to it; or it lacks some but, idle, kept
-        reporting no progress for ``quiet_s`` (they were lost after its last message: the
-        summary counts them as missing); or it has said nothing for ``timeout_s`` (a busy
-        stage may not report for a while: it is waited for)."""
+        """Every stage has taken everything published to it and said so twice (an unchanged
+        report: it is idle, so what it published is final too — a report taken between its
+        last input and its last output would make the summary's counts disagree); or it lacks
+        some but, idle, kept reporting no progress for ``quiet_s`` (they were lost after its
+        last message: the summary counts them as missing); or it has said nothing for
+        ``timeout_s`` (a busy stage may not report for a while: it is waited for)."""
         now = self.clock()
-        return all(st.stalled or self.backlog(st) <= 0 or st.heard_at - st.progressed_at > quiet_s
+        return all(st.stalled or (self.backlog(st) <= 0 and st.heard_at > st.progressed_at)
+                   or st.heard_at - st.progressed_at > quiet_s
                    or now - st.heard_at > self.timeout_s for st in self.counting())
 
     def summary(self) -> list[dict[str, object]]:

@@ -238,20 +238,19 @@ def parse_machine(data: Any, source: str = '<machine>') -> MachineDescription:
                          f'[0, 0, 1] or [-1, 0, 0]), got {item.get("direction")!r}')
         if kind == 'linear':
             reference = r.number(item, 'reference_mm', path, 0.0) * M_PER_MM
-            travel = item.get('travel_mm', [-1e6, 1e6])
-            scale = M_PER_MM
+            key, scale = 'travel_mm', M_PER_MM
             pivot = np.zeros(3)
         else:
             reference = math.radians(r.number(item, 'reference_deg', path, 0.0))
-            travel = item.get('travel_deg', [-1e6, 1e6])
-            scale = math.pi / 180.0
+            key, scale = 'travel_deg', math.pi / 180.0
             pivot = r.vector(item, 'pivot_mm', path, M_PER_MM)
-        try:
-            lo, hi = (float(v) * scale for v in travel)
-        except (TypeError, ValueError):
-            raise r.fail(f'{path}travel', f'must be two numbers [low, high], got {travel!r}') from None
+        travel = item.get(key, [-1e6, 1e6])
+        if not isinstance(travel, (list, tuple)) or len(travel) != 2 \
+                or any(validate.number_problem(v) for v in travel):
+            raise r.fail(f'{path}{key}', f'must be two numbers [low, high], got {travel!r}')
+        lo, hi = (float(v) * scale for v in travel)
         if not lo < hi or not lo <= reference <= hi:
-            raise r.fail(f'{path}travel', 'must be [low, high] with low < high around the reference')
+            raise r.fail(f'{path}{key}', 'must be [low, high] with low < high around the reference')
         axes.append(MachineAxis(name, kind, side, direction, pivot, reference, (lo, hi)))
     names = [a.name for a in axes]
     chains = data.get('chains')

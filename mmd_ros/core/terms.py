@@ -225,14 +225,16 @@ def dahl_state(positions: FloatArray, travel_m: float,
         dirs = np.where(fill >= 0, step[np.maximum(fill, 0)], direction[j])
         before = np.concatenate(([direction[j]], dirs[:-1]))
         turns = np.flatnonzero(dirs != before)
-        ax = np.empty(turns.size + 1)
-        as_ = np.empty(turns.size + 1)
-        ax[0], as_[0] = anchor_x[j], anchor_s[j]
-        for t, i in enumerate(turns):   # the state where each new direction begins
-            sigma = before[i]
-            as_[t + 1] = as_[t] if sigma == 0 else \
-                sigma - (sigma - as_[t]) * math.exp(-sigma * (prev[i] - ax[t]) / travel_m)
-            ax[t + 1] = prev[i]
+        # the state where each new direction begins: a sequential recurrence over the turns,
+        # on plain floats (numpy scalars cost several times more per step)
+        xs = [float(anchor_x[j])] + prev[turns].tolist()
+        ss = [float(anchor_s[j])]
+        for t, sigma in enumerate(before[turns].tolist()):
+            a = ss[t]
+            ss.append(a if sigma == 0 else
+                      sigma - (sigma - a) * math.exp(-sigma * (xs[t + 1] - xs[t]) / travel_m))
+        ax = np.array(xs)
+        as_ = np.array(ss)
         seg = np.cumsum(dirs != before)
         s = dirs - (dirs - as_[seg]) * np.exp(-dirs * (pj - ax[seg]) / travel_m)
         out[:, j] = np.clip(np.where(dirs == 0, as_[seg], s), -1.0, 1.0)

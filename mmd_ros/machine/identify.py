@@ -32,9 +32,11 @@ identification is repeated on each draw. The MMD's error at a pose is drawn from
 covariance independently between targets and, once more, as a linear trend along the run: its
 errors follow the bar lengths, which change smoothly along a run, and a trend is what turns into
 a false slope (squareness) or a false location. A second set of draws with the MMD's covariance alone
-gives the MMD's part. A location fit whose residual is larger than its inputs explain (ratio >
-1: component errors the fit cannot tell from location over a partial turn) has its uncertainty
-scaled by that ratio.
+gives the MMD's part. The other table axes' play during a rotary run (within ± their reversal)
+is drawn too, and each target's cycle scatter is floored by the run's pooled scatter. Component
+errors that a partial turn cannot tell from the location (harmonics 2–4 of the angle, of the
+stated size, scaled per component by the fit's residual) add their projection onto the location
+(:meth:`_Session._leak`).
 """
 
 from __future__ import annotations
@@ -74,6 +76,12 @@ class IdentifyOptions:
         and rotation component, e.g. from its data sheet or its own validation), added to its
         covariance as a uniform distribution (u = bound / sqrt 3) at every approach; 0: the
         pose covariance alone
+    component_m, component_rad : the size (RMS over a full turn) of the rotary axes' radial
+        and axial, and of their tilt and positioning, component error motions that are not
+        the location (harmonics 2–4 of the angle), as the table's acceptance test or data sheet
+        states them. Over a partial turn such errors can pass for location errors; their
+        possible effect is part of every location error's uncertainty (scaled up where the
+        fit's residual shows more). The default, 1 µm and 1″, is a good rotary table's.
     """
 
     draws: int = 200
@@ -82,6 +90,8 @@ class IdentifyOptions:
     limit_rad: float = math.radians(2.0 / 3600.0)
     mmd_bound_m: float = 0.0
     mmd_bound_rad: float = 0.0
+    component_m: float = 1e-6
+    component_rad: float = math.radians(1.0 / 3600.0)
 
 
 @dataclass
@@ -145,6 +155,7 @@ def aggregate(run: AxisRun, machine: MachineDescription) -> RunMeans:
             for a, tt in zip(group, t):
                 cp[i, j, a.cycle] = tt[:3, 3]
                 cr[i, j, a.cycle] = tt[:3, :3]
+    _floor_scatter(cov_stat, n)
     missing = [f'{v:g}' for v, c in zip(run.targets, n) if c.min() == 0]
     if missing:
         raise MachineAnalysisError(
@@ -164,6 +175,26 @@ def aggregate(run: AxisRun, machine: MachineDescription) -> RunMeans:
         i = int(np.searchsorted(run.targets, axis.reference)) - 1
         interp = (i, float((axis.reference - run.targets[i]) / (run.targets[i + 1] - run.targets[i])))
     return RunMeans(run, axis, k, run.targets, p, r, cov_mmd, cov_stat, n, q, dirs, ref, interp, cp, cr)
+
+
+def _floor_scatter(cov_stat: FloatArray, n: NDArray[np.int64]) -> None:
+    """Floor each approach group's scatter covariance (m, 2, 6, 6), in place, by the run's
+    pooled one: the machine's repeatability does not change much along an axis, and a few
+    cycles at one target can show far less scatter than there is by chance (with 3 cycles, 1
+    in 20 targets shows under a quarter of the variance). The translation and rotation blocks
+    are floored separately (by their traces)."""
+    use = n > 1
+    if not np.any(use):
+        return
+    pooled = np.sum(cov_stat[use] * (n[use] - 1)[:, None, None] * n[use][:, None, None], axis=0) \
+        / max(float(np.sum(n[use] - 1)), 1.0)   # per-approach covariance, pooled over the run
+    for block in (slice(0, 3), slice(3, 6)):
+        p_tr = float(np.trace(pooled[block, block]))
+        for i, j in zip(*np.nonzero(use)):
+            mine = float(np.trace(cov_stat[i, j][block, block]))
+            floor = p_tr / n[i, j]
+            if mine < floor:
+                cov_stat[i, j][block, block] = pooled[block, block] / n[i, j]
 
 
 # -- the identification (one evaluation; repeated on Monte Carlo draws) ------------------------
@@ -197,7 +228,8 @@ def _detrend(x: FloatArray, y: FloatArray) -> FloatArray:
 class _Session:
     """The inputs of the identification and one evaluation of it."""
 
-    def __init__(self, machine: MachineDescription, means: dict[str, RunMeans]) -> None:
+    def __init__(self, machine: MachineDescription, means: dict[str, RunMeans],
+                 component_prior: tuple[float, float] = (1e-6, math.radians(1.0 / 3600.0))) -> None:
         self.machine = machine
         self.means = means
         self.linear = [n for n, m in means.items() if not m.axis.rotary]
@@ -206,7 +238,7 @@ class _Session:
         self.frame_axes = (lin[0], lin[1])
         self.frame_measured = lin[0] in means and lin[1] in means
         self.nominal_ml = rotation_matrix(machine.lower_rotation)
-        self.component_prior = (1e-6, math.radians(1.0 / 3600.0))
+        self.component_prior = component_prior
         #: rotary axis -> (location, normalised Jacobian, its pseudo-inverse) of the nominal fit;
         #: set after the nominal evaluation so that Monte Carlo draws take one linear step
         self.linearised: dict[str, tuple[FloatArray, FloatArray, FloatArray]] = {}
@@ -215,6 +247,10 @@ class _Session:
         self.loo: dict[str, FloatArray] = {}
         self.rng = np.random.default_rng(0)
         self.draw_interpolation = False
+        #: workpiece-side rotary axis -> its reversal at the reference [rad] (set after the
+        #: nominal evaluation): where it stands during another rotary run depends on the side
+        #: it was last approached from, which need not be the side of the linear runs
+        self.play: dict[str, float] = {}
 
     # -- frame and linear axes -------------------------------------------------------------------
     def _frame(self, slopes_l: dict[str, FloatArray]) -> FloatArray:
@@ -297,6 +333,8 @@ class _Session:
         g_ref = transform(*reversed(_reference(mean, p, r)))
         t_wl = transform(frame, fp + shift - frame @ _reference(mean, p, r)[0])
         meas = t_wl @ g @ inverse(g_ref) @ inverse(t_wl)
+        if self.draw_interpolation:   # a Monte Carlo draw: the other table axes' play
+            meas = self._play_draw(name, meas)
         q = mean.q.reshape(-1, mean.q.shape[-1])
         dirs = mean.dirs.reshape(-1, mean.dirs.shape[-1])
         ref = mean.ref
@@ -377,17 +415,40 @@ class _Session:
             min(res[:, 0, 3 + c].min(), res[:, 1, 3 + c].min())
         out[f'{name}/figure'] = fig
 
+    def _play_draw(self, name: str, meas: FloatArray) -> FloatArray:
+        """The measured motion (..., 4, 4) seen with each other workpiece-side rotary axis
+        turned about its line by a random part of its reversal (uniform within ± the reversal):
+        the table stands where that axis' play left it, and the machine frame was measured
+        with it at the play of the linear runs. Tool-side axes carried after the linear axes
+        cancel in the relative motion."""
+        for other, reversal in self.play.items():
+            if other == name:
+                continue
+            a = self.machine.axis(other)
+            angle = self.rng.uniform(-1.0, 1.0) * reversal
+            turn = transform(rotation_from_rotvec(angle * a.direction), np.zeros(3))
+            about = transform(np.eye(3), a.pivot)
+            t = about @ turn @ inverse(about)
+            meas = t @ meas @ inverse(t)
+        return meas
+
     def _leak(self, jac: FloatArray, res: FloatArray, targets: FloatArray, sigma: FloatArray
               ) -> FloatArray:
         """Covariance (4, 4) of the location errors from component errors that the fit cannot
         tell from them over the tested span. Component errors are modelled as harmonics 2..4
         of the angle in each of the six components, each of a full-turn RMS of the prior size
-        (``component_prior``); where the fit's residual shows more than the noise and that
-        prior explain, the prior is scaled up to match it."""
+        (``component_prior``). Each component's prior is scaled up where the fit's residual in
+        that component shows more than the noise and the prior explain: the residual measures
+        the size of the component errors in each direction, and only the radial and tilt ones
+        can pass for location (a large angular positioning error says nothing about them).
+
+        jac : (rows*6, 4) Jacobian of the normalised residual; res : (rows*6,) normalised
+        residual; targets : (m,) angles [rad]; sigma : (rows, 6) the normalisation [m, rad]
+        """
         rows = res.size // 6
         theta = np.repeat(targets, 2)                     # row order: target, direction
         prior = self.component_prior
-        basis, var = [], []
+        basis, var, group = [], [], []
         for j in range(6):
             for order in (2, 3, 4):
                 for f in (np.cos, np.sin):
@@ -395,18 +456,26 @@ class _Session:
                     b[:, j] = f(order * theta) / sigma[:, j]
                     basis.append(b.ravel())
                     var.append(prior[0 if j < 3 else 1] ** 2 / 3.0)
+                    group.append(j)
         b = np.array(basis).T                             # (rows*6, n_basis), normalised units
         var = np.array(var)
+        group = np.array(group)
         try:
             inv = np.linalg.inv(jac.T @ jac)
         except np.linalg.LinAlgError:
             return np.full((4, 4), np.inf)
         leak = inv @ jac.T @ b                            # (4, n_basis): location per coefficient
         visible = b - jac @ leak
-        expected = float(np.sum(var * np.sum(visible ** 2, axis=0)))
-        excess = max(float(res @ res) - max(res.size - 4, 1), 0.0)
-        scale = max(1.0, excess / max(expected, 1e-300))
-        return scale * (leak * var) @ leak.T
+        # the residual's share of the noise in each component: its dof spread evenly
+        dof = max(res.size - 4, 1) / 6.0
+        r2 = np.sum(res.reshape(rows, 6) ** 2, axis=0)
+        scale = np.ones(var.size)
+        for j in range(6):
+            mine = group == j
+            expected = float(np.sum(var[mine] * np.sum(visible[:, mine] ** 2, axis=0)))
+            excess = max(float(r2[j]) - dof, 0.0)
+            scale[mine] = max(1.0, excess / max(expected, 1e-300))
+        return (leak * (scale * var)) @ leak.T
 
     @staticmethod
     def _rotary_sigma(mean: RunMeans) -> FloatArray:
@@ -437,13 +506,20 @@ def _loo_rms(table: ErrorTable) -> FloatArray:
 def _interpolation_u(tables: dict[str, ErrorTable], loo: dict[str, FloatArray], q: FloatArray,
                      machine: MachineDescription) -> FloatArray:
     """Uncertainty (rows, 6) of the linear axes' errors interpolated between their targets at
-    the axis values q (rows, n_axes) of a rotary run: zero at a target, the leave-one-out RMS
-    between targets, added in quadrature over the axes."""
+    the axis values q (rows, n_axes) of a rotary run: zero at a target, rising as sin(pi t)
+    across an interval (t from 0 to 1) to sqrt 2 times the leave-one-out RMS halfway (the
+    shape and size the Monte Carlo draws bend the tables by), added in quadrature over the
+    axes."""
     out = np.zeros((q.shape[0], 6))
     for name, table in tables.items():
-        k = machine.index(name)
-        between = np.min(np.abs(q[:, k, None] - table.positions[None, :]), axis=1) > 1e-7
-        out[between] = np.sqrt(out[between] ** 2 + loo[name] ** 2)
+        pos = table.positions
+        if pos.size < 2:
+            continue
+        x = np.clip(q[:, machine.index(name)], pos[0], pos[-1])
+        i = np.clip(np.searchsorted(pos, x, side='right') - 1, 0, pos.size - 2)
+        t = (x - pos[i]) / (pos[i + 1] - pos[i])
+        bump = np.sin(np.pi * t)[:, None] * (math.sqrt(2.0) * loo[name])[None, :]
+        out = np.sqrt(out ** 2 + bump ** 2)
     return out
 
 
@@ -549,10 +625,17 @@ def identify(runs: list[AxisRun], machine: MachineDescription, *,
         bound = np.diag([options.mmd_bound_m ** 2 / 3.0] * 3 + [options.mmd_bound_rad ** 2 / 3.0] * 3)
         for mean in means.values():
             mean.cov_mmd = mean.cov_mmd + bound
-    session = _Session(machine, means)
+    if not (options.component_m >= 0 and options.component_rad >= 0):
+        raise MachineAnalysisError('the rotary component error size must be >= 0, got '
+                                   f'{options.component_m} m, {options.component_rad} rad')
+    session = _Session(machine, means, (options.component_m, options.component_rad))
     zero = np.zeros(3)
     base = session.evaluate({n: m.p for n, m in means.items()}, {n: m.r for n, m in means.items()}, zero)
     session.linearised = {n: base[f'{n}/linear'] for n in session.rotary}
+    for n in session.rotary:
+        a = session.means[n]
+        if a.axis.side == 'workpiece' and a.ref is not None:
+            session.play[n] = abs(float(base[f'{n}/reversal'][a.ref, 3 + a.axis.component]))
     rng = np.random.default_rng(options.seed)
     sigma_shift = machine.upper_offset_uncertainty
 
@@ -677,6 +760,8 @@ def _build(machine: MachineDescription, session: _Session, base: dict[str, Any],
             for i, j in enumerate(perp):
                 location.append(_value(f'E{_ABC[j]}0{name}', lam[2 + i], ul[2 + i], uml[2 + i], 'rad',
                                        options, None, n_cyc, usl[2 + i]))
+            for i, v in enumerate(location):
+                v.u_turn = float(math.sqrt(leak[i, i]))
             if not session.frame_measured:
                 for v in location[2:]:
                     v.determined = False

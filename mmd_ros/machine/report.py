@@ -83,6 +83,26 @@ def _target_table(a: AxisResult) -> str:
     return '\n'.join(lines)
 
 
+def _location_parts(a: AxisResult, plate_u: float) -> list[str]:
+    """What each location error's standard uncertainty is made of (report lines)."""
+    span = math.degrees(a.targets[-1] - a.targets[0])
+    lines = [f'Standard uncertainty of the location errors and its main parts (the run turned '
+             f'over {span:.0f}°):', '',
+             '| error | u | the MMD | upper plate position | component errors over this span | unit |',
+             '|---|---|---|---|---|---|']
+    for v in a.location:
+        scale, unit = report_scale(v.unit)
+        plate = plate_u if v.unit == 'm' else 0.0
+        lines.append(f'| {v.name} | {_fmt(v.u * scale)} | {_fmt(v.u_mmd * scale)} | {_fmt(plate * scale)} | '
+                     f'{_fmt(v.u_turn * scale)} | {unit} |')
+    lines += ['', 'The upper plate\'s position relative to the controlled tool point (`mmd.'
+              'upper_offset_uncertainty_um`) moves the measured axis line with it; component '
+              'errors of the size stated (`--rotary-components`) can pass for location errors over '
+              'a partial turn. A longer turn, a better-known plate position or a better-known '
+              'table shrinks these parts; a better MMD model only the MMD\'s.']
+    return lines
+
+
 def markdown_report(result: MachineResult, figures: dict[str, str], files: list[str],
                     separation: str, volumetric: dict[str, dict[str, float]] | None = None) -> str:
     """The whole report: errors, what was not determined, how the MMD's own errors were kept
@@ -111,6 +131,7 @@ def markdown_report(result: MachineResult, figures: dict[str, str], files: list[
             lines += [f'Location fit: residual {math.sqrt(max(a.fit_ratio, 0)):.2g}× what the inputs '
                       'explain (above 1: component errors the partial turn cannot separate from '
                       'location; the location uncertainty includes them).', '']
+            lines += _location_parts(a, result.machine.upper_offset_uncertainty) + ['']
         lines += [_target_table(a), '']
         for caption, fname in figures.items():
             if caption.startswith(f'{name} axis'):

@@ -58,6 +58,9 @@ class Value:
     determined: bool = True
     note: str = ''
     k: float = COVERAGE_K
+    #: rotary location errors: the part of u from component errors that the tested span cannot
+    #: tell from the location (NaN elsewhere) [m or rad]
+    u_turn: float = math.nan
 
     @property
     def expanded(self) -> float:
@@ -66,9 +69,12 @@ class Value:
 
     def as_dict(self) -> dict[str, Any]:
         scale, unit = report_scale(self.unit)
-        return {'name': self.name, 'value': _num(self.value, scale), 'u': _num(self.u, scale),
-                'U': _num(self.expanded, scale), 'u_mmd': _num(self.u_mmd, scale), 'unit': unit,
-                'determined': bool(self.determined), 'note': self.note}
+        out = {'name': self.name, 'value': _num(self.value, scale), 'u': _num(self.u, scale),
+               'U': _num(self.expanded, scale), 'u_mmd': _num(self.u_mmd, scale), 'unit': unit,
+               'determined': bool(self.determined), 'note': self.note}
+        if math.isfinite(self.u_turn):
+            out['u_turn'] = _num(self.u_turn, scale)
+        return out
 
 
 @dataclass
@@ -269,7 +275,7 @@ def load_result(data: dict[str, Any], machine: MachineDescription) -> MachineRes
             big_u = f('U')
             k = big_u / u if u and math.isfinite(u) and math.isfinite(big_u) else COVERAGE_K
             return Value(d['name'], f('value'), u, f('u_mmd'), unit, bool(d['determined']),
-                         d.get('note', ''), k)
+                         d.get('note', ''), k, f('u_turn'))
 
         axes = {}
         for name, a in data['axes'].items():

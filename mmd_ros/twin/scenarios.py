@@ -283,10 +283,14 @@ class ThermalSoak(Scenario):
         return RestingBars(tuple(self.pairs), float(self.duration_s))
 
 
-#: Default spans of the rotary runs [deg]: C as the paper's (±40°); A over ±15° (the paper
-#: tested 0..15°, limited by its reference instrument; the MMD reaches both sides, which fixes
-#: the axis line four times better); B within the MMD's tilt range.
-ROTARY_SPANS_DEG = {'A': (-15.0, 15.0), 'B': (-10.0, 10.0), 'C': (-40.0, 40.0)}
+#: Default spans of the rotary runs [deg], as far as the MMD reaches with the linear axes
+#: following (``mmd workspace``: at the home pose, 300 mm between the plates, it turns up to
+#: 66° about z alone and tilts up to 21° about x or y alone). C over ±60° (the paper's ±40°
+#: leaves the axis line's position uncertain to about 2.7 µm, ±60° to 1.5 µm: over a partial
+#: turn the location is told from the component errors only by the span); A over ±15° (the
+#: tilt range, less the plates' misalignment, the reversal overrun and a margin; the following
+#: moves Y by ±90 mm, inside the Y run); B within the MMD's tilt range.
+ROTARY_SPANS_DEG = {'A': (-15.0, 15.0), 'B': (-10.0, 10.0), 'C': (-60.0, 60.0)}
 
 
 @dataclass(frozen=True)
@@ -300,14 +304,15 @@ class MachineSession(Scenario):
 
     machine_file : machine description (config/ or a path)
     linear_travel_mm : (X and Y, Z) travel of the linear runs, centred on the reference
-    rotary_spans_deg : 'A:0:15' style spans of the rotary runs (defaults: A ±15, B ±10, C ±40)
+    rotary_spans_deg : 'A:0:15' style spans of the rotary runs (defaults: A ±15, B ±10, C ±60)
     target_jitter_mm : irregular target spacing as ISO 230-2 recommends (interior targets move by
         up to this much)
     errors : the machine's errors (sizes, seed, errors switched off)
     setup_seed, misalignment_deg, offset_mm : how the plates are bolted (drawn)
-    follow_targets : add the linear axes' positions that a rotary run's following visits to
-        their own runs' targets (as a metrologist does, so that the rotary analysis needs no
-        interpolation of the linear errors)
+    follow_targets : add the linear axes' positions during a rotary run (those the following
+        visits, and the reference of an axis that stays put) to their own runs' targets (as a
+        metrologist does, so that the rotary analysis needs no interpolation of the linear
+        errors)
     """
 
     kind: ClassVar[str] = 'machine_session'
@@ -410,8 +415,9 @@ class MachineSession(Scenario):
             q = nominal.follow(q)
             for a in machine.linear_axes:
                 j = machine.index(a.name)
-                moved = q[np.abs(q[:, j] - a.reference) > 1e-6, j]
-                out.setdefault(a.name, []).extend(float(v) for v in moved)
+                # every value, the reference too: an axis that stays put still turns the
+                # following axes' motion by its angular errors there
+                out.setdefault(a.name, []).extend(float(v) for v in np.unique(q[:, j]))
         return out
 
     def machine(self) -> TwinMachine:
