@@ -115,6 +115,16 @@ def _psd(matrix: FloatArray) -> FloatArray:
     return (v * np.maximum(w, 0.0)) @ v.T
 
 
+#: Samples at most over which the budget's predicted mean covariance is taken (evenly spread
+#: over a run: the mean of a smooth function of the device's state, not a statistic of noise).
+PREDICTED_SAMPLES = 50_000
+
+
+def _spread(idx: IntArray, most: int = PREDICTED_SAMPLES) -> IntArray:
+    """At most ``most`` of the sample indexes ``idx``, evenly spread over them."""
+    return idx[::max(1, -(-idx.size // most))]
+
+
 def _predicted(run: ResidualRun, model: Model, fit: FitUncertainty, idx: IntArray
                ) -> tuple[FloatArray, FloatArray]:
     """The budget's sources at ``idx`` of a run, (n, 6, 6) each: those it keeps after a fit
@@ -190,9 +200,10 @@ def fit_uncertainty(ctx: FitContext, found: list[FittedEffect], runs: list[Resid
             else:
                 dd = np.zeros((idx.size, 6))
                 dd[:, obs.components] = r
-            kept, replaceable = _predicted(run, model, fit, idx)
+            sub = _spread(idx)
+            kept, replaceable = _predicted(run, model, fit, sub)
             observed_cov += dd.T @ dd
-            predicted += np.sum(kept if replace else kept + replaceable, axis=0)
+            predicted += np.sum(kept if replace else kept + replaceable, axis=0) * (idx.size / sub.size)
             n += idx.size
         excess = _psd(observed_cov / n - predicted / n)
         excess[~seen, :] = 0.0
@@ -208,9 +219,10 @@ def fit_uncertainty(ctx: FitContext, found: list[FittedEffect], runs: list[Resid
         num = den = 0.0
         for run, idx in partial:
             comp = run.ctx.obs.components
-            kept, replaceable = _predicted(run, model, fit, idx)
-            jinv = np.linalg.inv(jacobian(run.ctx.device.geometry, run.after.poses[idx]))
-            scale = run.after.plate_scale[idx]
+            sub = _spread(idx)
+            kept, replaceable = _predicted(run, model, fit, sub)
+            jinv = np.linalg.inv(jacobian(run.ctx.device.geometry, run.after.poses[sub]))
+            scale = run.after.plate_scale[sub]
             kept_p = np.mean(np.diagonal(pose_covariance(jinv, kept, scale), axis1=1, axis2=2)[:, comp], axis=0)
             repl_p = np.mean(np.diagonal(pose_covariance(jinv, replaceable, scale), axis1=1,
                                          axis2=2)[:, comp], axis=0)

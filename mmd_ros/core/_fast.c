@@ -9,6 +9,7 @@
  *   play                the play operator: play_positions (terms.py) and
  *                       HysteresisTerm.directions (model.py)
  *   dahl_state          dahl_state, Dahl's friction state along it (terms.py)
+ *   friction_travel     the uncertainty budget's friction state and travel (budget.py)
  *   match_rows          rows_match, the fixed bytes of messages read from a log (logs/cdr.py)
  *   decode_continuing   FrameStream.feed for a transfer that continues the stream
  *                       (hardware/stream.py)
@@ -951,6 +952,93 @@ static PyObject *dahl_state(PyObject *self, PyObject *args)
     Py_RETURN_NONE;
 }
 
+PyDoc_STRVAR(friction_travel_doc,
+"friction_travel(lengths, deadband, turnover, state, out, settled) -> None\n\n"
+"budget._Friction: each column of lengths (N, k) float64 through a play of half-width deadband\n"
+"[m]: the friction state as far as the motion tells, d min(1, |p - f| / turnover), into out\n"
+"(N, k), and min(1, path / turnover) into settled (N, k); state (k, 4) float64 (play, direction,\n"
+"flip position, path since the run began; NaN play: none yet) is updated in place. A NaN\n"
+"length leaves the state as it is. Releases the GIL.");
+
+static PyObject *friction_travel(PyObject *self, PyObject *args)
+{
+    (void)self;
+    PyObject *o[4];
+    double w, turn;
+    if (!PyArg_ParseTuple(args, "OddOOO", &o[0], &w, &turn, &o[1], &o[2], &o[3]))
+        return NULL;
+    Py_buffer view;
+    if (get_buffer(o[1], &view, 0, -1, 8, "d", "state") < 0)
+        return NULL;
+    const Py_ssize_t cells = view.len / 8;
+    PyBuffer_Release(&view);
+    if (get_buffer(o[0], &view, 0, -1, 8, "d", "lengths") < 0)
+        return NULL;
+    const Py_ssize_t total = view.len / 8;
+    PyBuffer_Release(&view);
+    const Py_ssize_t k = cells / 4;
+    if (k < 1 || cells % 4 || total % k) {
+        PyErr_SetString(PyExc_ValueError, "lengths: need shape (N, k) with a state of shape (k, 4)");
+        return NULL;
+    }
+    const Py_ssize_t n = total / k;
+    Spec spec[] = {
+        {o[0], 0, n * k, 8, "d", "lengths", 0},
+        {o[1], 1, 4 * k, 8, "d", "state", 0},
+        {o[2], 1, n * k, 8, "d", "out", 0},
+        {o[3], 1, n * k, 8, "d", "settled", 0},
+    };
+    Buffers bufs = {.got = 0};
+    void *ptr[4];
+    if (acquire(&bufs, spec, 4, ptr) < 0) {
+        release(&bufs);
+        return NULL;
+    }
+    const double *x = ptr[0];
+    double *st = ptr[1], *out = ptr[2], *settled = ptr[3];
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t j = 0; j < k; j++) {
+        double p = st[4 * j], d = st[4 * j + 1], f = st[4 * j + 2], path = st[4 * j + 3];
+        for (Py_ssize_t i = 0; i < n; i++) {
+            const double v = x[i * k + j];
+            double res = 0.0, a;
+            if (v == v) {           /* the Python loop's steps, in its order */
+                if (p != p)
+                    p = f = v;
+                if (p < v - w) {
+                    path += v - w - p;
+                    p = v - w;
+                    if (d != 1.0) {
+                        d = 1.0;
+                        f = p;
+                    }
+                } else if (p > v + w) {
+                    path += p - v - w;
+                    p = v + w;
+                    if (d != -1.0) {
+                        d = -1.0;
+                        f = p;
+                    }
+                }
+            }
+            if (d != 0.0) {
+                a = fabs(p - f) / turn;
+                res = d * (a < 1.0 ? a : 1.0);
+            }
+            out[i * k + j] = res;
+            a = path / turn;
+            settled[i * k + j] = a < 1.0 ? a : 1.0;
+        }
+        st[4 * j] = p;
+        st[4 * j + 1] = d;
+        st[4 * j + 2] = f;
+        st[4 * j + 3] = path;
+    }
+    Py_END_ALLOW_THREADS
+    release(&bufs);
+    Py_RETURN_NONE;
+}
+
 PyDoc_STRVAR(cdf_eval_doc,
 "cdf_eval(counts, knots, distances, slopes, lengths, out_of_range) -> None\n\n"
 "Piecewise-linear CDFs of k bars (Eq. 10), as CdfBank.__call__: column j of counts (N, k)\n"
@@ -1193,6 +1281,7 @@ static PyMethodDef methods[] = {
     {"pose_covariance", pose_covariance, METH_VARARGS, pose_covariance_doc},
     {"cdf_eval", cdf_eval, METH_VARARGS, cdf_eval_doc},
     {"play", play, METH_VARARGS, play_doc},
+    {"friction_travel", friction_travel, METH_VARARGS, friction_travel_doc},
     {"dahl_state", dahl_state, METH_VARARGS, dahl_state_doc},
     {"match_rows", match_rows, METH_VARARGS, match_rows_doc},
     {"decode_continuing", decode_continuing, METH_VARARGS, decode_continuing_doc},

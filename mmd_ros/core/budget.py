@@ -29,6 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mmd_ros.core.calibration import Calibration
+from mmd_ros.core.compiled import fast, use_compiled
 from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.errors import CalibrationError
 from mmd_ros.core.model import Model, TermContext
@@ -135,22 +136,26 @@ class _Friction:
         self.reset()
 
     def reset(self) -> None:
-        # play, direction, flip at, path since the run began
-        self._state: list[tuple[float, float, float, float]] | None = None
+        # per bar: play, direction, flip at, path since the run began (NaN play: none yet)
+        self._state = np.tile([math.nan, 0.0, math.nan, 0.0], (6, 1))
 
-    def __call__(self, x: FloatArray) -> tuple[FloatArray, FloatArray]:
+    def __call__(self, x: FloatArray, *, compiled: bool | None = None
+                 ) -> tuple[FloatArray, FloatArray]:
         """The friction state as far as the motion tells, (N, 6) (see :class:`Observed`), and
-        how far it has turned since the run began, min(1, path / turnover), (N, 6)."""
+        how far it has turned since the run began, min(1, path / turnover), (N, 6).
+        ``compiled``: the compiled loop (default: when it is in use; the same numbers)."""
+        x = np.ascontiguousarray(x, dtype=np.float64)
         n = x.shape[0]
         out = np.zeros((n, 6))
         settled = np.zeros((n, 6))
         if n == 0:
             return out, settled
-        if self._state is None:
-            self._state = [(math.nan, 0.0, math.nan, 0.0)] * 6
         w, turn = self.w, self.turnover
+        if use_compiled(compiled):
+            fast.friction_travel(x, w, turn, self._state, out, settled)
+            return out, settled
         for bar in range(6):  # a sequential recurrence: plain floats beat numpy rows here
-            p, d, f, path = self._state[bar]
+            p, d, f, path = (float(v) for v in self._state[bar])
             col = x[:, bar].tolist()
             res = [0.0] * n
             done = [0.0] * n
@@ -178,6 +183,7 @@ class _Friction:
             settled[:, bar] = done
             self._state[bar] = (p, d, f, path)
         return out, settled
+
 
 #: The budget's sources, in the order reports list them.
 SOURCES = ('quantisation', 'read_noise', 'reference_bar', 'calibration_points',
