@@ -163,3 +163,26 @@ def test_logs_from_other_writers_read_through_the_generic_path(tmp_path):
     assert js.names == NAMES and js.values.shape == (300, 8)
     assert np.array_equal(js.values[:, 0], np.arange(300.0))
     assert np.array_equal(js.stamps_ns, 1_000_000_000 + np.arange(300))
+
+
+def test_machine_joint_states_heard_before_the_terminal_are_kept(tmp_path):
+    """A recorder may hear the machine's controller seconds before the terminal's first sample
+    (discovery on a busy machine): in a log of one segment every joint state belongs to the
+    run (a live test lost them to a 1 s window before)."""
+    from mmd_ros.core.device import find_config, load_device
+    from mmd_ros.logs.layout import TOPIC_DEVICE, TOPIC_MACHINE_JOINTS, TOPIC_RAW, read_run
+    device = load_device(find_config('mmd_prototype.yaml'))
+    t0 = 1_800_000_000 * 10**9
+    raw = t0 + np.arange(100) * 10**6
+    joints = t0 - 1_600_000_000 + np.arange(10) * 20_000_000      # 1.6 s before, 0.2 s long
+    with LogWriter(tmp_path / 'run.mcap') as log:
+        log.write_string(TOPIC_DEVICE, int(joints[0]), device.to_yaml())
+        log.write_rows([(TOPIC_MACHINE_JOINTS, 'sensor_msgs/msg/JointState', log.joint_state_rows(
+            ['X', 'Y', 'Z', 'A', 'C'], joints, np.column_stack([1e-3 * np.arange(10), np.zeros((10, 4))])))],
+            joints)
+        log.write_rows([(TOPIC_RAW, 'sensor_msgs/msg/JointState', log.joint_state_rows(
+            device.channel_names, raw, np.zeros((100, 8))))], raw)
+    js = read_run(tmp_path / 'run.mcap').machine_joints
+    assert js is not None and js.names == ['X', 'Y', 'Z', 'A', 'C']
+    np.testing.assert_array_equal(js.stamps_ns, joints)
+    assert js.positions[:, 0] == pytest.approx(1e-3 * np.arange(10))

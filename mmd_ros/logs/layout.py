@@ -295,8 +295,11 @@ def read_run(path: str | os.PathLike[str], *, segment: int | None = None) -> Run
             ref = _segment_of(reader.joint_states(topic), len(runs), segment or 1, topic, source)
             setattr(run, attr, _aligned(ref, sel, names, source))
     if reader.has_topic(TOPIC_MACHINE_JOINTS) and sel.stamps_ns.size:
+        # all of them for a run of one segment (a recorder may hear the controller before the
+        # terminal, seconds apart on a busy machine); of one segment, those within its span
         js = reader.joint_states(TOPIC_MACHINE_JOINTS)
-        keep = (js.stamps_ns >= sel.stamps_ns[0] - 10**9) & (js.stamps_ns <= sel.stamps_ns[-1] + 10**9)
+        keep = np.ones(js.stamps_ns.size, dtype=bool) if len(runs) == 1 else \
+            (js.stamps_ns >= sel.stamps_ns[0] - 10**9) & (js.stamps_ns <= sel.stamps_ns[-1] + 10**9)
         if keep.any():
             run.machine_joints = MachineJoints(js.stamps_ns[keep], list(js.names), js.values[keep])
     run.metadata = _run_metadata(reader, source)
