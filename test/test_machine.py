@@ -27,7 +27,7 @@ from mmd_ros.machine import (
     IdentifyOptions, MachineAnalysisError, SessionOptions, analyze_session, identify,
     linuxcnc_table, load_program, load_result, write_outputs,
 )
-from mmd_ros.machine.geometry import pose_to_transform, screw_between
+from mmd_ros.machine.geometry import screw_between
 from mmd_ros.machine.kinematics import MachineModel
 from mmd_ros.twin.machine import MmdSetup, RunPlan, SmoothError, TwinMachine
 from mmd_ros.twin.recording import SimulationSpec, simulate_to_log

@@ -13,7 +13,6 @@ import numpy as np
 
 from mmd_ros.core.machine import MachineDescription
 from mmd_ros.core.model import Model
-from mmd_ros.core.progress import Progress
 from mmd_ros.logs.layout import read_run
 from mmd_ros.machine.compensation import write_compensation, write_csv, write_location_yaml
 from mmd_ros.machine.errors import MachineAnalysisError
