@@ -806,22 +806,24 @@ static PyObject *match_rows(PyObject *self, PyObject *args)
     return PyBool_FromLong(ok);
 }
 
-/* Shape of an (N, k) float64 buffer whose k columns each have a state entry in a (k,) float64
- * buffer: sets n and k, or returns -1 (error set). */
-static int columns_of(PyObject *data, PyObject *state, const char *name, Py_ssize_t *n,
-                      Py_ssize_t *k)
+/* Shape of an (N, k) float64 buffer whose k columns each have ``width`` state entries in a
+ * (k, width) float64 buffer: sets n and k, or returns -1 (error set). */
+static int columns_of(PyObject *data, PyObject *state, Py_ssize_t width, const char *name,
+                      Py_ssize_t *n, Py_ssize_t *k)
 {
     Py_buffer view;
     if (get_buffer(state, &view, 0, -1, 8, "d", "state") < 0)
         return -1;
-    *k = view.len / 8;
+    const Py_ssize_t cells = view.len / 8;
     PyBuffer_Release(&view);
     if (get_buffer(data, &view, 0, -1, 8, "d", name) < 0)
         return -1;
     const Py_ssize_t total = view.len / 8;
     PyBuffer_Release(&view);
-    if (*k < 1 || total % *k) {
-        PyErr_Format(PyExc_ValueError, "%s: need shape (N, k) with a state of shape (k,)", name);
+    *k = cells / width;
+    if (*k < 1 || cells % width || total % *k) {
+        PyErr_Format(PyExc_ValueError, "%s: need shape (N, k) with a state of shape (k, %zd)",
+                     name, width);
         return -1;
     }
     *n = total / *k;
@@ -844,7 +846,7 @@ static PyObject *play(PyObject *self, PyObject *args)
     if (!PyArg_ParseTuple(args, "OdOOOO", &o[0], &w, &o[1], &o[2], &o[3], &o[4]))
         return NULL;
     Py_ssize_t n, k;
-    if (columns_of(o[0], o[1], "lengths", &n, &k) < 0)
+    if (columns_of(o[0], o[1], 1, "lengths", &n, &k) < 0)
         return NULL;
     Spec spec[] = {
         {o[0], 0, n * k, 8, "d", "lengths", 0},
@@ -902,7 +904,7 @@ static PyObject *dahl_state(PyObject *self, PyObject *args)
     if (!PyArg_ParseTuple(args, "OdOOOOO", &o[0], &travel, &o[1], &o[2], &o[3], &o[4], &o[5]))
         return NULL;
     Py_ssize_t n, k;
-    if (columns_of(o[0], o[1], "positions", &n, &k) < 0)
+    if (columns_of(o[0], o[1], 1, "positions", &n, &k) < 0)
         return NULL;
     Spec spec[] = {
         {o[0], 0, n * k, 8, "d", "positions", 0},
@@ -967,21 +969,9 @@ static PyObject *friction_travel(PyObject *self, PyObject *args)
     double w, turn;
     if (!PyArg_ParseTuple(args, "OddOOO", &o[0], &w, &turn, &o[1], &o[2], &o[3]))
         return NULL;
-    Py_buffer view;
-    if (get_buffer(o[1], &view, 0, -1, 8, "d", "state") < 0)
+    Py_ssize_t n, k;
+    if (columns_of(o[0], o[1], 4, "lengths", &n, &k) < 0)
         return NULL;
-    const Py_ssize_t cells = view.len / 8;
-    PyBuffer_Release(&view);
-    if (get_buffer(o[0], &view, 0, -1, 8, "d", "lengths") < 0)
-        return NULL;
-    const Py_ssize_t total = view.len / 8;
-    PyBuffer_Release(&view);
-    const Py_ssize_t k = cells / 4;
-    if (k < 1 || cells % 4 || total % k) {
-        PyErr_SetString(PyExc_ValueError, "lengths: need shape (N, k) with a state of shape (k, 4)");
-        return NULL;
-    }
-    const Py_ssize_t n = total / k;
     Spec spec[] = {
         {o[0], 0, n * k, 8, "d", "lengths", 0},
         {o[1], 1, 4 * k, 8, "d", "state", 0},

@@ -45,8 +45,8 @@ from mmd_ros.core.yamlio import atomic_write_text, parse_yaml, read_yaml
 
 __all__ = [
     'FIT_REPLACEABLE', 'FitUncertainty', 'HysteresisTerm', 'Model', 'ModelTerm',
-    'ModelUncertainty', 'TERM_TYPES', 'TermContext', 'load_model', 'register_term', 'six_values',
-    'term_from_dict',
+    'ModelUncertainty', 'TERM_TYPES', 'TermContext', 'load_model', 'play_operator',
+    'register_term', 'six_values', 'term_from_dict',
 ]
 
 FloatArray = NDArray[np.float64]
@@ -131,6 +131,44 @@ def six_values(params: dict[str, Any], key: str, source: str) -> FloatArray:
     return np.broadcast_to(arr, (6,)).copy()
 
 
+def play_operator(lengths_m: FloatArray, deadband_m: float, play: FloatArray,
+                  direction: FloatArray | None = None, *, positions: FloatArray | None = None,
+                  directions: FloatArray | None = None, compiled: bool | None = None) -> None:
+    """The play (backlash) operator of half-width ``deadband_m`` on each column of lengths
+    (N, k): it follows the input only when the input is more than ``deadband_m`` away.
+
+    play : ndarray, shape (k,) float64 — its position before the first sample, updated in place
+    direction : ndarray, shape (k,) float64, or None — the direction (-1, 0, +1) of its last move,
+        updated in place
+    positions, directions : ndarray, shape (N, k) float64, or None — filled with its output and
+        the direction of its last move at every sample
+    compiled : the compiled loop (default: when it is in use); False: Python (the same numbers)
+    """
+    x = np.ascontiguousarray(lengths_m, dtype=np.float64)
+    w = float(deadband_m)
+    if use_compiled(compiled):
+        fast.play(x, w, play, direction, positions, directions)
+        return
+    n = x.shape[0]
+    for j in range(x.shape[1]):  # a sequential recurrence: plain floats beat numpy rows here
+        p = float(play[j])
+        d = 0.0 if direction is None else float(direction[j])
+        pos, dirs = [0.0] * n, [0.0] * n
+        for k, v in enumerate(x[:, j].tolist()):
+            if p < v - w:
+                p, d = v - w, 1.0
+            elif p > v + w:
+                p, d = v + w, -1.0
+            pos[k], dirs[k] = p, d
+        if positions is not None:
+            positions[:, j] = pos
+        if directions is not None:
+            directions[:, j] = dirs
+        play[j] = p
+        if direction is not None:
+            direction[j] = d
+
+
 @register_term
 class HysteresisTerm(ModelTerm):
     """Direction-dependent mean hysteresis correction (section 5.3).
@@ -164,24 +202,7 @@ class HysteresisTerm(ModelTerm):
             return out
         play = np.array(lengths_m[0], dtype=np.float64) if self._play is None else self._play.copy()
         direction = self._direction.copy()
-        w = self.travel_m
-        if use_compiled(compiled):
-            fast.play(np.ascontiguousarray(lengths_m, dtype=np.float64), w, play, direction,
-                      None, out)
-            self._play, self._direction = play, direction
-            return out
-        for bar in range(6):  # a sequential recurrence: plain floats beat numpy rows here
-            p, d = float(play[bar]), float(direction[bar])
-            column = lengths_m[:, bar].tolist()
-            dirs = [0.0] * len(column)
-            for k, x in enumerate(column):
-                if p < x - w:
-                    p, d = x - w, 1.0
-                elif p > x + w:
-                    p, d = x + w, -1.0
-                dirs[k] = d
-            out[:, bar] = dirs
-            play[bar], direction[bar] = p, d
+        play_operator(lengths_m, self.travel_m, play, direction, directions=out, compiled=compiled)
         self._play, self._direction = play, direction
         return out
 

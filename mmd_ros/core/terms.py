@@ -40,7 +40,9 @@ from scipy.signal import lfilter
 from mmd_ros.core import validate
 from mmd_ros.core.compiled import fast, use_compiled
 from mmd_ros.core.errors import ConfigError
-from mmd_ros.core.model import HysteresisTerm, ModelTerm, TermContext, register_term, six_values
+from mmd_ros.core.model import (
+    HysteresisTerm, ModelTerm, TermContext, play_operator, register_term, six_values,
+)
 from mmd_ros.core.rotation import rotation_matrix
 from mmd_ros.core.units import M_PER_MM, M_PER_NM, M_PER_UM, PPM
 
@@ -175,25 +177,11 @@ def play_positions(lengths_m: FloatArray, deadband_m: float, start: FloatArray |
     first sample (None: the first sample). ``compiled``: the compiled loop (default: when it
     is in use; the same numbers); False: Python."""
     x = np.ascontiguousarray(lengths_m, dtype=np.float64)
-    n, m = x.shape
     out = np.empty_like(x)
-    if n == 0:
+    if x.shape[0] == 0:
         return out
-    p0 = x[0] if start is None else start
-    w = deadband_m
-    if use_compiled(compiled):
-        fast.play(x, float(w), np.array(p0, dtype=np.float64), None, out, None)
-        return out
-    for j in range(m):   # a sequential recurrence: plain floats beat numpy rows here
-        p, column = float(p0[j]), x[:, j].tolist()
-        pos = [0.0] * n
-        for k, v in enumerate(column):
-            if p < v - w:
-                p = v - w
-            elif p > v + w:
-                p = v + w
-            pos[k] = p
-        out[:, j] = pos
+    play = np.array(x[0] if start is None else start, dtype=np.float64)
+    play_operator(x, deadband_m, play, positions=out, compiled=compiled)
     return out
 
 
