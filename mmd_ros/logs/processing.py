@@ -168,9 +168,12 @@ def process_run(run: RunLog, model: Model, *, calibration_path: str | None = Non
 
 class RunSummary:
     """Counts of samples, FK outcomes and, with a reference, the error statistics, gathered
-    block by block (:meth:`add`) and given as ``mmd process --json`` prints them."""
+    block by block (:meth:`add`) and given as ``mmd process --json`` prints them.
 
-    def __init__(self) -> None:
+    covariance_every : the blocks carry the covariance of every k-th sample only
+    """
+
+    def __init__(self, covariance_every: int = 1) -> None:
         self.samples = 0
         self.valid = 0
         self.not_converged = 0
@@ -183,7 +186,7 @@ class RunSummary:
         self.pose_error: ErrorAccumulator | None = None
         self.length_error: ErrorAccumulator | None = None
         self.coverage: CoverageAccumulator | None = None
-        self.covariance_every = 1   # the blocks have the covariance of every k-th sample
+        self.covariance_every = covariance_every
         self.budget: dict[str, Any] | None = None
 
     def add(self, part: RunBlock, result: ProcessedRun) -> None:
@@ -362,9 +365,8 @@ def process_log(source: RunSource, out: Path, model: Model, *,
         calibration = load_calibration(calibration)
     # a covariance wanted only for its coverage is computed for the samples the summary keeps
     coverage_only = coverage and source.has_reference_pose and not with_covariance
-    every = max(1, source.n_samples // CoverageAccumulator.MAX_SAMPLES)
-    summary = RunSummary()
-    summary.covariance_every = every if coverage_only else 1
+    every = max(1, source.n_samples // CoverageAccumulator.MAX_SAMPLES) if coverage_only else 1
+    summary = RunSummary(covariance_every=every)
     writer: ProcessedLogWriter | None = None
     handle: IO[str] | None = None
     pending: Future[None] | None = None
@@ -381,7 +383,7 @@ def process_log(source: RunSource, out: Path, model: Model, *,
     with contextlib.ExitStack() as files, ThreadPoolExecutor(1, thread_name_prefix='mmd-write') as pool:
         for part, result in process_blocks(source, model, calibration=calibration,
                                            with_covariance=with_covariance or coverage_only,
-                                           covariance_every=1 if with_covariance else every,
+                                           covariance_every=every,
                                            compiled=compiled, block=block):
             if writer is None:
                 cal = _resolve_calibration(source, calibration)
