@@ -15,6 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 import mmd_ros
+from mmd_ros.core.compiled import fast, use_compiled
 from mmd_ros.logs.cdr import JointStateLayout, PendingRows, PoseLayout, encode_string, split_stamps
 from mmd_ros.logs.errors import LogError, LogFormatError
 from mmd_ros.logs.mcap_records import MESSAGE_HEADER, McapWriter
@@ -67,7 +68,7 @@ class _RecordRow:
             size = rows.shape[1]
             template += struct.pack('<BQHI', 0x05, MESSAGE_HEADER - 9 + size, cid, 0) + bytes(16)
             names += [f'log{k}', f'pub{k}']
-            formats += ['<u8', '<u8']
+            formats += ['<i8', '<i8']
             offsets += [off + 15, off + 23]
             if isinstance(rows, PendingRows):
                 template += rows.layout.template.tobytes()
@@ -87,21 +88,32 @@ class _RecordRow:
                                'itemsize': self.width})
 
     def fill(self, log_times: NDArray[np.int64], part: slice) -> NDArray[np.uint8]:
-        """The records of samples ``part``: (k, width) bytes."""
+        """The records of samples ``part``: (k, width) bytes. Compiled: one pass over the
+        rows without the GIL (``fast.fill_rows``); else numpy field by field."""
         k = len(log_times)
         block = np.empty((k, self.width), dtype=np.uint8)
+        stamps: dict[int, tuple[NDArray[np.int32], NDArray[np.uint32]]] = {}
+        columns: list[tuple[str, NDArray[Any]]] = []
+        for i, rows in enumerate(self.streams):
+            columns += [(f'log{i}', log_times), (f'pub{i}', log_times)]
+            if isinstance(rows, PendingRows):
+                key = id(rows.stamps_ns)   # the streams of a sample share their stamps
+                if key not in stamps:
+                    stamps[key] = split_stamps(rows.stamps_ns[part])
+                sec, nsec = stamps[key]
+                columns += [(f'sec{i}', sec), (f'nsec{i}', nsec), (f'val{i}', rows.values[part])]
+            else:
+                columns.append((f'raw{i}', rows[part]))
+        if use_compiled(None):
+            fields = self.dtype.fields
+            fast.fill_rows(block, self.template,
+                           [(fields[name][1], np.ascontiguousarray(col, dtype=fields[name][0].base))
+                            for name, col in columns])
+            return block
         block[:] = self.template
         rec = block.view(self.dtype)[:, 0]
-        for i, rows in enumerate(self.streams):
-            rec[f'log{i}'] = log_times
-            rec[f'pub{i}'] = log_times
-            if isinstance(rows, PendingRows):
-                sec, nsec = split_stamps(rows.stamps_ns[part])
-                rec[f'sec{i}'] = sec
-                rec[f'nsec{i}'] = nsec
-                rec[f'val{i}'] = rows.values[part]
-            else:
-                rec[f'raw{i}'] = rows[part]
+        for name, col in columns:
+            rec[name] = col
         return block
 
 
