@@ -35,6 +35,7 @@ from numpy.typing import NDArray
 
 from mmd_ros.logs.cdr import JointStateLayout, PoseLayout, decode_string, rows_match
 from mmd_ros.logs.errors import LogError, LogFormatError
+from mmd_ros.logs.mcap_records import crc32
 
 __all__ = ['JointStates', 'LogProblem', 'LogReader', 'SkippedSpan', 'Topic', 'status_codes']
 
@@ -565,7 +566,7 @@ class LogReader:
             raise
         except Exception as exc:  # noqa: BLE001 - any failure of the decompressor is damage
             raise LogError(f'a chunk does not decompress ({exc})') from None
-        if crc and zlib.crc32(records) != crc:
+        if crc and crc32(records) != crc:
             raise LogError('a chunk fails its CRC check')
         for ch in self._channels.values():
             ch.seal()

@@ -87,7 +87,8 @@ class _RecordRow:
         self.dtype = np.dtype({'names': names, 'formats': formats, 'offsets': offsets,
                                'itemsize': self.width})
 
-    def fill(self, log_times: NDArray[np.int64], part: slice) -> NDArray[np.uint8]:
+    def fill(self, log_times: NDArray[np.int64], part: slice, *,
+             compiled: bool | None = None) -> NDArray[np.uint8]:
         """The records of samples ``part``: (k, width) bytes. Compiled: one pass over the
         rows without the GIL (``fast.fill_rows``); else numpy field by field."""
         k = len(log_times)
@@ -104,7 +105,7 @@ class _RecordRow:
                 columns += [(f'sec{i}', sec), (f'nsec{i}', nsec), (f'val{i}', rows.values[part])]
             else:
                 columns.append((f'raw{i}', rows[part]))
-        if use_compiled(None):
+        if use_compiled(compiled):
             fields = self.dtype.fields
             fast.fill_rows(block, self.template,
                            [(fields[name][1], np.ascontiguousarray(col, dtype=fields[name][0].base))
