@@ -12,6 +12,11 @@ out, as a real MMD records it). The same run with its 6-DOF reference pose in th
 measured beside it (reading the reference doubles the data read), without and with the
 covariance's coverage of that reference (the command's default when a log has one).
 
+``--baseline DIR`` also runs another copy of the package (a directory holding ``mmd_ros``, e.g.
+``git archive COMMIT mmd_ros | tar -x -C DIR``, with this tree's compiled ``_fast*.so`` copied
+into ``DIR/mmd_ros/core``), its runs interleaved with this tree's on the device log: on a loaded
+machine the ratio of the two medians says what a change bought when the rates themselves swing.
+
 Target (issue 12): >= 500,000 samples/s. The machine is shared: compare the ratios and CPU
 times more than the rates. ``--quick`` uses a 1-minute log. Never fails on timing.
 """
@@ -48,13 +53,16 @@ def peak_rss_mb(pid: int, stop: threading.Event, out: list[float]) -> None:
         stop.wait(0.05)
 
 
-def command(log: Path, out: Path, pure: bool = False, coverage: bool = False) -> dict:
+def command(log: Path, out: Path, pure: bool = False, coverage: bool = False,
+            baseline: Path | None = None) -> dict:
     """``mmd process`` in a child: its JSON summary, wall time, user CPU and peak RSS.
     coverage: also the covariance's coverage of the reference (the command's default when the
     log has a reference pose; a real device's log has none)"""
     env = dict(os.environ)
     if pure:
         env['MMD_PURE_PYTHON'] = '1'
+    if baseline is not None:
+        env['PYTHONPATH'] = os.pathsep.join([str(baseline), env.get('PYTHONPATH', '')]).rstrip(os.pathsep)
     t0 = time.perf_counter()
     proc = subprocess.Popen([sys.executable, '-m', 'mmd_ros.cli.main', 'process', str(log),
                              '--out', str(out), '--json', '--quiet']
@@ -101,6 +109,8 @@ def main() -> None:
     parser.add_argument('--repeats', type=int, default=3)
     parser.add_argument('--long', type=Path, action='append', default=[],
                         help='another log to process once, for peak RSS (not created here)')
+    parser.add_argument('--baseline', type=Path, default=None,
+                        help='a directory holding another mmd_ros, run interleaved with this one')
     args = parser.parse_args()
     # The x-axis ISO run with 4.6 s dwells lasts 596 s; the quick one uses one cycle.
     params = ('dwell_s=4.6',) if not args.quick else ('n_cycles=1', 'dwell_s=1.4')
@@ -114,7 +124,11 @@ def main() -> None:
                                run.stamps_ns, run.counts, metadata=run.metadata, model=run.model)
         del run
         size_mb = device_log.stat().st_size / 1e6
-        runs = [command(device_log, out) for _ in range(args.repeats)]
+        runs, base = [], []
+        for _ in range(args.repeats):
+            runs.append(command(device_log, out))
+            if args.baseline is not None:
+                base.append(command(device_log, out, baseline=args.baseline))
         pure = command(device_log, out, pure=True)
         with_reference = [command(log, out) for _ in range(args.repeats)]
         with_coverage = [command(log, out, coverage=True) for _ in range(args.repeats)]
@@ -143,11 +157,20 @@ def main() -> None:
         'with_coverage_peak_rss_mb': max(r['peak_rss_mb'] for r in with_coverage),
         'long_logs': longs,
     }
+    if base:
+        result['baseline'] = str(args.baseline)
+        result['baseline_samples_per_s_runs'] = [r['samples_per_s'] for r in base]
+        result['baseline_samples_per_s_median'] = statistics.median(r['samples_per_s'] for r in base)
+        result['ratio_to_baseline'] = rate / result['baseline_samples_per_s_median']
     print(f'mmd process on a {n / 1000:.0f} s device log, raw counts only ({n} samples, {size_mb:.1f} MB): median '
           f'{rate:,.0f} samples/s over {args.repeats} runs '
           f'({", ".join(f"{r:,.0f}" for r in result["samples_per_s_runs"])})   [target >= 500,000]')
     print(f'  numpy path (MMD_PURE_PYTHON=1), same run: {pure["samples_per_s"]:,.0f} samples/s; '
           f'ratio {result["ratio_to_numpy"]:.1f}')
+    if base:
+        print(f'  baseline {args.baseline}, interleaved: median {result["baseline_samples_per_s_median"]:,.0f} '
+              f'samples/s ({", ".join(f"{r:,.0f}" for r in result["baseline_samples_per_s_runs"])}); '
+              f'ratio {result["ratio_to_baseline"]:.2f}')
     print(f'  user CPU {result["user_cpu_us_per_sample_median"]:.2f} us per sample '
           f'(numpy path {result["numpy_path_user_cpu_us_per_sample"]:.2f}); peak RSS '
           f'{result["peak_rss_mb"]:.0f} MB (numpy path {pure["peak_rss_mb"]:.0f} MB)')
