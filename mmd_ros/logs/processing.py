@@ -319,6 +319,9 @@ class ProcessedLogWriter:
             streams.append((TOPIC_POSE_COV, 'geometry_msgs/msg/PoseWithCovarianceStamped',
                             log.pose_rows(FRAME_LOWER, stamps, poses, result.covariance)))
         log.write_rows(streams, stamps)
+        # the disk writes of this block overlap the next one's compute (else the final fsync
+        # waits for them all: 0.05 s of a 10-minute log's ~1.2 s)
+        log.sync_written()
 
     def close(self) -> None:
         self._log.close()

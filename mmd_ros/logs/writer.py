@@ -235,6 +235,13 @@ class LogWriter:
         self._file.flush()
         os.fsync(self._file.fileno())
 
+    def sync_written(self) -> None:
+        """Push what has been written so far to the disk (fdatasync), leaving the open chunk
+        open: a long log written in pieces then does its disk writes while it is being made,
+        not all in the final fsync of :meth:`close`."""
+        self._file.flush()
+        os.fdatasync(self._file.fileno())
+
     def close(self) -> None:
         """Write the summary and close; a closed log is a complete, indexed MCAP file."""
         if self.closed:
