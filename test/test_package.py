@@ -69,6 +69,22 @@ def test_the_library_and_the_nodes_never_import_the_cli():
     assert not offenders, offenders
 
 
+def test_the_mmd_tool_starts_without_matplotlib():
+    """Every ``mmd`` command builds the whole parser; ``mmd machine`` must not make the others
+    import matplotlib for its figures (half a second each time), and ``mmd_ros.machine``
+    still gives every public name it lists."""
+    code = ('import sys\n'
+            'from mmd_ros.cli.main import build_parser\n'
+            'build_parser()\n'
+            'print(sorted(m for m in sys.modules if m == "matplotlib" or m.startswith("mmd_ros.machine.")))\n'
+            'import mmd_ros.machine as machine\n'
+            'assert all(getattr(machine, n) is not None for n in machine.__all__)\n')
+    out = subprocess.run([sys.executable, '-c', code], cwd=ROOT, capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert 'matplotlib' not in out.stdout and 'mmd_ros.machine.plots' not in out.stdout, out.stdout
+
+
 def test_the_compiled_helpers_are_used_unless_switched_off():
     probe = 'from mmd_ros.core.compiled import AVAILABLE; print(AVAILABLE)'
     for value, expected in (('', 'True'), ('1', 'False')):

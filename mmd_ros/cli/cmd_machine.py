@@ -21,7 +21,6 @@ from mmd_ros.machine import (
     load_result, rotary_map, write_compensation, write_csv, write_location_yaml, write_outputs,
 )
 from mmd_ros.machine.errors import MachineAnalysisError
-from mmd_ros.machine.plots import volumetric_figure
 
 __all__ = ['register']
 
@@ -114,6 +113,7 @@ def _tables(args: argparse.Namespace) -> int:
 
 
 def _volumetric(args: argparse.Namespace) -> int:
+    from mmd_ros.machine.plots import volumetric_figure  # matplotlib: only when drawing
     result = _load(args.result, args.machine)
     offset = [v * 1e-3 for v in args.tool_offset_mm]
     maps = {'linear axes': linear_map(result, points=args.points, tool_offset=offset)}

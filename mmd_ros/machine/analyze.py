@@ -17,7 +17,6 @@ from mmd_ros.logs.layout import read_run
 from mmd_ros.machine.compensation import write_compensation, write_csv, write_location_yaml
 from mmd_ros.machine.errors import MachineAnalysisError
 from mmd_ros.machine.identify import IdentifyOptions, identify
-from mmd_ros.machine.plots import machine_figures
 from mmd_ros.machine.report import markdown_report
 from mmd_ros.machine.results import MachineResult
 from mmd_ros.machine.session import AxisRun, Program, extract_runs, log_poses
@@ -119,6 +118,7 @@ def analyze_session(logs: list[str | Path], machine: MachineDescription,
 def write_outputs(result: MachineResult, out: Path, options: SessionOptions | None = None, *,
                   units: str = 'mm', figures: bool = True, tool_offset=None) -> dict[str, object]:
     """Report, JSON, figures, compensation files, CSV, location YAML and volumetric maps."""
+    from mmd_ros.machine.plots import machine_figures  # matplotlib: only when writing them
     options = options or SessionOptions()
     out.mkdir(parents=True, exist_ok=True)
     files: list[str] = []
