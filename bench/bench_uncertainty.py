@@ -36,6 +36,7 @@ CASES = {
     'noeffect': ('ideal', ('read_noise_m=0',), 'constant:20'),
     'realistic': ('realistic', (), 'section_4_1'),
     'realistic_noskew': ('realistic', ('sampling_skew_s=0',), 'section_4_1'),
+    'realistic_nosag': ('realistic', ('gravity_sag_m=0',), 'section_4_1'),
 }
 SCENARIOS = {   # name: (scenario, parameters, sample rate)
     'random': ('random_motion', ('duration_s={seconds}', 'seed={k}'), None),

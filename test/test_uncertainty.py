@@ -172,8 +172,10 @@ def test_latch_skew_is_sized_from_the_terminal_s_stated_bound(realistic):
 def test_a_fit_s_residual_stands_only_where_the_fit_saw_the_bars(realistic):
     """A fit whose residual replaced the calibration-derived sources: inside the lengths it saw
     (its validity record) they are gone; a bar outside gets them back, plus the square of the
-    length terms' correction there (an extrapolation no data checked). A friction term does
-    not know a bar's state before it has moved: the budget keeps h^2 for it, without bias."""
+    square of how far the length terms' correction moved from its value at the nearest
+    length the fit saw (an extrapolation no data checked). A friction term does not know a
+    bar's state before it has moved: the budget keeps h^2 / 3 for it (a state anywhere in
+    [-1, 1]), decaying as exp(-2 path / travel), without bias."""
     from mmd_ros.core.model import FIT_REPLACEABLE, HysteresisTerm
     from mmd_ros.core.terms import ScaleNonlinearityTerm
     _, _, calibration, run = realistic
@@ -200,13 +202,18 @@ def test_a_fit_s_residual_stands_only_where_the_fit_saw_the_bars(realistic):
     unchecked = parts['unchecked_range'][:, range(6), range(6)]
     from mmd_ros.core.model import TermContext
     n = x.shape[0]
-    c = term.correction(TermContext(np.zeros(n), np.zeros((n, 8)), x, x + th.bar_error_m,
-                                    th.reference_error_m, th.temp_change_c))
+    cdf = x + th.bar_error_m
+    edge = np.maximum(cdf, (mid - 1e-3)[None])
+    c = (term.correction(TermContext(np.zeros(n), np.zeros((n, 8)), x, cdf, th.reference_error_m,
+                                     th.temp_change_c))
+         - term.correction(TermContext(np.zeros(n), np.zeros((n, 8)), x, edge,
+                                       th.reference_error_m, th.temp_change_c)))
     np.testing.assert_allclose(unchecked[below], c[below] ** 2)
-    assert np.all(unchecked[~below] == 0)
-    # the friction state before a bar's first move: h^2, no known error
+    assert np.all(unchecked[~below] == 0) and np.any(unchecked[below] > 0)
+    # the friction state before a bar's first move: h^2 / 3, no known error; forgotten at
+    # exp(-2 path / travel) as the bar moves
     h = parts['hysteresis'][:, range(6), range(6)]
-    assert np.allclose(h[0], 0.2e-6 ** 2) and np.all(h >= 0) and np.all(h[-1] < h[0])
+    assert np.allclose(h[0], 0.2e-6 ** 2 / 3) and np.all(h >= 0) and np.all(h[-1] < 1e-3 * h[0])
     assert 'hysteresis' not in budget.sources(x, th.reference_error_m, th.temp_change_c,
                                               th.bar_error_m, observed=observed)[1]
     # the streaming sum equals the sum of the sources
@@ -340,10 +347,11 @@ def test_after_the_loop_the_fit_s_uncertainty_is_in_the_model_and_covers(tmp_pat
     parameter covariance (as one-sigma directions), the residual of every bar (the
     reference's own noise taken out) in place of the calibration-derived sources over the
     lengths the fit saw, and that range. Two twins, each judged with its own model on new
-    motion: the 95 % ellipsoid covers 93-99 % and no axis is under-stated (ratio > 0.8).
-    The issue's 0.8-1.25 is not reached: the friction state at a run's start, which the term
-    cannot know before the bar has moved, is claimed as +-h (a bar left fully turned one way
-    or the other); the twin draws it uniformly in [-h, h]. Measured today 1.26-1.96."""
+    motion: the 95 % ellipsoid covers 93-97 % and no axis is under-stated (ratio > 0.8).
+    The issue's upper 1.25 is not reached (measured 0.99-1.43, y and pitch highest): the new
+    runs take bars outside the lengths the 60 s fit saw, where the length terms' extrapolation
+    is claimed as large as its change from the last length the fit checked (unchecked_range),
+    and the calibration-derived sources come back in full."""
     from mmd_ros.core.model import FIT_REPLACEABLE
     errors, covs = [], []
     for seed in (1, 2):
@@ -365,8 +373,8 @@ def test_after_the_loop_the_fit_s_uncertainty_is_in_the_model_and_covers(tmp_pat
     ratio = np.sqrt(np.mean(np.diagonal(c, axis1=1, axis2=2), axis=0)) / np.sqrt(np.mean(e * e, axis=0))
     d2 = np.einsum('ni,ni->n', e, np.linalg.solve(c, e[:, :, None])[:, :, 0])
     print('after the loop: ratio', np.round(ratio, 2), 'coverage', np.mean(d2 <= LIMIT))
-    assert np.all((ratio > 0.8) & (ratio < 2.5)), ratio
-    assert 0.93 <= np.mean(d2 <= LIMIT) <= 0.99, np.mean(d2 <= LIMIT)
+    assert np.all((ratio > 0.8) & (ratio < 1.6)), ratio
+    assert 0.93 <= np.mean(d2 <= LIMIT) <= 0.97, np.mean(d2 <= LIMIT)
 
 
 # -- mmd process reports it -------------------------------------------------------------------
