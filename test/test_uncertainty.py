@@ -454,3 +454,38 @@ def test_compiled_friction_travel_equals_python():
         np.testing.assert_array_equal(a, b)
     state, settled = results[1][0], results[1][1]
     assert state.min() == -1.0 and state.max() == 1.0 and settled[-1].min() == 1.0
+
+
+def test_the_friction_start_state_claim_follows_dahl_s_law(realistic):
+    """A friction term starts a run from state 0; the bar's true state is anywhere in [-1, 1].
+    Along a real motion, Monte Carlo over start states drawn in [-1, 1] through the term's own
+    Dahl law: the variance of the term's error, h^2 var(s_true - s_term), is what the budget
+    claims, h^2 / 3 exp(-2 path / travel), at the start and as the bar moves."""
+    from mmd_ros.core.terms import FrictionTerm, friction_state
+    _, _, calibration, run = realistic
+    comp = Pipeline(DEVICE, calibration).compensate(run.times_s, run.counts)
+    x = comp.cdf_lengths_m[:1500]
+    travel, deadband, h = 4e-6, 50e-9, 0.3e-6
+    term = FrictionTerm(np.full(6, h), travel, deadband)
+    budget = LengthBudget(DEVICE, calibration, Model(terms=[term]))
+    th = comp.thermal
+    observed = budget.observe(x, th.reference_error_m[:1500], run.times_s[:1500])
+    claimed = budget.variances(comp.lengths_m[:1500], th.reference_error_m[:1500],
+                               th.temp_change_c[:1500], th.bar_error_m[:1500],
+                               observed=observed)['hysteresis'][:, range(6), range(6)]
+    model_s, _ = friction_state(x, travel, deadband, None)
+    rng = np.random.default_rng(3)
+    diffs = []
+    for s0 in rng.uniform(-1.0, 1.0, (400, 6)):
+        start = (x[0].copy(), np.zeros(6), x[0].copy(), s0)
+        true_s, _ = friction_state(x, travel, deadband, start)
+        diffs.append(true_s - model_s)
+    amp = budget.hysteresis_m        # the larger of the term's and the calibration's h
+    assert np.all(amp >= h)
+    mc = amp ** 2 * np.mean(np.square(diffs), axis=0)           # (N, 6)
+    moving = claimed > 1e-3 * claimed[0]
+    assert np.allclose(claimed[0], amp ** 2 / 3)
+    assert moving.any() and (~moving).any()      # the bars forget their start within the run
+    # 400 draws: the variance of a mean square of uniform draws is known to about 5 %
+    np.testing.assert_allclose(mc[moving], claimed[moving], rtol=0.15)
+    assert np.all((mc <= 2e-3 * claimed[0])[~moving])
