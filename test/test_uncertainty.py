@@ -23,6 +23,7 @@ from mmd_ros.core.calibration import Calibration
 from mmd_ros.core.device import find_config, load_device
 from mmd_ros.core.model import FitUncertainty, Model, ModelUncertainty, load_model
 from mmd_ros.core.pipeline import Pipeline
+from mmd_ros.core.validity import Validity
 from mmd_ros.core.uncertainty import (
     InterpolationError, NoiseEstimator, averaged_quantisation_var, capture_var, dither_var,
     fit_interpolation_error, quantisation_cross_cov, read_noise_from_dither, two_sided_figures,
@@ -331,7 +332,8 @@ def _after_the_loop(tmp_path, seed: int, fit_s: float = 60.0):
     twin = TwinDevice(DEVICE, Effects.realistic(), seed=seed)
     room = ambient_profile('section_4_1')
     calibration = twin.calibrate(0.0, room, approaches=2)
-    errors, covs = [], []
+    errors, covs, inside = [], [], []
+    bars = Validity.from_model(model).bar_range_m
     for k in range(3):
         run = twin.simulate(make_scenario('random_motion', ['duration_s=4', f'seed={10 * seed + k}']),
                             room, start_s=700.0 + 20 * k, reference='pose6')
@@ -339,7 +341,9 @@ def _after_the_loop(tmp_path, seed: int, fit_s: float = 60.0):
             run.times_s, run.counts, with_covariance=True)
         errors.append(pose_error(res.poses, run.true_poses)[res.valid])
         covs.append(res.covariance[res.valid])
-    return result, model, errors, covs, log
+        cdf = res.compensated.cdf_lengths_m[res.valid]
+        inside.append(np.all((cdf >= bars[:, 0]) & (cdf <= bars[:, 1]), axis=1))
+    return result, model, (errors, covs, inside), log
 
 
 def test_after_the_loop_the_fit_s_uncertainty_is_in_the_model_and_covers(tmp_path):
@@ -348,14 +352,16 @@ def test_after_the_loop_the_fit_s_uncertainty_is_in_the_model_and_covers(tmp_pat
     reference's own noise taken out) in place of the calibration-derived sources over the
     lengths the fit saw, and that range. Two twins, each judged with its own model on new
     motion: the 95 % ellipsoid covers 93-97 % and no axis is under-stated (ratio > 0.8).
-    The issue's upper 1.25 is not reached (measured 0.99-1.43, y and pitch highest): the new
-    runs take bars outside the lengths the 60 s fit saw, where the length terms' extrapolation
-    is claimed as large as its change from the last length the fit checked (unchecked_range),
-    and the calibration-derived sources come back in full."""
+    Where every bar lies inside the lengths the fit saw (84 % of the samples), the ratio is
+    within 0.8-1.35 (measured 0.88-1.27). The issue's upper 1.25 is not reached over all
+    samples (measured 0.99-1.43, y and pitch highest): the rest take a bar outside those
+    lengths, where the calibration-derived sources come back in full and the length terms'
+    extrapolation is claimed as large as its change from the last length the fit checked
+    (unchecked_range): conservative there (up to 3.0)."""
     from mmd_ros.core.model import FIT_REPLACEABLE
-    errors, covs = [], []
+    errors, covs, inside = [], [], []
     for seed in (1, 2):
-        result, model, e, c, log = _after_the_loop(tmp_path, seed)
+        result, model, (e, c, m), log = _after_the_loop(tmp_path, seed)
         assert 'sampling_skew' in [f.effect for f in result.found]
         fit = model.uncertainty.fit
         assert fit is not None and fit.directions and fit.replaces == tuple(FIT_REPLACEABLE)
@@ -364,6 +370,7 @@ def test_after_the_loop_the_fit_s_uncertainty_is_in_the_model_and_covers(tmp_pat
         assert 'length_sigma_um' not in model.to_yaml()
         errors += e
         covs += c
+        inside += m
     # a residual with an offset removed per component lacks the constant error: no replacing
     from mmd_ros.analysis.identify import AnalysisOptions, analyze
     from mmd_ros.logs.layout import read_run
@@ -375,6 +382,12 @@ def test_after_the_loop_the_fit_s_uncertainty_is_in_the_model_and_covers(tmp_pat
     print('after the loop: ratio', np.round(ratio, 2), 'coverage', np.mean(d2 <= LIMIT))
     assert np.all((ratio > 0.8) & (ratio < 1.6)), ratio
     assert 0.93 <= np.mean(d2 <= LIMIT) <= 0.97, np.mean(d2 <= LIMIT)
+    m = np.concatenate(inside)
+    assert 0.5 < m.mean() < 1.0, m.mean()
+    ratio_in = (np.sqrt(np.mean(np.diagonal(c[m], axis1=1, axis2=2), axis=0))
+                / np.sqrt(np.mean(e[m] * e[m], axis=0)))
+    print('inside the fit\'s lengths:', round(float(m.mean()), 3), 'ratio', np.round(ratio_in, 2))
+    assert np.all((ratio_in > 0.8) & (ratio_in < 1.35)), ratio_in
 
 
 # -- mmd process reports it -------------------------------------------------------------------
