@@ -9,9 +9,11 @@ absolute), the share of samples in the 95 % ellipsoid (Mahalanobis distance^2 <=
 pooled and per run, and a JSON line.
 
 Usage: ``python bench/bench_uncertainty.py [--cases ideal,noeffect,realistic,realistic_noskew]
-[--scenario random|iso_y|rotary|thermal] [--runs 6] [--seconds 8] [--after] [--approaches 2]``. ``--after``
-first runs ``mmd analyze`` (full pose reference, absolute) on a 60 s random run of each twin
-and judges that twin's extended model on a new run of it.
+[--scenario random|iso_y|rotary|thermal] [--runs 6] [--seconds 8] [--after] [--datum none|offset]
+[--approaches 2]``. ``--after`` first runs ``mmd analyze`` (full pose reference, absolute, or
+zeroed with ``--datum offset``) on a 60 s random run of each twin and judges that twin's
+extended model on a new run of it, also apart where every bar lies inside the lengths the fit
+saw and where one does not.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from mmd_ros.core.accuracy import pose_error
 from mmd_ros.core.device import find_config, load_device
 from mmd_ros.core.model import Model
 from mmd_ros.core.pipeline import Pipeline
+from mmd_ros.core.validity import Validity
 from mmd_ros.twin import Effects, TwinDevice, make_scenario
 from mmd_ros.twin.recording import ambient_profile
 
@@ -36,6 +39,7 @@ CASES = {
     'noeffect': ('ideal', ('read_noise_m=0',), 'constant:20'),
     'realistic': ('realistic', (), 'section_4_1'),
     'realistic_noskew': ('realistic', ('sampling_skew_s=0',), 'section_4_1'),
+    'realistic_nosag': ('realistic', ('gravity_sag_m=0',), 'section_4_1'),
 }
 SCENARIOS = {   # name: (scenario, parameters, sample rate)
     'random': ('random_motion', ('duration_s={seconds}', 'seed={k}'), None),
@@ -61,11 +65,11 @@ def judge(errors: list[np.ndarray], covs: list[np.ndarray]) -> dict:
 
 
 def run_case(device, name: str, scenario: str, runs: int, seconds: float, after: bool,
-             approaches: int = 2) -> dict:
+             approaches: int = 2, datum: str = 'none') -> dict:
     preset, effect_params, ambient = CASES[name]
     kind, params, rate = SCENARIOS[scenario]
     room = ambient_profile(ambient)
-    errors, covs, notes = [], [], []
+    errors, covs, notes, inside = [], [], [], []
     model = Model()
     for k in range(runs):
         twin = TwinDevice(device, Effects.preset(preset).with_assignments(effect_params), seed=k + 1)
@@ -73,7 +77,7 @@ def run_case(device, name: str, scenario: str, runs: int, seconds: float, after:
         start = 600.0
         if after:
             # each twin's own extended model, judged on new motion of that twin
-            model, found, start = fit(twin, room, calibration, k)
+            model, found, start = fit(twin, room, calibration, k, datum)
             notes.append(found)
         p = [v.format(seconds=seconds, k=k) for v in params]
         run = twin.simulate(make_scenario(kind, p), room, start_s=start, reference='pose6',
@@ -83,15 +87,28 @@ def run_case(device, name: str, scenario: str, runs: int, seconds: float, after:
         ok = res.valid & np.all(np.isfinite(run.true_poses), axis=1)
         errors.append(pose_error(res.poses, run.true_poses)[ok])
         covs.append(res.covariance[ok])
+        validity = Validity.from_model(model)
+        cdf = res.compensated.cdf_lengths_m[ok]
+        inside.append(np.ones(cdf.shape[0], dtype=bool) if validity is None else np.all(
+            (cdf >= validity.bar_range_m[:, 0]) & (cdf <= validity.bar_range_m[:, 1]), axis=1))
     out = {'case': name, 'scenario': scenario, 'runs': runs, 'after_analysis': after,
            'calibration_approaches': approaches, **judge(errors, covs)}
     if notes:
         out['analysis'] = '; '.join(notes)
+        out['datum'] = datum
+        # every bar inside the lengths its model's fit saw, and the rest (judged apart)
+        for key, want in (('inside_fit_range', True), ('outside_fit_range', False)):
+            parts = [(e[m == want], c[m == want]) for e, c, m in zip(errors, covs, inside)]
+            parts = [p for p in parts if p[0].shape[0]]
+            if parts:
+                r = judge([p[0] for p in parts], [p[1] for p in parts])
+                out[key] = {'ratio': r['ratio'], 'coverage': r['coverage'], 'samples': r['samples']}
     return out
 
 
-def fit(twin, room, calibration, k):
-    """mmd analyze on a 60 s random run with the full (absolute) pose reference."""
+def fit(twin, room, calibration, k, datum: str = 'none'):
+    """mmd analyze on a 60 s random run with the full pose reference, absolute (``datum``
+    'none') or zeroed (an offset per component removed, 'offset': the default for a pose)."""
     from pathlib import Path
 
     from mmd_ros.analysis.identify import AnalysisOptions, analyze
@@ -101,7 +118,7 @@ def fit(twin, room, calibration, k):
     stamps = np.round((600.0 + run.times_s) * 1e9).astype(np.int64)
     log = RunLog(Path('twin'), twin.documented_device, calibration, None, stamps, run.counts.astype(np.float64),
                  twin.device.channel_names, run.reference, metadata=run.metadata)
-    result = analyze(log, options=AnalysisOptions(datum='none'))
+    result = analyze(log, options=AnalysisOptions(datum=datum))
     found = '+'.join(f.effect for f in result.found) or 'nothing'
     return result.model or Model(), found, 700.0
 
@@ -113,6 +130,9 @@ def main() -> None:
     parser.add_argument('--runs', type=int, default=6)
     parser.add_argument('--seconds', type=float, default=8.0)
     parser.add_argument('--after', action='store_true')
+    parser.add_argument('--datum', default='none', choices=('none', 'offset'),
+                        help='with --after: the fit\'s reference absolute (none, default) or zeroed '
+                        '(offset, mmd analyze\'s default for a pose)')
     parser.add_argument('--approaches', type=int, default=2, choices=(1, 2),
                         help='the twin\'s calibration: 2 two-sided with the drift read (default), 1 '
                         'the paper\'s routine')
@@ -121,13 +141,18 @@ def main() -> None:
     results = []
     for name in args.cases.split(','):
         t0 = time.perf_counter()
-        r = run_case(device, name, args.scenario, args.runs, args.seconds, args.after, args.approaches)
+        r = run_case(device, name, args.scenario, args.runs, args.seconds, args.after, args.approaches,
+                     args.datum)
         r['seconds'] = round(time.perf_counter() - t0, 1)
         results.append(r)
         print(f'{name:17s} {args.scenario:8s} ratio ' + ' '.join(f'{v:.2f}' for v in r['ratio'])
               + f'   ellipsoid {100 * r["coverage"]:.1f} % (runs '
               + ' '.join(f'{100 * v:.0f}' for v in r['coverage_per_run']) + ')'
               + (f'   [{r["analysis"]}]' if 'analysis' in r else ''), flush=True)
+        for key in ('inside_fit_range', 'outside_fit_range'):
+            if key in r:
+                print(f'  {key:17s} ratio ' + ' '.join(f'{v:.2f}' for v in r[key]['ratio'])
+                      + f'   ellipsoid {100 * r[key]["coverage"]:.1f} % ({r[key]["samples"]} samples)')
     print(json.dumps({'benchmark': 'uncertainty', 'results': results}))
 
 

@@ -23,6 +23,7 @@ from mmd_ros.core.calibration import Calibration
 from mmd_ros.core.device import find_config, load_device
 from mmd_ros.core.model import FitUncertainty, Model, ModelUncertainty, load_model
 from mmd_ros.core.pipeline import Pipeline
+from mmd_ros.core.validity import Validity
 from mmd_ros.core.uncertainty import (
     InterpolationError, NoiseEstimator, averaged_quantisation_var, capture_var, dither_var,
     fit_interpolation_error, quantisation_cross_cov, read_noise_from_dither, two_sided_figures,
@@ -172,8 +173,10 @@ def test_latch_skew_is_sized_from_the_terminal_s_stated_bound(realistic):
 def test_a_fit_s_residual_stands_only_where_the_fit_saw_the_bars(realistic):
     """A fit whose residual replaced the calibration-derived sources: inside the lengths it saw
     (its validity record) they are gone; a bar outside gets them back, plus the square of the
-    length terms' correction there (an extrapolation no data checked). A friction term does
-    not know a bar's state before it has moved: the budget keeps h^2 for it, without bias."""
+    square of how far the length terms' correction moved from its value at the nearest
+    length the fit saw (an extrapolation no data checked). A friction term does not know a
+    bar's state before it has moved: the budget keeps h^2 / 3 for it (a state anywhere in
+    [-1, 1]), decaying as exp(-2 path / travel), without bias."""
     from mmd_ros.core.model import FIT_REPLACEABLE, HysteresisTerm
     from mmd_ros.core.terms import ScaleNonlinearityTerm
     _, _, calibration, run = realistic
@@ -200,13 +203,18 @@ def test_a_fit_s_residual_stands_only_where_the_fit_saw_the_bars(realistic):
     unchecked = parts['unchecked_range'][:, range(6), range(6)]
     from mmd_ros.core.model import TermContext
     n = x.shape[0]
-    c = term.correction(TermContext(np.zeros(n), np.zeros((n, 8)), x, x + th.bar_error_m,
-                                    th.reference_error_m, th.temp_change_c))
+    cdf = x + th.bar_error_m
+    edge = np.maximum(cdf, (mid - 1e-3)[None])
+    c = (term.correction(TermContext(np.zeros(n), np.zeros((n, 8)), x, cdf, th.reference_error_m,
+                                     th.temp_change_c))
+         - term.correction(TermContext(np.zeros(n), np.zeros((n, 8)), x, edge,
+                                       th.reference_error_m, th.temp_change_c)))
     np.testing.assert_allclose(unchecked[below], c[below] ** 2)
-    assert np.all(unchecked[~below] == 0)
-    # the friction state before a bar's first move: h^2, no known error
+    assert np.all(unchecked[~below] == 0) and np.any(unchecked[below] > 0)
+    # the friction state before a bar's first move: h^2 / 3, no known error; forgotten at
+    # exp(-2 path / travel) as the bar moves
     h = parts['hysteresis'][:, range(6), range(6)]
-    assert np.allclose(h[0], 0.2e-6 ** 2) and np.all(h >= 0) and np.all(h[-1] < h[0])
+    assert np.allclose(h[0], 0.2e-6 ** 2 / 3) and np.all(h >= 0) and np.all(h[-1] < 1e-3 * h[0])
     assert 'hysteresis' not in budget.sources(x, th.reference_error_m, th.temp_change_c,
                                               th.bar_error_m, observed=observed)[1]
     # the streaming sum equals the sum of the sources
@@ -324,7 +332,8 @@ def _after_the_loop(tmp_path, seed: int, fit_s: float = 60.0):
     twin = TwinDevice(DEVICE, Effects.realistic(), seed=seed)
     room = ambient_profile('section_4_1')
     calibration = twin.calibrate(0.0, room, approaches=2)
-    errors, covs = [], []
+    errors, covs, inside = [], [], []
+    bars = Validity.from_model(model).bar_range_m
     for k in range(3):
         run = twin.simulate(make_scenario('random_motion', ['duration_s=4', f'seed={10 * seed + k}']),
                             room, start_s=700.0 + 20 * k, reference='pose6')
@@ -332,7 +341,9 @@ def _after_the_loop(tmp_path, seed: int, fit_s: float = 60.0):
             run.times_s, run.counts, with_covariance=True)
         errors.append(pose_error(res.poses, run.true_poses)[res.valid])
         covs.append(res.covariance[res.valid])
-    return result, model, errors, covs, log
+        cdf = res.compensated.cdf_lengths_m[res.valid]
+        inside.append(np.all((cdf >= bars[:, 0]) & (cdf <= bars[:, 1]), axis=1))
+    return result, model, (errors, covs, inside), log
 
 
 def test_after_the_loop_the_fit_s_uncertainty_is_in_the_model_and_covers(tmp_path):
@@ -340,14 +351,17 @@ def test_after_the_loop_the_fit_s_uncertainty_is_in_the_model_and_covers(tmp_pat
     parameter covariance (as one-sigma directions), the residual of every bar (the
     reference's own noise taken out) in place of the calibration-derived sources over the
     lengths the fit saw, and that range. Two twins, each judged with its own model on new
-    motion: the 95 % ellipsoid covers 93-99 % and no axis is under-stated (ratio > 0.8).
-    The issue's 0.8-1.25 is not reached: the friction state at a run's start, which the term
-    cannot know before the bar has moved, is claimed as +-h (a bar left fully turned one way
-    or the other); the twin draws it uniformly in [-h, h]. Measured today 1.26-1.96."""
+    motion: the 95 % ellipsoid covers 93-97 % and no axis is under-stated (ratio > 0.8).
+    Where every bar lies inside the lengths the fit saw (84 % of the samples), the ratio is
+    within 0.8-1.35 (measured 0.88-1.27). The issue's upper 1.25 is not reached over all
+    samples (measured 0.99-1.43, y and pitch highest): the rest take a bar outside those
+    lengths, where the calibration-derived sources come back in full and the length terms'
+    extrapolation is claimed as large as its change from the last length the fit checked
+    (unchecked_range): conservative there (up to 3.0)."""
     from mmd_ros.core.model import FIT_REPLACEABLE
-    errors, covs = [], []
+    errors, covs, inside = [], [], []
     for seed in (1, 2):
-        result, model, e, c, log = _after_the_loop(tmp_path, seed)
+        result, model, (e, c, m), log = _after_the_loop(tmp_path, seed)
         assert 'sampling_skew' in [f.effect for f in result.found]
         fit = model.uncertainty.fit
         assert fit is not None and fit.directions and fit.replaces == tuple(FIT_REPLACEABLE)
@@ -356,6 +370,7 @@ def test_after_the_loop_the_fit_s_uncertainty_is_in_the_model_and_covers(tmp_pat
         assert 'length_sigma_um' not in model.to_yaml()
         errors += e
         covs += c
+        inside += m
     # a residual with an offset removed per component lacks the constant error: no replacing
     from mmd_ros.analysis.identify import AnalysisOptions, analyze
     from mmd_ros.logs.layout import read_run
@@ -365,8 +380,14 @@ def test_after_the_loop_the_fit_s_uncertainty_is_in_the_model_and_covers(tmp_pat
     ratio = np.sqrt(np.mean(np.diagonal(c, axis1=1, axis2=2), axis=0)) / np.sqrt(np.mean(e * e, axis=0))
     d2 = np.einsum('ni,ni->n', e, np.linalg.solve(c, e[:, :, None])[:, :, 0])
     print('after the loop: ratio', np.round(ratio, 2), 'coverage', np.mean(d2 <= LIMIT))
-    assert np.all((ratio > 0.8) & (ratio < 2.5)), ratio
-    assert 0.93 <= np.mean(d2 <= LIMIT) <= 0.99, np.mean(d2 <= LIMIT)
+    assert np.all((ratio > 0.8) & (ratio < 1.6)), ratio
+    assert 0.93 <= np.mean(d2 <= LIMIT) <= 0.97, np.mean(d2 <= LIMIT)
+    m = np.concatenate(inside)
+    assert 0.5 < m.mean() < 1.0, m.mean()
+    ratio_in = (np.sqrt(np.mean(np.diagonal(c[m], axis1=1, axis2=2), axis=0))
+                / np.sqrt(np.mean(e[m] * e[m], axis=0)))
+    print('inside the fit\'s lengths:', round(float(m.mean()), 3), 'ratio', np.round(ratio_in, 2))
+    assert np.all((ratio_in > 0.8) & (ratio_in < 1.35)), ratio_in
 
 
 # -- mmd process reports it -------------------------------------------------------------------
@@ -446,3 +467,38 @@ def test_compiled_friction_travel_equals_python():
         np.testing.assert_array_equal(a, b)
     state, settled = results[1][0], results[1][1]
     assert state.min() == -1.0 and state.max() == 1.0 and settled[-1].min() == 1.0
+
+
+def test_the_friction_start_state_claim_follows_dahl_s_law(realistic):
+    """A friction term starts a run from state 0; the bar's true state is anywhere in [-1, 1].
+    Along a real motion, Monte Carlo over start states drawn in [-1, 1] through the term's own
+    Dahl law: the variance of the term's error, h^2 var(s_true - s_term), is what the budget
+    claims, h^2 / 3 exp(-2 path / travel), at the start and as the bar moves."""
+    from mmd_ros.core.terms import FrictionTerm, friction_state
+    _, _, calibration, run = realistic
+    comp = Pipeline(DEVICE, calibration).compensate(run.times_s, run.counts)
+    x = comp.cdf_lengths_m[:1500]
+    travel, deadband, h = 4e-6, 50e-9, 0.3e-6
+    term = FrictionTerm(np.full(6, h), travel, deadband)
+    budget = LengthBudget(DEVICE, calibration, Model(terms=[term]))
+    th = comp.thermal
+    observed = budget.observe(x, th.reference_error_m[:1500], run.times_s[:1500])
+    claimed = budget.variances(comp.lengths_m[:1500], th.reference_error_m[:1500],
+                               th.temp_change_c[:1500], th.bar_error_m[:1500],
+                               observed=observed)['hysteresis'][:, range(6), range(6)]
+    model_s, _ = friction_state(x, travel, deadband, None)
+    rng = np.random.default_rng(3)
+    diffs = []
+    for s0 in rng.uniform(-1.0, 1.0, (400, 6)):
+        start = (x[0].copy(), np.zeros(6), x[0].copy(), s0)
+        true_s, _ = friction_state(x, travel, deadband, start)
+        diffs.append(true_s - model_s)
+    amp = budget.hysteresis_m        # the larger of the term's and the calibration's h
+    assert np.all(amp >= h)
+    mc = amp ** 2 * np.mean(np.square(diffs), axis=0)           # (N, 6)
+    moving = claimed > 1e-3 * claimed[0]
+    assert np.allclose(claimed[0], amp ** 2 / 3)
+    assert moving.any() and (~moving).any()      # the bars forget their start within the run
+    # 400 draws: the variance of a mean square of uniform draws is known to about 5 %
+    np.testing.assert_allclose(mc[moving], claimed[moving], rtol=0.15)
+    assert np.all((mc <= 2e-3 * claimed[0])[~moving])

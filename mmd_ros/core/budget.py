@@ -40,7 +40,8 @@ from mmd_ros.core.uncertainty import (
 )
 from mmd_ros.core.validity import Validity
 
-__all__ = ['DIRECTION_TRAVEL_M', 'FRICTION_TURNOVER_M', 'LengthBudget', 'Observed', 'SOURCES']
+__all__ = ['DIRECTION_TRAVEL_M', 'FRICTION_FORGET_TRAVELS', 'FRICTION_START_VAR', 'FRICTION_TURNOVER_M',
+           'LengthBudget', 'Observed', 'SOURCES']
 
 FloatArray = NDArray[np.float64]
 
@@ -57,6 +58,14 @@ LENGTH_TERMS = ('scale_nonlinearity', 'cdf_offsets')
 #: Travel after a reversal by which a bar's friction state has turned over (an assumption:
 #: rolling guides turn within a few um; the calibration does not measure it) [m].
 FRICTION_TURNOVER_M = 20e-6
+#: Variance of the friction state at a run's start, in units of h^2: the state is known only
+#: to lie in [-1, 1] (the history before the run is not recorded), a rectangular distribution
+#: (GUM 4.3.7), so its variance is 1/3.
+FRICTION_START_VAR = 1.0 / 3.0
+#: A compensating term's state error after a path p since the run began is the start state's
+#: times exp(-p / travel) (Dahl's law contracts two states at that rate); the budget follows the
+#: path up to this many travels (what is left of the variance there, exp(-2 x 10), is nothing).
+FRICTION_FORGET_TRAVELS = 10.0
 
 
 @dataclass
@@ -92,9 +101,9 @@ class Observed:
         turned since the last reversal, min(1, travel / FRICTION_TURNOVER_M)
     velocity_m_s : (N, 6) — each bar's speed of lengthening, a backward difference of its CDF
         length (0 where not known) [m/s]
-    settled : (N, 6) — how far each bar's friction state has turned since the run began,
-        min(1, travel / turnover): 0 before its first move (the state a compensating term
-        cannot know yet), 1 once it has travelled the turnover
+    settled : (N, 6) — how far each bar has travelled since the run began, min(1, path /
+        turnover): 0 before its first move (the state a compensating term cannot know yet);
+        with a compensating term the turnover is FRICTION_FORGET_TRAVELS of its travel
     """
 
     read_noise_m: FloatArray
@@ -309,10 +318,17 @@ class LengthBudget:
             amplitude = np.abs(np.asarray(getattr(term, 'amplitude_m', np.zeros(6)), dtype=np.float64))
             h = np.maximum(h, amplitude if amplitude.shape == (6,) else 0.0)
         self.hysteresis_m = h
-        # (a compensating term's own turnover travel, where longer, is how far a bar must move
-        # before the term knows its state)
-        turnover = max([FRICTION_TURNOVER_M] + [float(getattr(t, 'travel_m', 0.0)) for t in friction])
-        self._direction = _Friction(DIRECTION_TRAVEL_M, turnover)
+        # (a compensating term starts from state 0, the start state's mean; its error is the
+        # start state times exp(-path / travel), its own travel: the Dahl state's turn-over, or
+        # a relay's play half-width; the path counted through the term's own play)
+        travel = max([float(getattr(t, 'travel_m', 0.0)) for t in friction] or [0.0])
+        if friction and travel > 0.0:
+            self.friction_travel_m = travel
+            deadband = min(float(getattr(t, 'deadband_m', DIRECTION_TRAVEL_M)) for t in friction)
+            self._direction = _Friction(deadband, FRICTION_FORGET_TRAVELS * travel)
+        else:
+            self.friction_travel_m = FRICTION_TURNOVER_M
+            self._direction = _Friction(DIRECTION_TRAVEL_M, FRICTION_TURNOVER_M)
 
         # -- the terminal's latch skew (its datasheet), unless a fitted term compensates it
         skew = device.latch_skew_s
@@ -534,16 +550,24 @@ class LengthBudget:
 
     def _unchecked(self, x: FloatArray, bar_error_m: FloatArray, eps: FloatArray,
                    temp_change_c: FloatArray) -> FloatArray:
-        """The unchecked_range source, (N, 6) [m^2]: the square of the length-dependent terms'
-        correction of a bar whose CDF length lies outside the lengths the fit saw, else 0."""
+        """The unchecked_range source, (N, 6) [m^2]: for a bar whose CDF length lies outside the
+        lengths the fit saw, the square of how far the length-dependent terms' correction has
+        moved from its value at the nearest length the fit saw (the residual checked the
+        correction there; what it does beyond, no data checked), else 0."""
         n = x.shape[0]
         cdf = x + bar_error_m       # before the thermal compensation (the terms' shift is small)
-        ctx = TermContext(np.zeros(n), np.zeros((n, 8)), x, cdf, eps,
-                          np.broadcast_to(np.asarray(temp_change_c, dtype=np.float64), (n,)))
-        c = sum(term.correction(ctx) for term in self._length_terms)
         lo, hi = self._fitted_range_m[:, 0], self._fitted_range_m[:, 1]
+        temp = np.broadcast_to(np.asarray(temp_change_c, dtype=np.float64), (n,))
+
+        def correction(lengths: FloatArray) -> FloatArray:
+            ctx = TermContext(np.zeros(n), np.zeros((n, 8)), x, lengths, eps, temp)
+            return sum(term.correction(ctx) for term in self._length_terms)
+
         with np.errstate(invalid='ignore'):
             out = (cdf < lo) | (cdf > hi)
+        if not out.any():
+            return np.zeros((n, 6))
+        c = correction(cdf) - correction(np.clip(cdf, lo, hi))
         return np.where(out, c * c, 0.0)
 
     def _hysteresis(self, n: int, observed: Observed | None
@@ -552,17 +576,19 @@ class LengthBudget:
         compensates it) and its variance (N, 6) [m^2]; None when it is off.
 
         Uncompensated: -h s and h^2 (1 - s^2), s the friction state as far as the motion tells
-        (scaled by what a fit kept of it). Compensated: h^2 (1 - r^2) only, r how far the bar
-        has travelled since the run began (``Observed.settled``): the state the term cannot know
-        before the bar has moved (each run starts with it unknown; a fit's residual does not
-        replace it).
+        (scaled by what a fit kept of it). Compensated: h^2 / 3 exp(-2 p / travel) only, p the
+        path the bar has travelled since the run began (``Observed.settled`` = p / (10 travel)):
+        the term starts from state 0, the true start state is anywhere in [-1, 1] (variance
+        1/3), and Dahl's law forgets the difference at exp(-p / travel) (each run starts with
+        it unknown; a fit's residual does not replace it).
         """
         if not self._has_hysteresis:
             return None
         if self.friction_compensated:
             settled = (np.zeros((n, 6)) if observed is None or observed.settled is None
                        else observed.settled)
-            return None, self.hysteresis_m ** 2 * (1.0 - settled * settled)
+            return None, (self.hysteresis_m ** 2 * FRICTION_START_VAR
+                          * np.exp(-2.0 * FRICTION_FORGET_TRAVELS * settled))
         kept = self._kept('hysteresis')
         if not kept:
             return None

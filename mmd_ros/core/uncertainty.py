@@ -26,7 +26,9 @@ source                     contribution to Sigma_d                              
                            term Eq. 13 drops)
 ``thermal_mismatch``       (f eps_i)^2 (bars' thermal behaviour, section 4.1)          no
 ``hysteresis``             known error -h_i s_i(t) (friction, measured by the          yes
-                           two-sided calibration; off when the model compensates it)
+                           two-sided calibration); when a model term compensates it,
+                           h_i^2 / 3 exp(-2 p_i / travel): the start state it cannot
+                           know (rectangular in [-1, 1]), forgotten along the path p_i
 ``fitted_terms``           sum_k c_k c_k^T, c_k one sigma of the fitted correction     yes
                            along a principal direction
 ``residual``               what ``mmd analyze`` left, per bar (6 x 6)                  yes
