@@ -208,6 +208,39 @@ def test_the_other_table_axis_play_is_inside_the_uncertainty():
     assert abs(ec0a['turned'].value + 9 * ARCSEC) <= ec0a['turned'].expanded
 
 
+def test_the_other_table_axis_play_is_taken_out_where_its_side_is_known():
+    """ISO 230-2 reversal of the other table axis, corrected rather than carried: C (B = 4″)
+    was last moved in - before the linear runs and in + before the A run, as the joint states
+    say; the A run's table then stands turned by B about C's line against the frame. The
+    analysis takes that turn out (C's reversal from its own run), so EC0A comes out as without
+    play, and its U no longer holds ± B; with only the A run's side known, half of it. The
+    report says what was taken out."""
+    machine = load_machine('machine_xyzac.yaml')
+    truth = zero_truth(machine)
+    truth.rotary['A'] = replace(truth.rotary['A'], position=np.array([0, 8 * UM, -6 * UM]),
+                                orientation=np.array([0, 7 * ARCSEC, -9 * ARCSEC]))
+    truth.rotary['C'] = replace(truth.rotary['C'], reversal=4 * ARCSEC)
+    twin = TwinMachine(machine, truth, MmdSetup.draw(machine, 3))
+    plans = _plans(machine)
+    options = IdentifyOptions(draws=40, component_m=0.1 * UM, component_rad=0.1 * ARCSEC)
+    before_a = {'X': {'C': -1.0}, 'Y': {'C': -1.0}, 'Z': {'C': -1.0}, 'A': {'C': 1.0}}
+    ec0a = {}
+    for label, resting, known in (('unknown', before_a, False), ('run side', {'A': {'C': 1.0}}, True),
+                                  ('both sides', before_a, True)):
+        runs = exact_runs(twin, plans, sigma=0.02 * UM, rng=np.random.default_rng(2), resting=resting,
+                          known_rest=known)
+        result = identify(runs, machine, options=options)
+        ec0a[label] = result.value('EC0A')
+        assert abs(ec0a[label].value + 9 * ARCSEC) <= ec0a[label].expanded, label
+    assert abs(ec0a['unknown'].value + 9 * ARCSEC) > 3 * ARCSEC          # turned by B, not taken out
+    for label in ('run side', 'both sides'):
+        assert abs(ec0a[label].value + 9 * ARCSEC) < 0.2 * ARCSEC, label
+    assert ec0a['both sides'].expanded < 0.3 * ec0a['unknown'].expanded
+    assert ec0a['run side'].expanded < 0.6 * ec0a['unknown'].expanded
+    note = next(n for n in result.play if n.startswith('A run: C'))
+    assert 'on the + side' in note and 'on the - side during the frame' in note and '4.00″' in note
+
+
 # -- whole sessions through the MMD -----------------------------------------------------------
 def _simulate(tmp: Path, name: str, params: list[str], effects: str = 'ideal',
               ambient: str = 'constant:20.0') -> Path:
@@ -346,6 +379,8 @@ def test_outputs_report_tables_and_round_trip(ideal):
     assert back.value('EY0C').value == pytest.approx(ideal['result'].value('EY0C').value)
     assert back.value('EY0C').expanded == pytest.approx(ideal['result'].value('EY0C').expanded)
     assert linuxcnc_table(back, 'X') == linuxcnc_table(ideal['result'], 'X')
+    # where the other table axis' play stood during each rotary run, in the report and back
+    assert ideal['result'].play and back.play == ideal['result'].play and 'reversal B' in report
     assert written['volumetric_max_um']['linear axes'] > 0
 
 
@@ -384,7 +419,7 @@ def test_realistic_mmd_before_and_after_its_device_model(tmp_path):
     device_model = analyze(read_run(char), options=AnalysisOptions(datum='none')).model
     assert device_model is not None and device_model.terms and device_model.uncertainty.fit.replaces
     machine = load_machine('machine_xyzac.yaml')
-    errors, shares, worst, median_u = {}, {}, {}, {}
+    errors, shares, worst, median_u, square = {}, {}, {}, {}, {}
     for seed in (0, 1):
         params = base + [f'errors.seed={seed}', f'setup_seed={seed}']
         log = _simulate(tmp_path, f'realistic{seed}', params, effects='realistic', ambient='section_4_1')
@@ -403,7 +438,8 @@ def test_realistic_mmd_before_and_after_its_device_model(tmp_path):
             motions = [r for r in rows if r[0][3] != '0']
             errors[key] = np.sqrt(np.mean([(v - t) ** 2 for _, v, t, _, unit in motions if unit == 'm']))
             median_u[key] = float(np.median([u for _, _, _, u, unit in motions if unit == 'm']))
-    print('within U', shares, 'RMS error', errors, 'median U', median_u,
+            square[key] = [abs(v - t) / u for n, v, t, u, _ in rows if n in truth['squareness']]
+    print('within U', shares, 'RMS error', errors, 'median U', median_u, 'squareness |error|/U', square,
           'worst', {k: abs(w[1] - w[2]) / w[3] for k, w in worst.items()})
     for seed in (0, 1):
         b, a = ('before', seed), ('after', seed)
@@ -413,6 +449,37 @@ def test_realistic_mmd_before_and_after_its_device_model(tmp_path):
         assert errors[a] < 0.6 * errors[b], errors
         # the uncertainty shrinks with the error (measured today: 1.4 -> 0.2 µm)
         assert median_u[a] < 0.5 * median_u[b], median_u
+    # squareness after the model within U; before it, this device's EA0Z (the same MMD error in
+    # both sessions) is 1.2 U off: its one-sided calibration does not size the bars' friction,
+    # and the budget says so (its notes)
+    assert all(r <= 1.0 for k, v in square.items() if k[0] == 'after' for r in v), square
+    assert all(r <= 1.5 for v in square.values() for r in v), square
+
+
+def test_squareness_under_the_realistic_mmd_is_covered(tmp_path):
+    """Four devices and machines (realistic MMD, the paper's one-sided calibration, the log's
+    model): every squareness within its U. The MMD's error along a linear run follows its bar
+    lengths (CDF points and the scale between them, the bars' friction): it repeats from cycle
+    to cycle and changes smoothly along the run, so averaging targets does not shrink it. The
+    analysis draws it once more as one trend over the run with each target's covariance
+    (identify._draws), through a symmetric square root so that the trend stays one trend where
+    the targets' covariances differ (an eigenvector root, as before, turned it into an
+    independent draw per target: 6 of 9 covered, worst 1.9 U)."""
+    machine = load_machine('machine_xyzac.yaml')
+    ratios = []
+    for seed in range(4):
+        params = ['machine_file=machine_xyzac.yaml'] + FAST + [f'errors.seed={seed}', f'setup_seed={seed}']
+        path = tmp_path / f's{seed}.mcap'
+        simulate_to_log(SimulationSpec(scenario='machine_session', scenario_params=tuple(params),
+                                       effects='realistic', seed=seed, ambient='section_4_1',
+                                       sample_rate_hz=200.0), path, progress=False)
+        scenario = make_scenario('machine_session', params)
+        truth = session_truth(scenario.machine(), scenario.plans(machine))['squareness']
+        result = analyze_session([path], machine, SessionOptions(identify=IdentifyOptions(draws=40)))
+        ratios += [abs(v.value - truth[v.name]) / v.expanded for v in result.squareness]
+    ratios = np.array(ratios)
+    print('squareness |error|/U', np.round(ratios, 2))
+    assert ratios.size == 12 and np.mean(ratios <= 1.0) >= 11 / 12 and ratios.max() <= 1.5, ratios
 
 
 # -- the second configuration, end to end through the command line -----------------------------
