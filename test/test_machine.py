@@ -184,18 +184,23 @@ def test_location_uncertainty_covers_the_truth_across_machines():
         assert r.size == 32 and np.mean(r <= 1.0) >= 0.95 and r.max() <= 1.5, (label, r.max())
 
 
-def test_the_other_table_axis_play_is_inside_the_uncertainty():
-    """C has a reversal of 4″; during the linear runs it rests mid-play, during the A run at one
-    side of it (where its last move left it): the table, and with it the A run's motion, is
-    turned 2″ about C's line against the frame. The A location errors move by that much, and
-    their uncertainty (which draws the other table axis' play within its reversal) covers it."""
+def _play_twin():
+    """A machine whose A axis is located off its nominal line (EC0A = -9″) and whose C axis has
+    a reversal of 4″, the plates askew: (machine, twin, plans)."""
     machine = load_machine('machine_xyzac.yaml')
     truth = zero_truth(machine)
     truth.rotary['A'] = replace(truth.rotary['A'], position=np.array([0, 8 * UM, -6 * UM]),
                                 orientation=np.array([0, 7 * ARCSEC, -9 * ARCSEC]))
     truth.rotary['C'] = replace(truth.rotary['C'], reversal=4 * ARCSEC)
-    twin = TwinMachine(machine, truth, MmdSetup.draw(machine, 3))
-    plans = _plans(machine)
+    return machine, TwinMachine(machine, truth, MmdSetup.draw(machine, 3)), _plans(machine)
+
+
+def test_the_other_table_axis_play_is_inside_the_uncertainty():
+    """C has a reversal of 4″; during the linear runs it rests mid-play, during the A run at one
+    side of it (where its last move left it): the table, and with it the A run's motion, is
+    turned 2″ about C's line against the frame. The A location errors move by that much, and
+    their uncertainty (which draws the other table axis' play within its reversal) covers it."""
+    machine, twin, plans = _play_twin()
     rng = np.random.default_rng(2)
     still = exact_runs(twin, plans, sigma=0.02 * UM, rng=rng)
     turned = exact_runs(twin, plans, sigma=0.02 * UM, rng=np.random.default_rng(2), resting={'A': {'C': 1.0}})
@@ -215,13 +220,7 @@ def test_the_other_table_axis_play_is_taken_out_where_its_side_is_known():
     analysis takes that turn out (C's reversal from its own run), so EC0A comes out as without
     play, and its U no longer holds ± B; with only the A run's side known, half of it. The
     report says what was taken out."""
-    machine = load_machine('machine_xyzac.yaml')
-    truth = zero_truth(machine)
-    truth.rotary['A'] = replace(truth.rotary['A'], position=np.array([0, 8 * UM, -6 * UM]),
-                                orientation=np.array([0, 7 * ARCSEC, -9 * ARCSEC]))
-    truth.rotary['C'] = replace(truth.rotary['C'], reversal=4 * ARCSEC)
-    twin = TwinMachine(machine, truth, MmdSetup.draw(machine, 3))
-    plans = _plans(machine)
+    machine, twin, plans = _play_twin()
     options = IdentifyOptions(draws=40, component_m=0.1 * UM, component_rad=0.1 * ARCSEC)
     before_a = {'X': {'C': -1.0}, 'Y': {'C': -1.0}, 'Z': {'C': -1.0}, 'A': {'C': 1.0}}
     ec0a = {}
