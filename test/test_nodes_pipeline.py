@@ -173,7 +173,7 @@ def test_calibrate_measure_record_and_replay(tmp_path):
         # what the nodes computed and published (their count, not what this subscriber got) ...
         # (a deadline for a loaded machine: fk_node may still be working through its queue)
         assert client.wait_for(lambda: int(kin()['poses_published']) - published_before >= n_valid, 120), \
-            (kin(), n_valid, published_before, comp())
+            (kin(), n_valid, published_before, comp(), replay)
         time.sleep(1.0)
         assert int(kin()['poses_published']) - published_before == n_valid, (kin(), published_before, n_valid)
         # ... and, through the batched stream, every one of those poses, equal to mmd process

@@ -166,6 +166,17 @@ class Compensator:
             self.problem = ('the terminal\'s counters were reset: waiting for the bars to be '
                             're-referenced (calibrate_bar)')
 
+    def new_run(self) -> None:
+        """A new run begins (a replay): its stamps restart, and nothing of the samples before
+        it (term states, the read-noise estimate, FK warm starts) carries into it, so that it is
+        computed as ``mmd process`` computes the log."""
+        with self._lock:
+            self._t0 = None
+            if self._pipeline is not None:
+                self._pipeline.reset()
+            if self._fk is not None:
+                self._fk.reset()
+
     @property
     def ready(self) -> bool:
         return self._pipeline is not None
@@ -349,6 +360,15 @@ class Kinematics:
         self.stats = _KinStats()
         self._last: _CovarianceInputs | None = None
         self._last_stamp_ns: int | None = None
+
+    def new_run(self) -> None:
+        """A new run begins (a replay): forget the warm starts, the last stamp and the budget's
+        read-noise estimate, as a fresh :class:`Kinematics` (or ``mmd process``) would start."""
+        self.fk.reset()
+        self._last_stamp_ns = None
+        self._last = None
+        if self.budget is not None:
+            self.budget.reset()
 
     def solve(self, lengths_m: FloatArray, plate_scale: FloatArray,
               reference_error_m: FloatArray | None = None, temp_change_c: FloatArray | None = None,

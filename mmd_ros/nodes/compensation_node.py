@@ -88,7 +88,7 @@ class CompensationNode(Node):
         self.inputs.subscribe(JointState, 'raw_counts', self._on_raw, qos)
         self.create_timer(FLUSH_PERIOD_S, self._flush)
         self.progress = ProgressPublisher(self, self.inputs, [self.out_lengths, self.out_thermal],
-                                          v['qos_depth'])
+                                          v['qos_depth'], on_run=self._new_run)
         self.create_subscription(String, 'calibration', self._on_calibration, LATCHED)
         self.create_subscription(Header, 'terminal/counter_reset', self._on_reset, LATCHED)
         self.create_subscription(String, 'terminal/info', self._on_terminal, LATCHED)
@@ -176,6 +176,12 @@ class CompensationNode(Node):
             return
         self.out_lengths.rows(self.rows.lengths.encode(stamps, comp.lengths_m), stamps)
         self.out_thermal.rows(self.rows.thermal.encode(stamps, comp.thermal_values()), stamps)
+
+    def _new_run(self) -> None:
+        """A replay begins: finish what came before it, then start the terms' states and the
+        run's clock afresh, as ``mmd process`` does."""
+        self._flush()
+        self.compensator.new_run()
 
     def _report(self) -> list:
         r = compensation_report(self.compensator, self.thermal_warn_c, self.model.source)

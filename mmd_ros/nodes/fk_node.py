@@ -96,7 +96,8 @@ class FkNode(Node):
         self.create_timer(FLUSH_PERIOD_S, self._flush)
         self.diagnostics = Diagnostics(self, self.out_diag, [self._report], v['diagnostics_period_s'])
         self.progress = ProgressPublisher(self, self.inputs, [self.out_pose, self.out_pose_cov,
-                                                              self.out_status], v['qos_depth'])
+                                                              self.out_status], v['qos_depth'],
+                                          on_run=self._new_run)
 
     def _on_model(self, msg: String) -> None:
         try:
@@ -157,6 +158,15 @@ class FkNode(Node):
             while len(pending) > PENDING:
                 pending.popitem(last=False)
                 self.unpaired += 1
+
+    def _new_run(self) -> None:
+        """A replay begins: finish what came before it, then start as ``mmd process`` does. A
+        sample still waiting for its partner is given up (its stamp may come again in the run)."""
+        self._flush()
+        self.unpaired += len(self._lengths) + len(self._thermal)
+        self._lengths.clear()
+        self._thermal.clear()
+        self.kinematics.new_run()
 
     def _solve(self, stamps: np.ndarray, lengths: np.ndarray, thermal: np.ndarray) -> None:
         kin = self.kinematics.solve(lengths, thermal[:, self.scale_column],

@@ -132,11 +132,15 @@ class ProgressPublisher:
 
     inputs : the stage's counted inputs; outputs : its per-sample outlets
     depth : queue depth of its inputs (a replay keeps at most half of it in flight)
+    on_run : called when a replay begins a run, before the stage says it counts for it (and so
+        before the replay sends the run's first sample): the stage starts its state afresh
     """
 
     def __init__(self, node: Node, inputs: CountedInputs, outputs: list[Outlet], depth: int,
-                 period_s: float = 0.05, heartbeat_s: float = 0.5) -> None:
+                 period_s: float = 0.05, heartbeat_s: float = 0.5,
+                 on_run: Callable[[], None] | None = None) -> None:
         self.node = node
+        self.on_run = on_run
         self.depth = int(depth)
         self.inputs = inputs
         self.outputs = outputs
@@ -164,6 +168,8 @@ class ProgressPublisher:
         """A replay begins a run: count from here."""
         if msg.data == self.run:
             return
+        if self.on_run is not None:
+            self.on_run()
         for counter in self.inputs.counters.values():
             counter.mark()
         self._published_mark = {o.topic: o.published for o in self.outputs}
