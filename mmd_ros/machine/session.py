@@ -197,15 +197,20 @@ class LogPoses:
         instrument), NaN when none of them has one."""
         if self.cov is None or self.cov_index is None:
             return np.zeros((6, 6))
-        lo, hi = np.searchsorted(self.cov_index, [sl.start, sl.stop])
-        if hi <= lo:    # a dwell shorter than the stride: the kept sample nearest its middle
-            lo = min(int(np.searchsorted(self.cov_index, (sl.start + sl.stop) // 2)), self.cov_index.size - 1)
-            hi = lo + 1
-        c = self.cov[lo:hi]
-        ok = self.valid[self.cov_index[lo:hi]] & np.all(np.isfinite(c), axis=(1, 2))
+        lo, hi = (int(i) for i in np.searchsorted(self.cov_index, [sl.start, sl.stop]))
+        rows = np.arange(lo, hi)
+        if not self._usable(rows).any():
+            # none kept inside (a stretch shorter than the stride, or its kept samples flagged):
+            # the kept samples just outside it, a stride away, still in the dwell
+            rows = np.array([i for i in (lo - 1, hi) if 0 <= i < self.cov_index.size], dtype=np.int64)
+        ok = self._usable(rows)
         if not ok.any():
             return np.full((6, 6), np.nan)
-        return pose_covariance_to_screw(at, c[ok].mean(axis=0))
+        return pose_covariance_to_screw(at, self.cov[rows[ok]].mean(axis=0))
+
+    def _usable(self, rows: NDArray[np.int64]) -> NDArray[np.bool_]:
+        """Which kept covariances (their rows in ``cov``) belong to a valid pose."""
+        return self.valid[self.cov_index[rows]] & np.all(np.isfinite(self.cov[rows]), axis=(1, 2))
 
 
 #: Pose covariances kept per second of a log (every k-th sample, k from the sample rate): a
