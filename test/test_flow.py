@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mmd_ros.core.flow import FlowControl, InputProgress, SequenceCounter, StageProgress
+from mmd_ros.core.flow import FlowControl, InputProgress, SequenceCounter, StageProgress, StampPairing
 
 RAW, LEN = '/mmd/raw_counts', '/mmd/bar_lengths'
 
@@ -129,3 +129,44 @@ def test_a_stage_that_stops_taking_while_behind_is_given_up():
         flow.note_progress(progress('/a', {RAW: InputProgress()}))  # the same, again
     assert flow.waiting_for() == [] and flow.stages['/a'].stalled  # a heartbeat is no progress
     assert '0 of 50 received, 50 lost (it stopped taking messages)' in FlowControl.describe(flow.summary())
+
+
+def test_stamp_pairing_waits_for_a_topic_thousands_of_rows_behind_and_gives_up_only_lost_ones():
+    """fk_node's lengths and thermal rows: after a busy spell one topic arrives far ahead of
+    the other (a replay at full speed: 2,504 lengths before the first thermal row). Every row
+    whose partner comes is paired, in stamp order; a row whose partner was lost is given up
+    once the other topic has gone past its stamp; a new run gives up what waits."""
+    n = 5000
+    stamps = np.arange(n, dtype=np.int64) * 1_000_000
+    lengths = np.column_stack([stamps * 1e-12, np.arange(n)]).astype(float)
+    thermal = -lengths
+    lost = {3000, 3001, 4321}                       # thermal rows lost on the way
+    keep = np.array([i not in lost for i in range(n)])
+    pairing = StampPairing(max_pending=20000)
+    got = []
+    pairing.add(0, stamps[:2504], lengths[:2504])   # a burst of lengths, no thermal yet
+    assert pairing.take() is None and len(pairing) == 2504 and pairing.unpaired == 0
+    for a in range(0, n, 8):                        # then the rest, in transfers of 8
+        if a >= 2504:
+            pairing.add(0, stamps[a:a + 8], lengths[a:a + 8])
+        rows = np.arange(a, min(a + 8, n))
+        rows = rows[keep[rows]]
+        pairing.add(1, stamps[rows], thermal[rows])
+        out = pairing.take()
+        if out is not None:
+            got.append(out)
+    s = np.concatenate([g[0] for g in got])
+    a_rows, b_rows = np.concatenate([g[1] for g in got]), np.concatenate([g[2] for g in got])
+    assert np.array_equal(s, stamps[keep])          # every row that had a partner, in order
+    assert np.array_equal(a_rows, lengths[keep]) and np.array_equal(b_rows, -a_rows)
+    assert pairing.unpaired == len(lost) and len(pairing) == 0
+    # a bound on memory when a topic stops altogether
+    small = StampPairing(max_pending=100)
+    small.add(0, stamps[:150], lengths[:150])
+    assert small.take() is None and len(small) == 100 and small.unpaired == 50
+    small.add(1, stamps[140:141], thermal[140:141])  # the thermal row of 140 pairs
+    out = small.take()
+    assert out is not None and out[0].tolist() == [stamps[140]]
+    assert small.unpaired == 140 and len(small) == 9  # and 50..139 given up, 141..149 wait
+    small.clear()
+    assert len(small) == 0 and small.unpaired == 149

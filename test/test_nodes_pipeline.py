@@ -173,7 +173,8 @@ def test_calibrate_measure_record_and_replay(tmp_path):
         # what the nodes computed and published (their count, not what this subscriber got) ...
         # (a deadline for a loaded machine: fk_node may still be working through its queue)
         assert client.wait_for(lambda: int(kin()['poses_published']) - published_before >= n_valid, 120), \
-            (kin(), n_valid, published_before, comp(), replay)
+            'poses {poses_published}, samples {samples}, out of range {out_of_range}, unpaired ' \
+            '{unpaired_samples}; '.format(**kin()) + f'offline valid {n_valid}, before {published_before}'
         time.sleep(1.0)
         assert int(kin()['poses_published']) - published_before == n_valid, (kin(), published_before, n_valid)
         # ... and, through the batched stream, every one of those poses, equal to mmd process

@@ -213,8 +213,8 @@ def test_realistic_6dof_runs_close_to_the_floor_within_run_and_on_runs_the_fit_n
     """Issue 10 section 3: three random 6-DOF runs of the realistic twin (full-pose reference),
     analysed jointly: every component of every run within 1.5 x its noise floor on held-out
     blocks, and predicted by the model fitted on the other two runs (leave-one-run-out) within
-    1.5 x where its bar lengths lie within those the other runs covered; the share outside
-    that range is reported, not hidden."""
+    1.5 x where its bar lengths lie within those the other runs covered (the share outside
+    that range is reported, not hidden) and over all its samples."""
     logs = [str(two_sided[f'pose{k}']) for k in range(3)]
     assert main(['analyze', *logs, '--json', '--quiet']) == 0
     data = json.loads(capsys.readouterr().out)
@@ -225,6 +225,9 @@ def test_realistic_6dof_runs_close_to_the_floor_within_run_and_on_runs_the_fit_n
         share = r['leave_one_run_out_in_range_share']
         assert 0.5 < share <= 1.0
         assert not above_floor(r['leave_one_run_out_after_in_range'], floor, 1.5), (r['log'], 'LORO')
+        # and over all its samples, bar lengths the other runs never reached included (5-15 %
+        # of each run here; a run a fifth outside was 2 x in a 1 kHz session, msg_docs/analysis.md)
+        assert not above_floor(r['leave_one_run_out_after'], floor, 1.5), (r['log'], 'LORO, all samples')
         # before: several times the floor, so the figure above is the loop's doing
         assert above_floor(r['leave_one_run_out_before'], floor, 5.0)
 

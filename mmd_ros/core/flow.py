@@ -12,6 +12,8 @@ subscriber with the message (``publication_sequence_number`` of rclpy's message 
   the last sequence number it took and what it received and lost since the current run began,
   per output topic what it published (in all and in the run); it travels on
   ``pipeline/progress``.
+- :class:`StampPairing`: rows of two topics of one stream (``bar_lengths`` and ``thermal``) put
+  back together by stamp, whatever the order in which the two topics arrive.
 - :class:`FlowControl`: a replay's view of the stages downstream: how many messages each one
   still has to take (published upstream minus taken), whether to wait before sending more, and
   the summary of what arrived where.
@@ -25,10 +27,15 @@ show the gap): the summary counts those as published minus received and lost.
 from __future__ import annotations
 
 import time
+from collections import OrderedDict
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
-__all__ = ['FlowControl', 'InputProgress', 'SequenceCounter', 'StageProgress', 'StageState']
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = ['FlowControl', 'InputProgress', 'SequenceCounter', 'StageProgress', 'StageState',
+           'StampPairing']
 
 
 class SequenceCounter:
@@ -79,6 +86,66 @@ class SequenceCounter:
     @property
     def run_lost(self) -> int:
         return self.lost - self._mark[1]
+
+
+class StampPairing:
+    """Rows of two per-sample topics of one stream, paired by stamp.
+
+    Each topic comes from one publisher in stamp order, but the two topics reach a subscriber
+    independently: after a busy spell one of them may arrive thousands of rows ahead of the
+    other. A row waits for its partner for as long as the partner can still come, that is
+    until the other topic has delivered a later stamp (the partner was lost on the way), or
+    until more than ``max_pending`` rows of one topic wait (a bound on memory: set it to at
+    least the subscriptions' queue depth, the most one topic can run ahead). Either way the row
+    is counted in :attr:`unpaired`.
+    """
+
+    def __init__(self, max_pending: int) -> None:
+        self.max_pending = int(max_pending)
+        self._pending: tuple[OrderedDict[int, NDArray[np.float64]], ...] = (OrderedDict(), OrderedDict())
+        self._newest: list[int | None] = [None, None]
+        self.unpaired = 0
+
+    def add(self, side: int, stamps_ns: NDArray[np.int64], rows: NDArray[np.float64]) -> None:
+        """Rows (n, k) of topic ``side`` (0 or 1) stamped ``stamps_ns`` (n,), in arrival order."""
+        pending = self._pending[side]
+        for stamp, row in zip(stamps_ns.tolist(), rows):
+            pending[stamp] = row
+        if len(stamps_ns):
+            newest = int(stamps_ns.max())
+            if self._newest[side] is None or newest > self._newest[side]:
+                self._newest[side] = newest
+
+    def take(self) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]] | None:
+        """The rows paired so far, in stamp order: (stamps (n,), rows of topic 0, rows of topic
+        1), or None; then gives up the rows whose partner can no longer come."""
+        a, b = self._pending
+        out = None
+        if a and b:
+            small, large = (a, b) if len(a) <= len(b) else (b, a)
+            both = sorted(s for s in small if s in large)
+            if both:
+                out = (np.array(both, dtype=np.int64), np.array([a.pop(s) for s in both]),
+                       np.array([b.pop(s) for s in both]))
+        for side, pending in enumerate(self._pending):
+            other = self._newest[1 - side]
+            while pending and other is not None and next(iter(pending)) < other:
+                pending.popitem(last=False)
+                self.unpaired += 1
+            while len(pending) > self.max_pending:
+                pending.popitem(last=False)
+                self.unpaired += 1
+        return out
+
+    def clear(self) -> None:
+        """A new run (its stamps start again): give up every waiting row."""
+        self.unpaired += len(self)
+        for pending in self._pending:
+            pending.clear()
+        self._newest = [None, None]
+
+    def __len__(self) -> int:
+        return sum(len(p) for p in self._pending)
 
 
 @dataclass(frozen=True)

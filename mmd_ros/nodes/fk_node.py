@@ -16,7 +16,6 @@ no pose and is counted in the diagnostics. Topics, parameters: ``msg_docs/nodes.
 from __future__ import annotations
 
 import sys
-from collections import OrderedDict
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
@@ -29,6 +28,7 @@ from std_msgs.msg import String
 from mmd_ros.core.budget import LengthBudget
 from mmd_ros.core.calibration import Calibration
 from mmd_ros.core.errors import MmdError
+from mmd_ros.core.flow import StampPairing
 from mmd_ros.core.model import Model
 from mmd_ros.logs.layout import BAR_NAMES
 from mmd_ros.nodes.common import COMMON_PARAMS, NAMESPACE, load_device_param, run
@@ -49,7 +49,8 @@ PARAMS = [
           'same for every bar [µm]; 0 takes the uncertainty budget of the calibration and model '
           '(msg_docs/frames.md)', low=1e-6, high=1e6, allow_zero=True),
 ]
-#: Samples waiting for their partner (lengths or thermal) before they are given up.
+#: Samples of one topic (lengths or thermal) that may wait for their partner, at least; the
+#: subscriptions' queue depth when larger (one topic may arrive that far ahead of the other).
 PENDING = 2000
 #: Samples solved together (a transfer of the terminal), and the longest wait for the rest [s].
 BATCH = 8
@@ -85,9 +86,7 @@ class FkNode(Node):
         self.scale_column = self.rows.thermal_names.index('plate_scale')
         self.temp_column = self.rows.thermal_names.index('temp_change')
         self.n_refs = len(refs)
-        self._lengths: OrderedDict[int, np.ndarray] = OrderedDict()
-        self._thermal: OrderedDict[int, np.ndarray] = OrderedDict()
-        self.unpaired = 0
+        self.pairing = StampPairing(max(PENDING, v['qos_depth']))
         self.inputs = CountedInputs(self)
         self.inputs.subscribe(JointState, 'bar_lengths', self._on_lengths, qos)
         self.inputs.subscribe(JointState, 'thermal', self._on_thermal, qos)
@@ -128,44 +127,27 @@ class FkNode(Node):
             self.get_logger().error(self.budget_problem)
 
     def _on_lengths(self, payload: bytes) -> None:
-        if self.in_lengths.add(payload) >= BATCH and len(self.in_thermal) >= BATCH:
+        if self.in_lengths.add(payload) >= BATCH and (len(self.in_thermal) >= BATCH or len(self.pairing)):
             self._flush()
 
     def _on_thermal(self, payload: bytes) -> None:
-        if self.in_thermal.add(payload) >= BATCH and len(self.in_lengths) >= BATCH:
+        if self.in_thermal.add(payload) >= BATCH and (len(self.in_lengths) >= BATCH or len(self.pairing)):
             self._flush()
 
     def _flush(self) -> None:
         if len(self.in_lengths):
-            for stamp, row in zip(*self.in_lengths.take()):
-                self._lengths[int(stamp)] = row
+            self.pairing.add(0, *self.in_lengths.take())
         if len(self.in_thermal):
-            for stamp, row in zip(*self.in_thermal.take()):
-                self._thermal[int(stamp)] = row
-        if not self._lengths or not self._thermal:
-            self._trim()
-            return
-        both = sorted(s for s in self._lengths if s in self._thermal)
-        if both:
-            stamps = np.array(both, dtype=np.int64)
-            lengths = np.array([self._lengths.pop(s) for s in both])
-            thermal = np.array([self._thermal.pop(s) for s in both])
-            self._solve(stamps, lengths, thermal)
-        self._trim()
-
-    def _trim(self) -> None:
-        for pending in (self._lengths, self._thermal):
-            while len(pending) > PENDING:
-                pending.popitem(last=False)
-                self.unpaired += 1
+            self.pairing.add(1, *self.in_thermal.take())
+        paired = self.pairing.take()
+        if paired is not None:
+            self._solve(*paired)
 
     def _new_run(self) -> None:
         """A replay begins: finish what came before it, then start as ``mmd process`` does. A
         sample still waiting for its partner is given up (its stamp may come again in the run)."""
         self._flush()
-        self.unpaired += len(self._lengths) + len(self._thermal)
-        self._lengths.clear()
-        self._thermal.clear()
+        self.pairing.clear()
         self.kinematics.new_run()
 
     def _solve(self, stamps: np.ndarray, lengths: np.ndarray, thermal: np.ndarray) -> None:
@@ -186,7 +168,7 @@ class FkNode(Node):
         r = kinematics_report(self.kinematics)
         if self.kinematics.with_covariance and not self.fixed_sigma and self.budget_problem:
             r.worse(WARN, self.budget_problem)
-        r.values['unpaired_samples'] = self.unpaired
+        r.values['unpaired_samples'] = self.pairing.unpaired
         r.values['foreign_messages'] = self.in_lengths.foreign + self.in_thermal.foreign
         self.inputs.report(r)
         return [r]
