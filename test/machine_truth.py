@@ -30,10 +30,13 @@ def zero_truth(machine) -> MachineTruth:
 
 def exact_runs(twin: TwinMachine, plans, cycles: int = 2, sigma: float = 0.0,
                rng: np.random.Generator | None = None,
-               resting: dict[str, dict[str, float]] | None = None) -> list[AxisRun]:
+               resting: dict[str, dict[str, float]] | None = None,
+               known_rest: bool = False) -> list[AxisRun]:
     """The approaches of the ISO cycles of ``plans`` with the twin's true poses of {U} in {L}
     (optionally with pose noise ``sigma`` [m, rad] and that covariance). ``resting``: per run
-    axis, the play state (-1 … 1) of axes that stand still during it (default 0)."""
+    axis, the play state (-1 … 1) of axes that stand still during it (default 0); with
+    ``known_rest`` their last direction of motion is the sign of that state (as joint states
+    would say; else it is not known)."""
     m = twin.machine
     out = []
     for plan in plans:
@@ -55,6 +58,8 @@ def exact_runs(twin: TwinMachine, plans, cycles: int = 2, sigma: float = 0.0,
             play = last.astype(float)
             for other, state in still.items():
                 play[:, m.index(other)] = state
+                if known_rest:   # the joint states say which side it was last moved to
+                    last[:, m.index(other)] = int(np.sign(state))
             poses = twin.mmd_poses(q, play)
             for c in range(cycles):
                 for i in range(n):

@@ -184,18 +184,23 @@ def test_location_uncertainty_covers_the_truth_across_machines():
         assert r.size == 32 and np.mean(r <= 1.0) >= 0.95 and r.max() <= 1.5, (label, r.max())
 
 
-def test_the_other_table_axis_play_is_inside_the_uncertainty():
-    """C has a reversal of 4″; during the linear runs it rests mid-play, during the A run at one
-    side of it (where its last move left it): the table, and with it the A run's motion, is
-    turned 2″ about C's line against the frame. The A location errors move by that much, and
-    their uncertainty (which draws the other table axis' play within its reversal) covers it."""
+def _play_twin():
+    """A machine whose A axis is located off its nominal line (EC0A = -9″) and whose C axis has
+    a reversal of 4″, the plates askew: (machine, twin, plans)."""
     machine = load_machine('machine_xyzac.yaml')
     truth = zero_truth(machine)
     truth.rotary['A'] = replace(truth.rotary['A'], position=np.array([0, 8 * UM, -6 * UM]),
                                 orientation=np.array([0, 7 * ARCSEC, -9 * ARCSEC]))
     truth.rotary['C'] = replace(truth.rotary['C'], reversal=4 * ARCSEC)
-    twin = TwinMachine(machine, truth, MmdSetup.draw(machine, 3))
-    plans = _plans(machine)
+    return machine, TwinMachine(machine, truth, MmdSetup.draw(machine, 3)), _plans(machine)
+
+
+def test_the_other_table_axis_play_is_inside_the_uncertainty():
+    """C has a reversal of 4″; during the linear runs it rests mid-play, during the A run at one
+    side of it (where its last move left it): the table, and with it the A run's motion, is
+    turned 2″ about C's line against the frame. The A location errors move by that much, and
+    their uncertainty (which draws the other table axis' play within its reversal) covers it."""
+    machine, twin, plans = _play_twin()
     rng = np.random.default_rng(2)
     still = exact_runs(twin, plans, sigma=0.02 * UM, rng=rng)
     turned = exact_runs(twin, plans, sigma=0.02 * UM, rng=np.random.default_rng(2), resting={'A': {'C': 1.0}})
@@ -206,6 +211,33 @@ def test_the_other_table_axis_play_is_inside_the_uncertainty():
     shift = ec0a['turned'].value - ec0a['still'].value
     assert 1.5 * ARCSEC < abs(shift) < 2.5 * ARCSEC           # the play turns the A line about z
     assert abs(ec0a['turned'].value + 9 * ARCSEC) <= ec0a['turned'].expanded
+
+
+def test_the_other_table_axis_play_is_taken_out_where_its_side_is_known():
+    """ISO 230-2 reversal of the other table axis, corrected rather than carried: C (B = 4″)
+    was last moved in - before the linear runs and in + before the A run, as the joint states
+    say; the A run's table then stands turned by B about C's line against the frame. The
+    analysis takes that turn out (C's reversal from its own run), so EC0A comes out as without
+    play, and its U no longer holds ± B; with only the A run's side known, half of it. The
+    report says what was taken out."""
+    machine, twin, plans = _play_twin()
+    options = IdentifyOptions(draws=40, component_m=0.1 * UM, component_rad=0.1 * ARCSEC)
+    before_a = {'X': {'C': -1.0}, 'Y': {'C': -1.0}, 'Z': {'C': -1.0}, 'A': {'C': 1.0}}
+    ec0a = {}
+    for label, resting, known in (('unknown', before_a, False), ('run side', {'A': {'C': 1.0}}, True),
+                                  ('both sides', before_a, True)):
+        runs = exact_runs(twin, plans, sigma=0.02 * UM, rng=np.random.default_rng(2), resting=resting,
+                          known_rest=known)
+        result = identify(runs, machine, options=options)
+        ec0a[label] = result.value('EC0A')
+        assert abs(ec0a[label].value + 9 * ARCSEC) <= ec0a[label].expanded, label
+    assert abs(ec0a['unknown'].value + 9 * ARCSEC) > 3 * ARCSEC          # turned by B, not taken out
+    for label in ('run side', 'both sides'):
+        assert abs(ec0a[label].value + 9 * ARCSEC) < 0.2 * ARCSEC, label
+    assert ec0a['both sides'].expanded < 0.3 * ec0a['unknown'].expanded
+    assert ec0a['run side'].expanded < 0.6 * ec0a['unknown'].expanded
+    note = next(n for n in result.play if n.startswith('A run: C'))
+    assert 'on the + side' in note and 'on the - side during the frame' in note and '4.00″' in note
 
 
 # -- whole sessions through the MMD -----------------------------------------------------------
@@ -346,6 +378,8 @@ def test_outputs_report_tables_and_round_trip(ideal):
     assert back.value('EY0C').value == pytest.approx(ideal['result'].value('EY0C').value)
     assert back.value('EY0C').expanded == pytest.approx(ideal['result'].value('EY0C').expanded)
     assert linuxcnc_table(back, 'X') == linuxcnc_table(ideal['result'], 'X')
+    # where the other table axis' play stood during each rotary run, in the report and back
+    assert ideal['result'].play and back.play == ideal['result'].play and 'reversal B' in report
     assert written['volumetric_max_um']['linear axes'] > 0
 
 
@@ -365,34 +399,86 @@ def test_realistic_mmd_before_and_after_its_device_model(tmp_path):
     """With the realistic effects the MMD's own errors are as large as the machine's. Before its
     model they are bounded by the pose covariance carried into every value; the model of
     `mmd analyze`, fitted on a separate characterisation of the same device (random 6-DOF motion
-    with a full reference, over the range this session then uses), removes most of them. The
-    session stays inside the characterised range: a model does not hold beyond it (issue 10)."""
-    params = ['machine_file=machine_xyzac.yaml'] + FAST + [
+    with the twin's absolute reference, `--absolute-reference`, over the range this session
+    then uses), removes most of them, and its measured residual replaces the
+    calibration-derived sources of the pose covariance: the machine analysis, which takes the
+    covariance from the same pass of the pipeline as the poses, reports uncertainties that
+    shrink with the error. Two machines (drawn errors and setups) on the same device: the
+    values stay covered after the model. The session stays inside the characterised range
+    where it can: a model does not hold beyond it (issue 10), and the bars that leave it (the
+    Z run's ends) get the unchecked-range source back."""
+    base = ['machine_file=machine_xyzac.yaml'] + FAST + [
         'linear_travel_mm=[120, 120]', 'rotary_spans_deg=[A:-6:6, C:-6:6]']
-    log = _simulate(tmp_path, 'realistic', params, effects='realistic', ambient='section_4_1')
-    machine = load_machine('machine_xyzac.yaml')
-    scenario = make_scenario('machine_session', params)
-    truth = session_truth(scenario.machine(), scenario.plans(machine))
     char = tmp_path / 'characterisation.mcap'
     simulate_to_log(SimulationSpec(scenario='random_motion', scenario_params=(
         'duration_s=30', 'radius_m=0.065', 'max_angle_rad=0.11'), effects='realistic', seed=3,
         reference='pose6'), char, progress=False)
     from mmd_ros.analysis import AnalysisOptions, analyze
     from mmd_ros.logs.layout import read_run
-    device_model = analyze(read_run(char), options=AnalysisOptions()).model
-    assert device_model is not None and device_model.terms
-    before = analyze_session([log], machine, SessionOptions(identify=IdentifyOptions(draws=60)))
-    after = analyze_session([log], machine, SessionOptions(model=device_model, model_path='mmd analyze',
-                                                           identify=IdentifyOptions(draws=60)))
-    errors, shares = {}, {}
-    for label, result in (('before', before), ('after', after)):
-        rows = [r for r in comparisons(result, truth) if r[0][3] != '0']   # error motions
-        ratio = np.array([abs(v - t) / u for _, v, t, u, _ in rows])
-        shares[label] = float(np.mean(ratio <= 1.0))
-        assert ratio.max() <= 3.0, (label, max(rows, key=lambda r: abs(r[1] - r[2]) / r[3]))
-        errors[label] = np.sqrt(np.mean([(v - t) ** 2 for _, v, t, _, unit in rows if unit == 'm']))
-    assert shares['before'] >= 0.9 and shares['after'] >= 0.9, shares
-    assert errors['after'] < 0.6 * errors['before'], errors
+    device_model = analyze(read_run(char), options=AnalysisOptions(datum='none')).model
+    assert device_model is not None and device_model.terms and device_model.uncertainty.fit.replaces
+    machine = load_machine('machine_xyzac.yaml')
+    errors, shares, worst, median_u, square = {}, {}, {}, {}, {}
+    for seed in (0, 1):
+        params = base + [f'errors.seed={seed}', f'setup_seed={seed}']
+        log = _simulate(tmp_path, f'realistic{seed}', params, effects='realistic', ambient='section_4_1')
+        scenario = make_scenario('machine_session', params)
+        truth = session_truth(scenario.machine(), scenario.plans(machine))
+        before = analyze_session([log], machine, SessionOptions(identify=IdentifyOptions(draws=60)))
+        after = analyze_session([log], machine, SessionOptions(model=device_model, model_path='mmd analyze',
+                                                               identify=IdentifyOptions(draws=60)))
+        assert 'residual' in after.model_text
+        for label, result in (('before', before), ('after', after)):
+            rows = comparisons(result, truth)
+            ratio = np.array([abs(v - t) / u for _, v, t, u, _ in rows])
+            key = (label, seed)
+            shares[key] = float(np.mean(ratio <= 1.0))
+            worst[key] = max(rows, key=lambda r: abs(r[1] - r[2]) / r[3])
+            motions = [r for r in rows if r[0][3] != '0']
+            errors[key] = np.sqrt(np.mean([(v - t) ** 2 for _, v, t, _, unit in motions if unit == 'm']))
+            median_u[key] = float(np.median([u for _, _, _, u, unit in motions if unit == 'm']))
+            square[key] = [abs(v - t) / u for n, v, t, u, _ in rows if n in truth['squareness']]
+    print('within U', shares, 'RMS error', errors, 'median U', median_u, 'squareness |error|/U', square,
+          'worst', {k: abs(w[1] - w[2]) / w[3] for k, w in worst.items()})
+    for seed in (0, 1):
+        b, a = ('before', seed), ('after', seed)
+        assert shares[b] >= 0.9 and shares[a] >= 0.95, shares
+        assert abs(worst[b][1] - worst[b][2]) <= 3.0 * worst[b][3], worst[b]
+        assert abs(worst[a][1] - worst[a][2]) <= 2.0 * worst[a][3], worst[a]
+        assert errors[a] < 0.6 * errors[b], errors
+        # the uncertainty shrinks with the error (measured today: 1.4 -> 0.2 µm)
+        assert median_u[a] < 0.5 * median_u[b], median_u
+    # squareness after the model within U; before it, this device's EA0Z (the same MMD error in
+    # both sessions) is 1.2 U off: its one-sided calibration does not size the bars' friction,
+    # and the budget says so (its notes)
+    assert all(r <= 1.0 for k, v in square.items() if k[0] == 'after' for r in v), square
+    assert all(r <= 1.5 for v in square.values() for r in v), square
+
+
+def test_squareness_under_the_realistic_mmd_is_covered(tmp_path):
+    """Four devices and machines (realistic MMD, the paper's one-sided calibration, the log's
+    model): every squareness within its U. The MMD's error along a linear run follows its bar
+    lengths (CDF points and the scale between them, the bars' friction): it repeats from cycle
+    to cycle and changes smoothly along the run, so averaging targets does not shrink it. The
+    analysis draws it once more as one trend over the run with each target's covariance
+    (identify._draws), through a symmetric square root so that the trend stays one trend where
+    the targets' covariances differ (an eigenvector root, as before, turned it into an
+    independent draw per target: 6 of 9 covered, worst 1.9 U)."""
+    machine = load_machine('machine_xyzac.yaml')
+    ratios = []
+    for seed in range(4):
+        params = ['machine_file=machine_xyzac.yaml'] + FAST + [f'errors.seed={seed}', f'setup_seed={seed}']
+        path = tmp_path / f's{seed}.mcap'
+        simulate_to_log(SimulationSpec(scenario='machine_session', scenario_params=tuple(params),
+                                       effects='realistic', seed=seed, ambient='section_4_1',
+                                       sample_rate_hz=200.0), path, progress=False)
+        scenario = make_scenario('machine_session', params)
+        truth = session_truth(scenario.machine(), scenario.plans(machine))['squareness']
+        result = analyze_session([path], machine, SessionOptions(identify=IdentifyOptions(draws=40)))
+        ratios += [abs(v.value - truth[v.name]) / v.expanded for v in result.squareness]
+    ratios = np.array(ratios)
+    print('squareness |error|/U', np.round(ratios, 2))
+    assert ratios.size == 12 and np.mean(ratios <= 1.0) >= 11 / 12 and ratios.max() <= 1.5, ratios
 
 
 # -- the second configuration, end to end through the command line -----------------------------

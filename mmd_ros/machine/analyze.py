@@ -58,12 +58,13 @@ def separation_text(result: MachineResult, options: SessionOptions) -> str:
         'scale, calibration points) before the machine is evaluated; with CDF + thermal only, '
         'those effects stay in the poses and only item 2 bounds them.\n'
         '2. Every approach carries the pose covariance the pipeline gives for its samples (the '
-        'model\'s bar-length uncertainty through the kinematics), averaged over the dwell but '
-        'not divided by the number of samples: it stands for the MMD\'s systematic error at '
-        'that pose, which a dwell does not average out. It is drawn independently between '
-        'targets and once more as a trend along each run (a trend is what would pass for '
-        'squareness or location), and enters every identified error through the Monte Carlo '
-        f'draws (the "MMD part").{bound}\n'
+        'model\'s bar-length uncertainty budget through the kinematics, from the same pass over '
+        'the log as the poses), averaged over the dwell but not divided by the number of '
+        'samples: it stands for the MMD\'s systematic error at that pose, which a dwell does '
+        'not average out. It is drawn independently between targets and once more as one '
+        'trend along each run (the MMD\'s error follows the bar lengths and repeats from cycle '
+        'to cycle; a trend is what would pass for squareness or location), and enters every '
+        f'identified error through the Monte Carlo draws (the "MMD part").{bound}\n'
         '3. The repeatability between the cycles (machine and MMD together) adds the statistical '
         'part.\n'
         '4. The plates\' setup (where {L} sits on the table, {U} on the spindle) is not a machine '
@@ -78,6 +79,13 @@ def _model_text(options: SessionOptions, log_model: Model | None) -> str:
         what = 'CDF + thermal only (no device model)'
     else:
         what = f'a device model of {len(model.terms)} term(s) ({", ".join(t.type_name for t in model.terms)})'
+        fit = model.uncertainty.fit
+        if fit is not None and fit.replaces:
+            what += '; its measured residual in place of the calibration-derived sources'
+        elif fit is not None:
+            what += ('; fitted with an offset per component removed, so the calibration-derived '
+                     'sources stay in the pose covariance (characterise with an absolute reference, '
+                     '`mmd analyze --absolute-reference`, for it to shrink)')
     where = options.model_path or ('the given model' if options.model is not None else "the log's model")
     return f'{where}: {what}' if model is not None else what
 

@@ -247,10 +247,19 @@ class _Session:
         self.loo: dict[str, FloatArray] = {}
         self.rng = np.random.default_rng(0)
         self.draw_interpolation = False
-        #: workpiece-side rotary axis -> its reversal at the reference [rad] (set after the
-        #: nominal evaluation): where it stands during another rotary run depends on the side
-        #: it was last approached from, which need not be the side of the linear runs
-        self.play: dict[str, float] = {}
+        #: workpiece-side rotary axis -> its reversal B at the reference (ISO 230-2, the
+        #: positioning error approached from + minus from -) [rad] and its standard
+        #: uncertainty (set after the nominal evaluation): where it stands during another
+        #: rotary run depends on the side it was last approached from, which need not be the
+        #: side of the linear runs
+        self.play: dict[str, tuple[float, float]] = {}
+        #: (run, other rotary axis) -> the side of its play the other axis rests at during the
+        #: run (+1, -1; 0: not known), from the joint states' or the program's last directions
+        self.rest = {(n, a.name): _rest_side([means[n]], machine.index(a.name))
+                     for n in self.rotary for a in machine.rotary_axes if a.name != n}
+        #: other rotary axis -> its side during the runs that define the frame (0: not known)
+        self.rest_frame = {a.name: _rest_side([means[f] for f in self.frame_axes if f in means],
+                                              machine.index(a.name)) for a in machine.rotary_axes}
 
     # -- frame and linear axes -------------------------------------------------------------------
     def _frame(self, slopes_l: dict[str, FloatArray]) -> FloatArray:
@@ -333,8 +342,7 @@ class _Session:
         g_ref = transform(*reversed(_reference(mean, p, r)))
         t_wl = transform(frame, fp + shift - frame @ _reference(mean, p, r)[0])
         meas = t_wl @ g @ inverse(g_ref) @ inverse(t_wl)
-        if self.draw_interpolation:   # a Monte Carlo draw: the other table axes' play
-            meas = self._play_draw(name, meas)
+        meas = self._other_play(name, meas)
         q = mean.q.reshape(-1, mean.q.shape[-1])
         dirs = mean.dirs.reshape(-1, mean.dirs.shape[-1])
         ref = mean.ref
@@ -415,18 +423,42 @@ class _Session:
             min(res[:, 0, 3 + c].min(), res[:, 1, 3 + c].min())
         out[f'{name}/figure'] = fig
 
-    def _play_draw(self, name: str, meas: FloatArray) -> FloatArray:
-        """The measured motion (..., 4, 4) seen with each other workpiece-side rotary axis
-        turned about its line by a random part of its reversal (uniform within ± the reversal):
-        the table stands where that axis' play left it, and the machine frame was measured
-        with it at the play of the linear runs. Tool-side axes carried after the linear axes
-        cancel in the relative motion."""
-        for other, reversal in self.play.items():
+    def play_turn(self, name: str, other: str) -> tuple[float, float]:
+        """How far the other workpiece-side rotary axis ``other`` stands turned during the run
+        of ``name`` against where it stood while the frame was measured: (known part, half
+        width of what is not known) [rad]. An axis rests on the side of its play it was last
+        approached from, B / 2 from the middle (B its signed reversal, ISO 230-2): known where
+        the joint states (or the program) give its last direction during both; where only the
+        run's side is known, the frame's side is anywhere within the play (centre B s / 2, ±
+        B / 2); where neither is, ± B."""
+        reversal = self.play[other][0]
+        s_run = self.rest.get((name, other), 0)
+        s_frame = self.rest_frame.get(other, 0)
+        if s_run and s_frame:
+            return 0.5 * reversal * (s_run - s_frame), 0.0
+        if s_run:
+            return 0.5 * reversal * s_run, 0.5 * abs(reversal)
+        return 0.0, abs(reversal)
+
+    def _other_play(self, name: str, meas: FloatArray) -> FloatArray:
+        """The measured motion (..., 4, 4) with each other workpiece-side rotary axis' play
+        taken out (:meth:`play_turn`): the table turned about that axis' line by the known part
+        (its reversal B drawn within its uncertainty on a Monte Carlo draw) and, on a draw, a
+        uniform part of the rest. Tool-side axes carried after the linear axes cancel in the
+        relative motion."""
+        for other, (reversal, u_reversal) in self.play.items():
             if other == name:
                 continue
+            known, width = self.play_turn(name, other)
+            angle = known
+            if self.draw_interpolation:
+                if known and reversal:
+                    angle *= 1.0 + u_reversal / abs(reversal) * self.rng.standard_normal()
+                angle += self.rng.uniform(-1.0, 1.0) * width
+            if angle == 0.0:
+                continue
             a = self.machine.axis(other)
-            angle = self.rng.uniform(-1.0, 1.0) * reversal
-            turn = transform(rotation_from_rotvec(angle * a.direction), np.zeros(3))
+            turn = transform(rotation_from_rotvec(-angle * a.direction), np.zeros(3))
             about = transform(np.eye(3), a.pivot)
             t = about @ turn @ inverse(about)
             meas = t @ meas @ inverse(t)
@@ -523,6 +555,25 @@ def _interpolation_u(tables: dict[str, ErrorTable], loo: dict[str, FloatArray], 
     return out
 
 
+def _rest_side(means: list[RunMeans], k: int) -> int:
+    """The side of its play axis ``k`` rests at through the runs ``means`` (+1, -1: the
+    direction of its last move, the same at every approach; 0: not known or not the same)."""
+    sides = {int(v) for m in means for v in np.ravel(m.dirs[..., k])}
+    return sides.pop() if len(sides) == 1 and 0 not in sides else 0
+
+
+def _reversal_at_reference(mean: RunMeans, base: dict[str, Any]) -> tuple[float, float]:
+    """A rotary axis' signed reversal B at its reference angle (its angular positioning error
+    approached from + minus from -, in the machine frame) [rad], and its standard uncertainty
+    from the covariance of the two mean poses (the MMD's and the cycles' scatter)."""
+    c = mean.axis.component
+    value = float(base[f'{mean.axis.name}/reversal'][mean.ref, 3 + c])
+    d = mean.axis.direction
+    var = sum(float(d @ (mean.cov_mmd[mean.ref, j] + mean.cov_stat[mean.ref, j])[3:, 3:] @ d)
+              for j in range(2))
+    return value, math.sqrt(max(var, 0.0))
+
+
 # -- Monte Carlo -------------------------------------------------------------------------------
 def _draws(session: _Session, base: dict[str, Any], draws: int, rng: np.random.Generator,
            shift_sigma: float, progress: Callable[[int], None] | None
@@ -578,9 +629,13 @@ def _trend(targets: FloatArray) -> FloatArray:
 
 
 def _sqrtm(cov: FloatArray) -> FloatArray:
-    """A square root of stacked covariance matrices (..., 6, 6) (positive semi-definite)."""
+    """The symmetric square root of stacked covariance matrices (..., 6, 6) (positive
+    semi-definite). Symmetric, so that one standard normal vector drawn for several poses
+    (the trend along a run) moves each of them the same way where their covariances agree: an
+    eigenvector root's column order and signs are arbitrary per pose, and would turn a
+    correlated draw into an independent one."""
     vals, vecs = np.linalg.eigh(0.5 * (cov + np.swapaxes(cov, -1, -2)))
-    return vecs * np.sqrt(np.clip(vals, 0.0, None))[..., None, :]
+    return (vecs * np.sqrt(np.clip(vals, 0.0, None))[..., None, :]) @ np.swapaxes(vecs, -1, -2)
 
 
 # -- results -----------------------------------------------------------------------------------
@@ -630,12 +685,17 @@ def identify(runs: list[AxisRun], machine: MachineDescription, *,
                                    f'{options.component_m} m, {options.component_rad} rad')
     session = _Session(machine, means, (options.component_m, options.component_rad))
     zero = np.zeros(3)
-    base = session.evaluate({n: m.p for n, m in means.items()}, {n: m.r for n, m in means.items()}, zero)
-    session.linearised = {n: base[f'{n}/linear'] for n in session.rotary}
+    p0, r0 = {n: m.p for n, m in means.items()}, {n: m.r for n, m in means.items()}
+    base = session.evaluate(p0, r0, zero)
     for n in session.rotary:
         a = session.means[n]
         if a.axis.side == 'workpiece' and a.ref is not None:
-            session.play[n] = abs(float(base[f'{n}/reversal'][a.ref, 3 + a.axis.component]))
+            session.play[n] = _reversal_at_reference(a, base)
+    if any(session.play_turn(n, o)[0] for n in session.rotary for o in session.play if o != n):
+        base = session.evaluate(p0, r0, zero)     # with the other axes' known play taken out
+        for n in session.play:
+            session.play[n] = _reversal_at_reference(session.means[n], base)
+    session.linearised = {n: base[f'{n}/linear'] for n in session.rotary}
     rng = np.random.default_rng(options.seed)
     sigma_shift = machine.upper_offset_uncertainty
 
@@ -774,7 +834,26 @@ def _build(machine: MachineDescription, session: _Session, base: dict[str, Any],
             notes.append(f'{a.name}: no run in this session: none of its errors is determined')
     return MachineResult(machine, axes, squareness, base['frame'],
                          'measured (X run and Y run)' if session.frame_measured else 'nominal',
-                         instrument, model_text, logs, options.draws, notes)
+                         instrument, model_text, logs, options.draws, notes, play=_play_notes(session))
+
+
+def _play_notes(session: _Session) -> list[str]:
+    """What the report says of the other table axes' play during each rotary run."""
+    sec = math.radians(1.0 / 3600.0)
+    side = {1: '+', -1: '-', 0: 'unknown'}
+    out = []
+    for name in session.rotary:
+        for other, (reversal, u_rev) in session.play.items():
+            if other == name:
+                continue
+            known, width = session.play_turn(name, other)
+            out.append(
+                f'{name} run: {other} rested on the {side[session.rest.get((name, other), 0)]} side of its '
+                f'play, on the {side[session.rest_frame.get(other, 0)]} side during the frame\'s runs '
+                f'({other}\'s reversal B {reversal / sec:.2f}″ ± {u_rev / sec:.2f}″ at its reference): '
+                f'{known / sec:.2f}″ about its line taken out, ±{width / sec:.2f}″ not known '
+                '(in the uncertainty)')
+    return out
 
 
 def _rotary_cycles(mean: RunMeans, j: int, base: dict[str, Any], session: _Session,

@@ -122,6 +122,9 @@ def markdown_report(result: MachineResult, figures: dict[str, str], files: list[
     lines += [f'- {t}' for t in nd] if nd else ['Everything listed above is determined.']
     lines += ['', '## How the machine\'s errors are kept apart from the MMD\'s', '', separation, '',
               f'Machine frame: {result.frame_source}.', '']
+    if result.play:
+        lines += ['The other table axes\' play (ISO 230-2 reversal B) during the rotary runs:', '']
+        lines += [f'- {t}' for t in result.play] + ['']
     for name, a in result.axes.items():
         lines += [f'## Axis {name}', '',
                   f'Log `{a.log}` (axis values from {a.source}); {a.targets.size} targets, '

@@ -211,6 +211,8 @@ class MachineResult:
     draws: int
     notes: list[str] = field(default_factory=list)
     seconds: dict[str, float] = field(default_factory=dict)
+    #: per rotary run, where the other table axes' play stood and what was taken out of it
+    play: list[str] = field(default_factory=list)
 
     def values(self) -> list[Value]:
         """Every scalar error: squareness, location errors."""
@@ -256,6 +258,7 @@ class MachineResult:
                 'squareness': [v.as_dict() for v in self.squareness],
                 'axes': {k: a.as_dict() for k, a in self.axes.items()},
                 'not_determined': self.not_determined(),
+                'other_axes_play': list(self.play),
                 'seconds': {k: round(v, 3) for k, v in self.seconds.items()}}
 
 
@@ -308,4 +311,5 @@ def load_result(data: dict[str, Any], machine: MachineDescription) -> MachineRes
                                    f'{exc.__class__.__name__} {exc}') from None
     return MachineResult(machine, axes, squareness, np.eye(3), str(data.get('frame_source', '')),
                          str(data.get('instrument', '')), str(data.get('model', '')),
-                         list(data.get('logs', [])), int(data.get('monte_carlo_draws', 0)))
+                         list(data.get('logs', [])), int(data.get('monte_carlo_draws', 0)),
+                         play=[str(n) for n in data.get('other_axes_play', [])])

@@ -15,10 +15,10 @@ Where the axis values come from:
   pose coordinate along (or about) the axis and matched to the program's targets in order.
 
 Each approach keeps the mean pose over the middle 60 % of its dwell and the mean of the
-samples' pose covariance (``Pipeline.process(..., with_covariance=True)`` over the dwell's
-central samples; the poses themselves come from one pass over the whole log in time order),
-converted to [dp, dw] screw coordinates, not divided by the number of samples: the covariance
-stands for the MMD's error at that pose, which averaging in one place does not reduce.
+samples' pose covariance there (both from one pass of the pipeline over the whole log in time
+order, with the model in use: :func:`log_poses`), converted to [dp, dw] screw coordinates, not
+divided by the number of samples: the covariance stands for the MMD's error at that pose, which
+averaging in one place does not reduce.
 """
 
 from __future__ import annotations
@@ -33,15 +33,13 @@ from numpy.typing import NDArray
 
 from mmd_ros.analysis.iso230 import Dwell, approaches, detect_dwells
 from mmd_ros.core import validate
-from mmd_ros.core.calibration import load_calibration
 from mmd_ros.core.machine import MachineDescription
 from mmd_ros.core.model import Model
-from mmd_ros.core.pipeline import Pipeline
 from mmd_ros.core.progress import Progress
 from mmd_ros.core.units import M_PER_MM
 from mmd_ros.core.yamlio import read_yaml
 from mmd_ros.logs.layout import RunLog
-from mmd_ros.logs.processing import process_run
+from mmd_ros.logs.processing import process_blocks
 from mmd_ros.machine.errors import MachineAnalysisError
 from mmd_ros.machine.geometry import pose_covariance_to_screw
 from mmd_ros.machine.kinematics import MachineModel
@@ -177,47 +175,57 @@ def load_program(path: str | Path, machine: MachineDescription) -> Program:
 # -- poses of a log ---------------------------------------------------------------------------
 @dataclass
 class LogPoses:
-    """Poses of every sample of one log; the MMD's pose covariance on request for the stretches
-    that are used (None for a reference instrument: no covariance)."""
+    """Poses of every sample of one log, and the MMD's pose covariance [m, rad]^2 of a regular
+    subset of them (every ``stride``-th sample of the one pass over the whole log; None for a
+    reference instrument: no covariance).
+
+    cov_index : ndarray of int, shape (K,) — the samples whose covariance is kept
+    cov : ndarray, shape (K, 6, 6) — their covariance in [x, y, z, phi, theta, psi], NaN where
+        the pipeline gave none
+    """
 
     path: str
     times_s: FloatArray
     poses: FloatArray
     valid: NDArray[np.bool_]
-    pipeline: Pipeline | None = None
-    counts: FloatArray | None = None
-    #: (N, 8) the terminal's channel status codes (flagged samples: no pose), or None
-    status: NDArray[np.uint8] | None = None
+    cov_index: NDArray[np.int64] | None = None
+    cov: FloatArray | None = None
 
     def covariance(self, sl: slice, at: FloatArray) -> FloatArray:
-        """Mean covariance (6, 6) in [dp, dw] of the samples in ``sl`` (a dwell's middle; at
-        most its central :data:`COVARIANCE_SAMPLES`), at the mean pose ``at``: the pipeline run
-        over them with its covariance (``Pipeline.process(..., with_covariance=True)``)."""
-        if self.pipeline is None:
+        """Mean covariance (6, 6) in [dp, dw] of the samples in ``sl`` (a dwell's middle) whose
+        covariance was kept, at the mean pose ``at``; zero without a covariance (a reference
+        instrument), NaN when none of them has one."""
+        if self.cov is None or self.cov_index is None:
             return np.zeros((6, 6))
-        start, stop = sl.start, sl.stop
-        if stop - start > COVARIANCE_SAMPLES:
-            start = (start + stop - COVARIANCE_SAMPLES) // 2
-            stop = start + COVARIANCE_SAMPLES
-        self.pipeline.reset()
-        res = self.pipeline.process(self.times_s[start:stop], self.counts[start:stop],
-                                    with_covariance=True,
-                                    status=None if self.status is None else self.status[start:stop])
-        ok = res.valid & np.all(np.isfinite(res.covariance), axis=(1, 2))
+        lo, hi = (int(i) for i in np.searchsorted(self.cov_index, [sl.start, sl.stop]))
+        rows = np.arange(lo, hi)
+        if not self._usable(rows).any():
+            # none kept inside (a stretch shorter than the stride, or its kept samples flagged):
+            # the kept samples just outside it, a stride away, still in the dwell
+            rows = np.array([i for i in (lo - 1, hi) if 0 <= i < self.cov_index.size], dtype=np.int64)
+        ok = self._usable(rows)
         if not ok.any():
             return np.full((6, 6), np.nan)
-        return pose_covariance_to_screw(at, res.covariance[ok].mean(axis=0))
+        return pose_covariance_to_screw(at, self.cov[rows[ok]].mean(axis=0))
+
+    def _usable(self, rows: NDArray[np.int64]) -> NDArray[np.bool_]:
+        """Which kept covariances (their rows in ``cov``) belong to a valid pose."""
+        return self.valid[self.cov_index[rows]] & np.all(np.isfinite(self.cov[rows]), axis=(1, 2))
 
 
-#: Samples of a dwell whose covariance is computed (its central ones).
-COVARIANCE_SAMPLES = 100
+#: Pose covariances kept per second of a log (every k-th sample, k from the sample rate): a
+#: dwell's covariance changes slowly, so a few dozen a second describe it.
+COVARIANCE_RATE_HZ = 50.0
 
 
 def log_poses(run: RunLog, model: Model | None, *, instrument: str = 'mmd',
               calibration_path: str | None = None, progress: bool = False) -> LogPoses:
-    """The MMD's poses of a log (the pipeline over the whole log, in time order), or the log's
-    reference instrument's (``instrument='reference'``: a 6-D reference such as the twin's
-    pose6, no covariance)."""
+    """The MMD's poses of a log, with the pose covariance of every k-th sample (about
+    :data:`COVARIANCE_RATE_HZ` a second): one pass of the pipeline over the whole log in time
+    order, so that the uncertainty budget sees the run as the live pipeline does (the stream's
+    read noise, each bar's friction state and speed, what the model's terms know after the
+    bars have moved). Or the log's reference instrument's poses (``instrument='reference'``: a
+    6-D reference such as the twin's pose6, no covariance)."""
     times = run.times_s
     if instrument == 'reference':
         ref = run.reference_pose
@@ -225,13 +233,26 @@ def log_poses(run: RunLog, model: Model | None, *, instrument: str = 'mmd',
             raise MachineAnalysisError(f'{run.path}: no six-dimensional reference pose to evaluate')
         return LogPoses(str(run.path), times, ref, np.isfinite(ref).all(axis=1))
     model = run.model or Model() if model is None else model
+    span = float(times[-1] - times[0]) if times.size > 1 else 0.0
+    rate = (times.size - 1) / span if span > 0 else COVARIANCE_RATE_HZ
+    every = max(1, int(round(rate / COVARIANCE_RATE_HZ)))
     bar = Progress(f'poses of {Path(run.path).name}', times.size, enabled=progress)
-    result = process_run(run, model, calibration_path=calibration_path, progress=bar)   # (its own
-    bar.close()                                                                           # term state)
-    calibration = load_calibration(calibration_path) if calibration_path else run.calibration
-    pipeline = Pipeline(run.device, calibration, model)
-    return LogPoses(str(run.path), times, result.poses, result.valid, pipeline, run.counts,
-                    run.status)
+    poses, valid, index, cov = [], [], [], []
+    start = 0
+    for part, res in process_blocks(run, model, calibration=calibration_path, with_covariance=True,
+                                    covariance_every=every):
+        n = part.stamps_ns.size
+        poses.append(res.poses)
+        valid.append(res.valid)
+        index.append(start + np.arange(0, n, every))
+        cov.append(res.covariance[::every])
+        start += n
+        bar.update(start)
+    bar.close()
+    if not poses:
+        raise MachineAnalysisError(f'{run.path} has no samples')
+    return LogPoses(str(run.path), times, np.concatenate(poses), np.concatenate(valid),
+                    np.concatenate(index), np.concatenate(cov))
 
 
 # -- dwells -----------------------------------------------------------------------------------
