@@ -561,6 +561,28 @@ def test_a_test_program_matches_the_dwells_as_joint_states_do(tmp_path):
         analyze_session(logs[:1], machine, SessionOptions(program=load_program(program, machine)))
 
 
+def test_axis_positions_in_mm_or_degrees_are_refused_naming_the_unit(tmp_path):
+    """A controller that publishes its joint states in mm and degrees (not REP 103's m and
+    rad) moves its axes 1000 and 57.3 times what the MMD measured: refused, naming the axis,
+    both travels and the likely unit; the same log in SI units is taken."""
+    from mmd_ros.logs.layout import MachineJoints, read_run
+    from mmd_ros.machine.session import extract_runs, log_poses
+    params = ['machine_file=machine_xyzac.yaml', 'n_linear_targets=3', 'n_rotary_targets=3',
+              'n_cycles=1', 'dwell_s=0.4', 'lead_s=0.5', 'rotary_spans_deg=[C:-30:30]']
+    machine = load_machine('machine_xyzac.yaml')
+    for axis, scale, unit in (('X', 1e3, 'mm'), ('C', 180 / np.pi, 'degrees')):
+        run = read_run(_simulate(tmp_path, axis, params + [f'runs=[{axis}]']))
+        poses = log_poses(run, Model(length_sigma_m=0.05 * UM))
+        assert [r.axis for r in extract_runs(run, machine, poses)] == [axis]
+        js = run.machine_joints
+        k = [n.upper() for n in js.names].index(axis)
+        positions = js.positions.copy()
+        positions[:, k] *= scale
+        run.machine_joints = MachineJoints(js.stamps_ns, js.names, positions)
+        with pytest.raises(MachineAnalysisError, match=rf'axis {axis} moved .* \(in {unit}\?\).*REP 103'):
+            extract_runs(run, machine, poses)
+
+
 def test_bad_input_is_refused_with_one_line(tmp_path, capsys):
     good = yaml.safe_load(Path(load_machine('machine_xyzac.yaml').source).read_text())
     bad = json.loads(json.dumps(good))

@@ -36,6 +36,7 @@ from mmd_ros.core import validate
 from mmd_ros.core.machine import MachineDescription
 from mmd_ros.core.model import Model
 from mmd_ros.core.progress import Progress
+from mmd_ros.core.rotation import rotation_matrix
 from mmd_ros.core.units import M_PER_MM
 from mmd_ros.core.yamlio import read_yaml
 from mmd_ros.logs.layout import RunLog
@@ -52,6 +53,11 @@ FloatArray = NDArray[np.float64]
 MOVED_M, MOVED_RAD = 5e-6, 5e-6
 #: Shortest stillness counted as a dwell [s].
 MIN_DWELL_S = 0.15
+#: A run's travel between its targets against what the MMD measured between the same dwells:
+#: beyond this factor the axis positions are in other units than m and rad (the machine's own
+#: errors are parts in 10^4 at most); checked on runs the MMD saw move at least this far.
+UNIT_RATIO = 1.25
+UNIT_MIN_M, UNIT_MIN_RAD = 5e-3, math.radians(2.0)
 
 
 @dataclass
@@ -466,5 +472,41 @@ def extract_runs(run: RunLog, machine: MachineDescription, poses: LogPoses, *,
     if run.times_s.size < 10:
         raise MachineAnalysisError(f'{run.path} has too few samples')
     if program_run is not None:
-        return [_runs_from_program(run, machine, poses, program_run, min_dwell_s)]
-    return _runs_from_joints(run, machine, poses, min_dwell_s)
+        runs = [_runs_from_program(run, machine, poses, program_run, min_dwell_s)]
+    else:
+        runs = _runs_from_joints(run, machine, poses, min_dwell_s)
+    check_units(runs, machine)
+    return runs
+
+
+def check_units(runs: list[AxisRun], machine: MachineDescription) -> None:
+    """Refuse axis positions in units other than the SI ones of REP 103 (m, rad): each run's
+    travel between two of its dwells against the travel the MMD measured between them (a
+    controller that publishes mm or degrees gives 1000 or 57.3 times the MMD's)."""
+    for r in runs:
+        if len(r.approaches) < 2:
+            continue
+        k = machine.axis_names.index(r.axis)
+        first = r.approaches[0]
+        travel = measured = 0.0
+        for a in r.approaches[1:]:
+            if r.rotary:
+                turn = rotation_matrix(first.pose[3:]).T @ rotation_matrix(a.pose[3:])
+                seen = math.acos(max(-1.0, min(1.0, (float(np.trace(turn)) - 1.0) / 2.0)))
+            else:
+                seen = float(np.linalg.norm(a.pose[:3] - first.pose[:3]))
+            if seen > measured:
+                travel, measured = abs(float(a.q[k] - first.q[k])), seen
+        if measured < (UNIT_MIN_RAD if r.rotary else UNIT_MIN_M):
+            continue
+        ratio = travel / measured
+        if 1.0 / UNIT_RATIO <= ratio <= UNIT_RATIO:
+            continue
+        unit = 'rad' if r.rotary else 'm'
+        likely = [name for factor, name in ((1e3, 'mm'), (180.0 / math.pi, 'degrees'), (1e6, 'µm'))
+                  if abs(ratio / factor - 1.0) < 0.25]
+        raise MachineAnalysisError(
+            f'{r.log}: axis {r.axis} moved {travel:.6g} {unit} by its {r.source} where the MMD '
+            f'measured {measured:.6g} {unit}, {ratio:.4g} times as much'
+            + (f' (in {likely[0]}?)' if likely else '')
+            + ': machine axis positions must be in m and rad (REP 103)')
