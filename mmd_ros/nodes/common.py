@@ -27,7 +27,7 @@ from mmd_ros.core.model import Model, load_model
 from mmd_ros.nodes.params import Param, ParameterError
 
 __all__ = ['COMMON_PARAMS', 'MODEL_PARAMS', 'NAMESPACE', 'load_device_param',
-           'load_model_param', 'run', 'spin']
+           'load_model_param', 'request_stop', 'run', 'spin']
 
 #: GIL switch interval of the node processes [s] (Python's default is 0.005).
 SWITCH_INTERVAL_S = 0.0005
@@ -73,9 +73,16 @@ def load_model_param(path: str) -> Model:
 _STOP = threading.Event()
 
 
+def request_stop() -> None:
+    """End the node as SIGINT does: the spin loop ends between two callbacks, then the node is
+    destroyed while its context is valid (from any thread; shutting the context down from
+    another thread instead can fail a timer's publish in the middle of its callback)."""
+    _STOP.set()
+
+
 def _request_stop(signum: int, frame: Any) -> None:
     """SIGINT / SIGTERM: leave the spin loop at the next turn (no exception inside a callback)."""
-    _STOP.set()
+    request_stop()
 
 
 def spin(node: Node) -> None:

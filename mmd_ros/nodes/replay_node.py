@@ -31,7 +31,7 @@ from std_msgs.msg import String
 from mmd_ros.core.flow import FlowControl, StageProgress
 from mmd_ros.logs.layout import read_run
 from mmd_ros.logs.replay import ReplaySchedule, log_problem_values, paced_batches
-from mmd_ros.nodes.common import COMMON_PARAMS, NAMESPACE, run
+from mmd_ros.nodes.common import COMMON_PARAMS, NAMESPACE, request_stop, run
 from mmd_ros.nodes.convert import DIAGNOSTIC_ARRAY, JS, STRING, Rows, string_bytes
 from mmd_ros.nodes.diagnostics import ERROR, OK, WARN, Diagnostics, Report
 from mmd_ros.nodes.outlets import Outlet
@@ -108,7 +108,10 @@ class ReplayNode(Node):
                 self.get_logger().error(self.error)
         if self.cfg['exit_when_done'] and self.context.ok():
             time.sleep(1.5)  # a last diagnostics report
-            self.context.try_shutdown()
+            # ... delivered: a subscriber still busy with the flood of samples has not taken it
+            # yet, and a reliable message not acknowledged is gone with its publisher
+            self.out_diag.publisher.wait_for_all_acked(Duration(seconds=10))
+            request_stop()
 
     def _on_progress(self, msg: DiagnosticStatus) -> None:
         progress = StageProgress.from_pairs(msg.name, [(kv.key, kv.value) for kv in msg.values])
