@@ -128,12 +128,14 @@ class ReplayNode(Node):
                 return bool(self.flow.waiting_for(batch))
             return not self.flow.drained()
 
-    def _wait_for_stages(self, deadline: float, settle_s: float = 2.0, others_s: float = 5.0) -> None:
+    def _wait_for_stages(self, deadline: float, settle_s: float = 3.5, others_s: float = 5.0) -> None:
         """Until every stage publishing progress has been heard from, counts for this run (it
         heard ``pipeline/run``) and, if it takes raw_counts or reference/pose, is matched with
         this node's publisher; and no new stage appeared for ``settle_s`` (discovery of the
-        other processes takes 2–3 s, more on a loaded machine). A subscriber of raw_counts that
-        is no stage (one that never reports) is waited for ``others_s`` at most."""
+        other processes takes 2–3 s, more on a loaded machine, where a stage discovered after
+        2 s was counted only from then and its samples reported lost). A subscriber of
+        raw_counts that is no stage (one that never reports) is waited for ``others_s`` at
+        most."""
         own = [self.out_raw.topic, self.out_reference.topic]
         known, since, settled_at = -1, time.monotonic(), None
         while time.monotonic() < deadline:
