@@ -170,3 +170,25 @@ def test_stamp_pairing_waits_for_a_topic_thousands_of_rows_behind_and_gives_up_o
     assert small.unpaired == 140 and len(small) == 9  # and 50..139 given up, 141..149 wait
     small.clear()
     assert len(small) == 0 and small.unpaired == 149
+
+
+def test_stamp_pairing_follows_stamps_that_go_back_without_a_new_run():
+    """A log played again into fk_node by another tool (no run mark): its stamps restart
+    below those already seen. Rows of the new pass are still paired when their partners come
+    a flush later; nothing is given up."""
+    stamps = np.arange(100, dtype=np.int64) * 1_000_000 + 10**12
+    rows = np.arange(100, dtype=float)[:, None]
+    pairing = StampPairing(max_pending=2000)
+    for _ in range(2):                      # the same stamps twice, the partner one flush behind
+        got = []
+        for a in range(0, 100, 8):
+            pairing.add(0, stamps[a:a + 8], rows[a:a + 8])
+            if a:
+                pairing.add(1, stamps[a - 8:a], -rows[a - 8:a])
+            out = pairing.take()
+            if out is not None:
+                got.append(out[0])
+        pairing.add(1, stamps[96:], -rows[96:])
+        got.append(pairing.take()[0])
+        assert np.array_equal(np.concatenate(got), stamps)
+    assert pairing.unpaired == 0 and len(pairing) == 0

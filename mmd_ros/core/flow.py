@@ -94,8 +94,9 @@ class StampPairing:
     Each topic comes from one publisher in stamp order, but the two topics reach a subscriber
     independently: after a busy spell one of them may arrive thousands of rows ahead of the
     other. A row waits for its partner for as long as the partner can still come, that is
-    until the other topic has delivered a later stamp (the partner was lost on the way), or
-    until more than ``max_pending`` rows of one topic wait (a bound on memory: set it to at
+    until the other topic has delivered a later stamp (the partner was lost on the way; when a
+    topic's stamps go back, how far each topic has come starts again), or until more than
+    ``max_pending`` rows of one topic wait (a bound on memory: set it to at
     least the subscriptions' queue depth, the most one topic can run ahead). Either way the row
     is counted in :attr:`unpaired`.
     """
@@ -112,9 +113,15 @@ class StampPairing:
         for stamp, row in zip(stamps_ns.tolist(), rows):
             pending[stamp] = row
         if len(stamps_ns):
-            newest = int(stamps_ns.max())
-            if self._newest[side] is None or newest > self._newest[side]:
-                self._newest[side] = newest
+            newest = self._newest[side]
+            if newest is not None and int(stamps_ns.min()) < newest:
+                # this topic's stamps went back (a log played again without a new run): how far
+                # each topic has come starts again
+                self._newest = [None, None]
+                newest = None
+            top = int(stamps_ns.max())
+            if newest is None or top > newest:
+                self._newest[side] = top
 
     def take(self) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]] | None:
         """The rows paired so far, in stamp order: (stamps (n,), rows of topic 0, rows of topic
