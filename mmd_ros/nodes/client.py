@@ -62,6 +62,7 @@ class MmdClient:
         self.context = Context()
         rclpy.init(context=self.context, args=[])
         self.node = rclpy.create_node(name, context=self.context)
+        self._clients: dict[tuple[Any, str], Any] = {}
         self._lock = threading.Lock()
         self.poses: list[tuple[int, float, float, float, float, float, float, float]] = []
         self.pose_arrivals: list[int] = []
@@ -204,18 +205,26 @@ class MmdClient:
 
     # -- services and parameters ---------------------------------------------------------------
     def _call(self, srv_type: Any, name: str, request: Any, timeout: float) -> Any:
-        client = self.node.create_client(srv_type, name)
-        try:
-            if not client.wait_for_service(timeout_sec=timeout):
-                raise TimeoutError(f'service {name} not available after {timeout:.0f} s')
-            done = threading.Event()
-            future = client.call_async(request)
-            future.add_done_callback(lambda _f: done.set())
-            if not done.wait(timeout):
-                raise TimeoutError(f'service {name} did not answer within {timeout:.0f} s')
-            return future.result()
-        finally:
-            self.node.destroy_client(client)
+        # One client per service, kept: a reply is lost when the service answers before it has
+        # matched the client's reply reader (rmw_fastrtps waits 100 ms for that), the known
+        # client/service discovery race of ROS 2; a client made for each call met it afresh
+        # every time (seen: a calibrate_bar call of the guided routine never answered)
+        key = (srv_type, name)
+        client = self._clients.get(key)
+        fresh = client is None
+        if fresh:
+            client = self._clients[key] = self.node.create_client(srv_type, name)
+        if not client.wait_for_service(timeout_sec=timeout):
+            raise TimeoutError(f'service {name} not available after {timeout:.0f} s')
+        if fresh:
+            time.sleep(0.3)  # for the service to match our reply reader too
+        done = threading.Event()
+        future = client.call_async(request)
+        future.add_done_callback(lambda _f: done.set())
+        if not done.wait(timeout):
+            client.remove_pending_request(future)
+            raise TimeoutError(f'service {name} did not answer within {timeout:.0f} s')
+        return future.result()
 
     def trigger(self, service: str, timeout: float = 30.0) -> tuple[bool, str]:
         """Call a ``std_srvs/Trigger`` service (relative names are in the device namespace)."""
