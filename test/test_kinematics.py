@@ -15,7 +15,7 @@ from mmd_ros.core.kinematics import (
     pose_covariance, propagate_covariance,
 )
 from mmd_ros.core.rotation import (
-    angles_to_quaternion, matrix_to_angles, quaternion_to_angles, rotation_matrix,
+    angles_to_quaternion, matrix_to_angles, quaternion_to_angles, rotation_angle, rotation_matrix,
 )
 from mmd_ros.twin.mechanism import bar_legs, random_poses, rotation_matrices, within_workspace
 
@@ -322,3 +322,16 @@ def test_series_solve_equals_batch_solve_on_a_motion():
     assert np.max(np.abs(series.poses[ok] - p[ok])) < 1e-12
     assert np.max(np.abs(series.poses[ok] - batch.poses[ok])) < 1e-12
     assert series.iterations[ok].mean() < batch.iterations[ok].mean()
+
+
+def test_rotation_angle_at_every_angle():
+    """The angle of a rotation, small or beyond 90°, about any axis, against scipy's rotation
+    vector."""
+    rng = np.random.default_rng(4)
+    angles = np.concatenate([[0.0, 1e-9, 1e-6], rng.uniform(0, np.pi - 1e-6, 200)])
+    axes = rng.normal(size=(angles.size, 3))
+    axes /= np.linalg.norm(axes, axis=1)[:, None]
+    from scipy.spatial.transform import Rotation
+    mats = Rotation.from_rotvec(axes * angles[:, None]).as_matrix()
+    np.testing.assert_allclose(rotation_angle(mats), angles, rtol=1e-9, atol=1e-12)
+    assert rotation_angle(np.eye(3)) == 0.0

@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 __all__ = ['angle_rate_axes', 'angles_to_quaternion', 'matrix_to_angles', 'quaternion_to_angles',
-           'rotation_matrix']
+           'rotation_angle', 'rotation_matrix']
 
 
 def rotation_matrix(angles: ArrayLike) -> NDArray[np.float64]:
@@ -107,3 +107,13 @@ def quaternion_to_angles(q: ArrayLike) -> NDArray[np.float64]:
     theta = np.arcsin(np.clip(2.0 * (w * y - z * x), -1.0, 1.0))
     psi = np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
     return np.stack([phi, theta, psi], axis=-1)
+
+
+def rotation_angle(r: ArrayLike) -> NDArray[np.float64]:
+    """Angle [rad] in [0, pi] of rotation matrices, shape (..., 3, 3) -> (...): atan2 of the
+    skew part's norm (2 sin) and the trace (1 + 2 cos), accurate at every angle (an arcsin of
+    the skew part alone folds angles over 90°, an arccos of the trace loses small ones)."""
+    m = np.asarray(r, dtype=np.float64)
+    v = np.stack([m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0],
+                  m[..., 1, 0] - m[..., 0, 1]], axis=-1)
+    return np.arctan2(np.linalg.norm(v, axis=-1), np.trace(m, axis1=-2, axis2=-1) - 1.0)

@@ -33,7 +33,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from mmd_ros.core.kinematics import ForwardKinematics, Geometry, jacobian
-from mmd_ros.core.rotation import angle_rate_axes, rotation_matrix
+from mmd_ros.core.rotation import angle_rate_axes, rotation_angle, rotation_matrix
 from mmd_ros.core.units import M_PER_MM, M_PER_UM, arcsec, mm, um
 from mmd_ros.design.errors import DesignError
 
@@ -259,7 +259,7 @@ class ErrorBudget:
                               'small (micrometres)?')
         est = sol.poses
         position = np.linalg.norm(est[:, :3] - p[:3], axis=1)
-        return PoseErrors(position, _rotation_angle(rotation_matrix(est[:, 3:]) @ rot.T))
+        return PoseErrors(position, rotation_angle(rotation_matrix(est[:, 3:]) @ rot.T))
 
     def _linear_model(self, p: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
         """First-order model at pose p: Delta d_true,i = n_i . (R da_i - db_i) and
@@ -487,14 +487,6 @@ def tolerance_frontier(budget: ErrorBudget, poses: ArrayLike, target_position_m:
         assert best is not None
         out.append(FrontierPoint(float(a), best[0] * ej, best[0] * ed, best[1], best[2]))
     return out
-
-
-def _rotation_angle(delta: FloatArray) -> FloatArray:
-    """Angle of rotation matrices, shape (N, 3, 3) -> (N,) [rad], from the skew part:
-    |vee(D - D^T)| / 2 = sin(angle), exact to rounding for the small angles here (< 90°)."""
-    v = np.stack([delta[:, 2, 1] - delta[:, 1, 2], delta[:, 0, 2] - delta[:, 2, 0],
-                  delta[:, 1, 0] - delta[:, 0, 1]], axis=1)
-    return np.arcsin(np.clip(0.5 * np.linalg.norm(v, axis=1), 0.0, 1.0))
 
 
 def _as_pose(pose: ArrayLike) -> FloatArray:

@@ -36,7 +36,7 @@ from mmd_ros.core import validate
 from mmd_ros.core.machine import MachineDescription
 from mmd_ros.core.model import Model
 from mmd_ros.core.progress import Progress
-from mmd_ros.core.rotation import rotation_matrix
+from mmd_ros.core.rotation import rotation_angle, rotation_matrix
 from mmd_ros.core.units import M_PER_MM
 from mmd_ros.core.yamlio import read_yaml
 from mmd_ros.logs.layout import RunLog
@@ -491,8 +491,8 @@ def check_units(runs: list[AxisRun], machine: MachineDescription) -> None:
         travel = measured = 0.0
         for a in r.approaches[1:]:
             if r.rotary:
-                turn = rotation_matrix(first.pose[3:]).T @ rotation_matrix(a.pose[3:])
-                seen = math.acos(max(-1.0, min(1.0, (float(np.trace(turn)) - 1.0) / 2.0)))
+                seen = float(rotation_angle(rotation_matrix(first.pose[3:]).T
+                                            @ rotation_matrix(a.pose[3:])))
             else:
                 seen = float(np.linalg.norm(a.pose[:3] - first.pose[:3]))
             if seen > measured:
