@@ -96,9 +96,9 @@ class StampPairing:
     other. A row waits for its partner for as long as the partner can still come, that is
     until the other topic has delivered a later stamp (the partner was lost on the way; when a
     topic's stamps go back, how far each topic has come starts again), or until more than
-    ``max_pending`` rows of one topic wait (a bound on memory: set it to at
-    least the subscriptions' queue depth, the most one topic can run ahead). Either way the row
-    is counted in :attr:`unpaired`.
+    ``max_pending`` rows of one topic wait (a bound on memory: set it to at least the
+    subscriptions' queue depth, the most one topic can run ahead). Either way the row is
+    counted in :attr:`unpaired`.
     """
 
     def __init__(self, max_pending: int) -> None:
