@@ -333,7 +333,8 @@ def _after_the_loop(tmp_path, seed: int, fit_s: float = 60.0):
     room = ambient_profile('section_4_1')
     calibration = twin.calibrate(0.0, room, approaches=2)
     errors, covs, inside = [], [], []
-    bars = Validity.from_model(model).bar_range_m
+    validity = Validity.from_model(model)
+    bars = None if validity is None else validity.bar_range_m
     for k in range(3):
         run = twin.simulate(make_scenario('random_motion', ['duration_s=4', f'seed={10 * seed + k}']),
                             room, start_s=700.0 + 20 * k, reference='pose6')
@@ -342,7 +343,8 @@ def _after_the_loop(tmp_path, seed: int, fit_s: float = 60.0):
         errors.append(pose_error(res.poses, run.true_poses)[res.valid])
         covs.append(res.covariance[res.valid])
         cdf = res.compensated.cdf_lengths_m[res.valid]
-        inside.append(np.all((cdf >= bars[:, 0]) & (cdf <= bars[:, 1]), axis=1))
+        inside.append(np.ones(cdf.shape[0], dtype=bool) if bars is None
+                      else np.all((cdf >= bars[:, 0]) & (cdf <= bars[:, 1]), axis=1))
     return result, model, (errors, covs, inside), log
 
 
@@ -350,17 +352,19 @@ def test_after_the_loop_the_fit_s_uncertainty_is_in_the_model_and_covers(tmp_pat
     """`mmd analyze` with the twin's full pose: the written model carries the fitted terms'
     parameter covariance (as one-sigma directions), the residual of every bar (the
     reference's own noise taken out) in place of the calibration-derived sources over the
-    lengths the fit saw, and that range. Two twins, each judged with its own model on new
-    motion: the 95 % ellipsoid covers 93-97 % and no axis is under-stated (ratio > 0.8).
-    Where every bar lies inside the lengths the fit saw (84 % of the samples), the ratio is
-    within 0.8-1.35 (measured 0.88-1.27). The issue's upper 1.25 is not reached over all
-    samples (measured 0.99-1.43, y and pitch highest): the rest take a bar outside those
-    lengths, where the calibration-derived sources come back in full and the length terms'
-    extrapolation is claimed as large as its change from the last length the fit checked
-    (unchecked_range): conservative there (up to 3.0)."""
+    lengths the fit saw, and that range. Five twins (five calibrations: each draws every
+    systematic error once, and a pooled coverage of two says little of a 95 % claim), each
+    judged with its own model on new motion: the 95 % ellipsoid covers 93-97 % (measured
+    94.5 %) and no axis is under-stated (ratio > 0.8). Where every bar lies inside the
+    lengths the fit saw (88 % of the samples), the ratio is within the issue's 0.8-1.25
+    (measured 0.94-1.10). Over all samples pitch exceeds 1.25 (measured 1.35; over 24 twins
+    in bench_uncertainty.py --after, y 1.25 and pitch 1.02): the rest take a bar outside
+    those lengths, where the calibration-derived sources come back in full and the length
+    terms' extrapolation is claimed as large as its change from the last length the fit
+    checked (unchecked_range): conservative there."""
     from mmd_ros.core.model import FIT_REPLACEABLE
     errors, covs, inside = [], [], []
-    for seed in (1, 2):
+    for seed in (1, 2, 3, 4, 5):
         result, model, (e, c, m), log = _after_the_loop(tmp_path, seed)
         assert 'sampling_skew' in [f.effect for f in result.found]
         fit = model.uncertainty.fit
@@ -387,7 +391,7 @@ def test_after_the_loop_the_fit_s_uncertainty_is_in_the_model_and_covers(tmp_pat
     ratio_in = (np.sqrt(np.mean(np.diagonal(c[m], axis1=1, axis2=2), axis=0))
                 / np.sqrt(np.mean(e[m] * e[m], axis=0)))
     print('inside the fit\'s lengths:', round(float(m.mean()), 3), 'ratio', np.round(ratio_in, 2))
-    assert np.all((ratio_in > 0.8) & (ratio_in < 1.35)), ratio_in
+    assert np.all((ratio_in > 0.8) & (ratio_in < 1.25)), ratio_in
 
 
 # -- mmd process reports it -------------------------------------------------------------------

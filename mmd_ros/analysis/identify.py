@@ -928,6 +928,19 @@ def _terms_for(sel: _Selector, chosen: list[tuple[_Active, FloatArray]], run: _R
     return terms
 
 
+def _seen_lengths(runs: list[_Run]) -> tuple[FloatArray, FloatArray]:
+    """The lowest and highest CDF length of each bar over the usable samples of ``runs``,
+    (6,) each [m] (inf and -inf for a bar no sample saw)."""
+    lo = np.full(6, np.inf)
+    hi = np.full(6, -np.inf)
+    for r in runs:
+        lengths = r.ctx.base.cdf_lengths_m[r.usable]
+        if lengths.size:
+            lo = np.minimum(lo, lengths.min(axis=0))
+            hi = np.maximum(hi, lengths.max(axis=0))
+    return lo, hi
+
+
 def analyze(runs: RunLog | list[RunLog], model: Model | None = None,
             calibration: Calibration | None = None, options: AnalysisOptions | None = None,
             progress: Callable[[str], None] | None = None) -> Analysis:
@@ -1307,15 +1320,12 @@ def _made_worse(runs: list[_Run], afters: list[tuple[Processed, FloatArray]]) ->
 def _validity(runs: list[_Run], afters: list[tuple[Processed, FloatArray]] | None) -> dict[str, Any]:
     """What the model was fitted and validated on: the runs (by content hash), their references,
     the range of each bar's length and of the temperature (nodes warn outside them)."""
-    lo = np.full(6, np.inf)
-    hi = np.full(6, -np.inf)
+    lo, hi = _seen_lengths(runs)
     t_lo, t_hi = math.inf, -math.inf
     for r in runs:
         base = r.ctx.base
         sel = r.usable
         if sel.any():
-            lo = np.minimum(lo, base.cdf_lengths_m[sel].min(axis=0))
-            hi = np.maximum(hi, base.cdf_lengths_m[sel].max(axis=0))
             temp = base.temp_change_c[sel] + (r.calibration.ambient_c or 0.0)
             t_lo, t_hi = min(t_lo, float(temp.min())), max(t_hi, float(temp.max()))
     return {
@@ -1391,13 +1401,7 @@ def _leave_one_out(runs: list[_Run], active: list[_Active], model: Model,
 def _within_lengths(run: _Run, others: list[_Run]) -> NDArray[np.bool_]:
     """Samples of ``run`` whose six CDF bar lengths all lie within the range the usable samples
     of ``others`` covered (the validity range a model fitted on them records), shape (N,)."""
-    lo = np.full(6, np.inf)
-    hi = np.full(6, -np.inf)
-    for x in others:
-        lengths = x.ctx.base.cdf_lengths_m[x.usable]
-        if lengths.size:
-            lo = np.minimum(lo, lengths.min(axis=0))
-            hi = np.maximum(hi, lengths.max(axis=0))
+    lo, hi = _seen_lengths(others)
     lengths = run.ctx.base.cdf_lengths_m
     return np.all((lengths >= lo) & (lengths <= hi), axis=1)
 
