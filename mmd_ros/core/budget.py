@@ -201,6 +201,31 @@ SOURCES = ('quantisation', 'read_noise', 'reference_bar', 'calibration_points',
            'residual')
 
 
+def segments_seen(knots_m: FloatArray, range_m: FloatArray) -> FloatArray:
+    """Each bar's span of the CDF segments whose middle lies within the lengths ``range_m``
+    (6, 2) a fit saw, intersected with that range, (6, 2) [m]; [inf, -inf] for a bar that saw
+    no segment's middle.
+
+    What a smooth scale error leaves between two calibration points is zero at both and
+    largest near the middle: a fit that did not reach a segment's middle saw only the
+    flank of it, and a length term's correction over that segment is an extrapolation. On
+    the twin, a bar seen from 270 mm in its segment 250-278 mm was corrected by -1 µm at
+    265 mm where its error was +0.2 µm (the bar always arrived there shortening: its friction
+    state and its scale error cannot be told apart at the end of what it saw), while the
+    fit's parameter covariance claimed 0.07 µm.
+
+    knots_m : ndarray, shape (6, n) — each bar's calibration distances, increasing [m]
+    """
+    out = np.tile([np.inf, -np.inf], (knots_m.shape[0], 1))
+    for i, kn in enumerate(knots_m):
+        lo, hi = range_m[i]
+        middle = 0.5 * (kn[:-1] + kn[1:])
+        seen = np.flatnonzero((middle >= lo) & (middle <= hi))
+        if seen.size:
+            out[i] = max(lo, kn[seen[0]]), min(hi, kn[seen[-1] + 1])
+    return out
+
+
 class LengthBudget:
     """Sigma_d of N samples for one device, calibration and model (see the module docstring).
 
@@ -344,6 +369,10 @@ class LengthBudget:
         validity = Validity.from_model(model)
         self._fit_range_m = validity.bar_range_m if validity is not None and fit is not None else None
         self._length_terms = [t for t in model.terms if t.type_name in LENGTH_TERMS]
+        if self._fit_range_m is not None and self._length_terms:
+            # with a length term, the residual stands for the CDF-derived sources only over
+            # the CDF segments whose middle the fit saw (:func:`segments_seen`)
+            self._fit_range_m = segments_seen(self.knots_m, self._fit_range_m)
         self._fitted_range_m = (validity.bar_range_m if validity is not None and self._length_terms
                                 else None)
         if self._length_terms and validity is None:
