@@ -173,8 +173,8 @@ def test_latch_skew_is_sized_from_the_terminal_s_stated_bound(realistic):
 def test_a_fit_s_residual_stands_only_where_the_fit_saw_the_bars(realistic):
     """A fit whose residual replaced the calibration-derived sources: inside the lengths it saw
     (its validity record), over the CDF segments whose middle it saw (the model has a length
-    term), they are gone; a bar outside gets them back, plus the square of the
-    square of how far the length terms' correction moved from its value at the nearest
+    term), they are gone; a bar outside gets them back, and beyond the lengths seen the square
+    of how far the length terms' correction moved from its value at the nearest
     length the fit saw (an extrapolation no data checked). A friction term does not know a
     bar's state before it has moved: the budget keeps h^2 / 3 for it (a state anywhere in
     [-1, 1]), decaying as exp(-2 path / travel), without bias."""
