@@ -1129,13 +1129,18 @@ static void crc_init(void)
     }
 }
 
+/* the byte table's CRC, continued from the register value c (pre-inverted) */
+static uint32_t crc32_bytes(uint32_t c, const unsigned char *p, size_t n)
+{
+    for (size_t i = 0; i < n; i++)
+        c = crc_table[(c ^ p[i]) & 0xFF] ^ (c >> 8);
+    return c;
+}
+
 /* CRC-32 of IEEE 802.3 (zlib.crc32). */
 static uint32_t crc32_of(const unsigned char *p, size_t n)
 {
-    uint32_t c = 0xFFFFFFFFu;
-    for (size_t i = 0; i < n; i++)
-        c = crc_table[(c ^ p[i]) & 0xFF] ^ (c >> 8);
-    return c ^ 0xFFFFFFFFu;
+    return crc32_bytes(0xFFFFFFFFu, p, n) ^ 0xFFFFFFFFu;
 }
 
 static uint16_t le16(const unsigned char *p) { return (uint16_t)(p[0] | p[1] << 8); }
@@ -1358,14 +1363,6 @@ done:
     PyMem_Free(offs);
     Py_DECREF(cols);
     return result;
-}
-
-/* the byte table's CRC, continued from the register value c (pre-inverted) */
-static uint32_t crc32_bytes(uint32_t c, const unsigned char *p, size_t n)
-{
-    for (size_t i = 0; i < n; i++)
-        c = crc_table[(c ^ p[i]) & 0xFF] ^ (c >> 8);
-    return c;
 }
 
 #if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
