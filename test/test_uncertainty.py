@@ -208,16 +208,16 @@ def test_a_fit_s_residual_stands_only_where_the_fit_saw_the_bars(realistic):
     checked = np.array([first_checked(kn, lo) for kn, lo in zip(knots, lowest)])
     np.testing.assert_allclose(segments_seen(knots, np.array(ranges) * 1e-3)[:, 0], checked)
     assert np.any(checked > lowest)              # a segment seen short of its middle
-    below = comp.cdf_lengths_m < checked[None]
-    assert below.any() and (~below).any()
+    unchecked_part = comp.cdf_lengths_m < checked[None]
+    assert unchecked_part.any() and (~unchecked_part).any()
     interp = parts['interpolation'][:, range(6), range(6)]
-    assert np.all(interp[below] > 0) and np.all(interp[~below] == 0)
+    assert np.all(interp[unchecked_part] > 0) and np.all(interp[~unchecked_part] == 0)
     unchecked = parts['unchecked_range'][:, range(6), range(6)]
     below = comp.cdf_lengths_m < lowest[None]
     from mmd_ros.core.model import TermContext
     n = x.shape[0]
     cdf = x + th.bar_error_m
-    edge = np.maximum(cdf, (mid - 1e-3)[None])
+    edge = np.maximum(cdf, lowest[None])
     c = (term.correction(TermContext(np.zeros(n), np.zeros((n, 8)), x, cdf, th.reference_error_m,
                                      th.temp_change_c))
          - term.correction(TermContext(np.zeros(n), np.zeros((n, 8)), x, edge,
