@@ -247,6 +247,9 @@ def test_x_y_z_c_laser_runs_write_nothing_the_6dof_run_would_contradict(two_side
     accepted = analyze(runs, options=AnalysisOptions(leave_one_out=False, effects=effects,
                                                      accept_unchecked=True))
     assert accepted.model is not None, accepted.conclusion
+    # leave-one-run-out turned off: no figure, not the "before" one given as both
+    assert all(s.loro_after is None for s in accepted.runs)
+    assert 'not computed' in accepted.validation and 'Leave-one-run-out' not in accepted.conclusion
     names, before, floor = component_rms(two_sided['aside'], Model())
     _, after, _ = component_rms(two_sided['aside'], accepted.model)
     for n, b, a, f in zip(names, before, after, floor):

@@ -1262,6 +1262,10 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
         if chosen and o.leave_one_out:
             say('leave-one-run-out: refitting without each log')
             _leave_one_out(runs, sel.active, model, o, summaries, unseen)
+        elif chosen:
+            # asked not to refit: no figure rather than the "before" one under an "after" name
+            validation = ('within-run: held-out time blocks of each log (leave-one-run-out was '
+                          'not computed: turned off)')
         else:
             for s, r in zip(summaries, runs):
                 every = np.flatnonzero(r.usable)
@@ -1485,9 +1489,11 @@ def _conclusion(runs: list[_Run], summaries: list[RunSummary], found: list[Found
                              f'{r.run.path.name} {_fmt(s.loro_before)} → {_fmt(s.loro_after)}'
                              for r, s in zip(runs, summaries)) + '.')
         else:
+            which = (f'of {runs[0].run.path.name}, one of the logs' if several
+                     else 'of the one log')
             parts.append(f'Found: {names}. Held-out RMS {_fmt(summaries[0].before)} → '
                          f'{_fmt(summaries[0].after)} (pipeline re-run with the extended model; '
-                         'within-run figure: time blocks of the one log the model was fitted on).')
+                         f'within-run figure: time blocks {which} the model was fitted on).')
     if unchecked:
         parts.append('Not written: ' + '; '.join(f'{f.title}: {f.reason}' for f in unchecked) + '.')
     if not_claimed:
