@@ -265,7 +265,8 @@ def every_term(calibration) -> list:
         ThermalInterpolationTerm(-1.3, 0.323),
         PlateScaleTerm(geo.upper, geo.lower, 2e-6, 0.3e-6, 500.0, DEVICE.plate_cte_per_c),
         JointOffsetsTerm(geo.upper, geo.lower, rng.normal(0, 5e-6, (6, 3)), rng.normal(0, 5e-6, (6, 3)), six(1e-6)),
-        ScaleNonlinearityTerm(knots, rng.normal(0, 1e-6, (6, 3)), rng.normal(0, 1e-6, (6, 3))),
+        ScaleNonlinearityTerm(knots, rng.normal(0, 1e-6, (6, 3)), rng.normal(0, 1e-6, (6, 3)),
+                              np.column_stack([knots[:, 2], knots[:, 4]])),
         CdfOffsetsTerm(knots, rng.normal(0, 0.3e-6, knots.shape)),
         CyclicErrorTerm(20e-6, DEVICE.encoder_resolution_m, list(DEVICE.measuring_channels), origin,
                         six(50e-9), six(50e-9)),
@@ -292,6 +293,43 @@ def test_model_file_round_trip_of_every_term(tmp_path, short_run):
     a = Pipeline(DEVICE, calibration, model).process(run.times_s, run.counts)
     b = Pipeline(DEVICE, calibration, back).process(run.times_s, run.counts)
     assert np.max(np.abs(a.compensated.lengths_m - b.compensated.lengths_m)) < 1e-12
+
+
+def test_a_scale_series_beyond_the_lengths_its_fit_saw_stays_within_what_it_did_there(short_run):
+    """A series of the CDF span's harmonics fitted over part of the span can swing far beyond
+    it: held, beyond the lengths seen, within the values it takes within them; a bar seen
+    nowhere gets no correction."""
+    from mmd_ros.core.model import TermContext
+    from mmd_ros.core.terms import limited_to_seen
+    calibration, _ = short_run
+    names = DEVICE.channel_names
+    knots = np.array([np.sort(calibration.bars[names[c]].distances_m) for c in DEVICE.measuring_channels])
+    rng = np.random.default_rng(3)
+    free = ScaleNonlinearityTerm(knots, rng.normal(0, 1e-6, (6, 3)), rng.normal(0, 1e-6, (6, 3)))
+    seen = np.column_stack([knots[:, 2] + 3e-3, knots[:, 4] - 2e-3])
+    seen[5] = [np.inf, -np.inf]                                   # bar 6: no sample saw it
+    held, other = limited_to_seen([free, HysteresisTerm(np.zeros(6), 1e-6)], seen)
+    assert isinstance(other, HysteresisTerm) and held.seen_m is not None
+    x = np.linspace(knots[:, 0] - 2e-3, knots[:, -1] + 2e-3, 3001)     # (N, 6)
+    n = x.shape[0]
+
+    def correction(term):
+        return term.correction(TermContext(np.zeros(n), np.zeros((n, 8)), x, x, np.zeros((n, 1)), np.zeros(n)))
+
+    a, b = correction(free), correction(held)
+    within = (x >= seen[:, 0]) & (x <= seen[:, 1])
+    np.testing.assert_array_equal(a[within], b[within])
+    inside = np.linspace(seen[:5, 0], seen[:5, 1], 4001)             # the seen lengths, ends included
+    for i in range(5):
+        g = np.repeat(inside[:, [i]], 6, axis=1)
+        ci = free.correction(TermContext(np.zeros(4001), np.zeros((4001, 8)), g, g,
+                                         np.zeros((4001, 1)), np.zeros(4001)))[:, i]
+        lo, hi = ci.min(), ci.max()
+        assert np.all((b[:, i] >= lo - 1e-12) & (b[:, i] <= hi + 1e-12))         # 1 pm
+        assert np.any((a[~within[:, i], i] < lo) | (a[~within[:, i], i] > hi))   # it did swing
+    assert np.all(b[:, 5] == 0.0) and np.any(a[:, 5] != 0.0)
+    back = ScaleNonlinearityTerm.from_params(held.params(), 'test')
+    np.testing.assert_array_equal(correction(back), b)
 
 
 def test_the_terms_stream_gives_the_batch_result(short_run):

@@ -222,8 +222,18 @@ def test_a_fit_s_residual_stands_only_where_the_fit_saw_the_bars(realistic):
                                      th.temp_change_c))
          - term.correction(TermContext(np.zeros(n), np.zeros((n, 8)), x, edge,
                                        th.reference_error_m, th.temp_change_c)))
-    np.testing.assert_allclose(unchecked[below], c[below] ** 2)
-    assert np.all(unchecked[~below] == 0) and np.any(unchecked[below] > 0)
+    # and beyond the lengths the fit saw, the size of what the term corrected within them
+    # (beyond a straight line): its shape beyond them is not known
+    spread = np.empty(6)
+    for i, (kn, lo) in enumerate(zip(knots, lowest)):
+        g = np.linspace(lo, kn[-1], 1001)
+        lengths = np.repeat(g[:, None], 6, axis=1)
+        ci = term.correction(TermContext(np.zeros(g.size), np.zeros((g.size, 8)), lengths, lengths,
+                                         np.zeros((g.size, 1)), np.zeros(g.size)))[:, i]
+        spread[i] = np.mean((ci - np.polyval(np.polyfit(g, ci, 1), g)) ** 2)
+    assert np.all(spread > 0)
+    np.testing.assert_allclose(unchecked, (c ** 2 + spread[None]) * below, rtol=0.03)
+    assert np.all(unchecked[~below] == 0) and np.all(unchecked[below] > 0)
     # the friction state before a bar's first move: h^2 / 3, no known error; forgotten at
     # exp(-2 path / travel) as the bar moves
     h = parts['hysteresis'][:, range(6), range(6)]
@@ -368,15 +378,17 @@ def test_after_the_loop_the_fit_s_uncertainty_is_in_the_model_and_covers(tmp_pat
     lengths the fit saw, and that range. Five twins (five calibrations: each draws every
     systematic error once, and a pooled coverage of two says little of a 95 % claim), each
     judged with its own model on new motion: the 95 % ellipsoid covers 93-97 % (measured
-    95.0 %) and no axis is under-stated (ratio > 0.8). Where every bar lies inside the
+    95.1 %) and no axis is under-stated (ratio > 0.8). Where every bar lies inside the
     lengths the fit saw (88 % of the samples), the ratio is within the issue's 0.8-1.25
-    (measured 1.07-1.22). Over all samples four axes exceed 1.25 (measured 1.05-1.39; over 24
-    twins in bench_uncertainty.py --after, 0.97-1.27): the rest take a bar outside those
-    lengths, where the calibration-derived sources come back in full and the length terms'
-    extrapolation is claimed as large as its change from the last length the fit checked
-    (unchecked_range), and a bar in a CDF segment whose middle the fit did not see gets the
-    calibration-derived sources back too (a twin whose fit saw only the flank of two bars'
-    end segments was covered 66 % without this, 94 % with it): conservative there."""
+    (measured 1.07-1.22). Over all samples every axis exceeds 1.2 (measured 1.24-1.66; over 24
+    twins in bench_uncertainty.py --after, 0.97-1.28): the rest take a bar outside those
+    lengths, where the calibration-derived sources come back in full and the length terms are
+    claimed uncertain by their change from the last length the fit checked and by the size
+    of what they corrected within those lengths (unchecked_range: on an error of another
+    shape than the twin's, the test below, this is what covers it), and a bar in a CDF
+    segment whose middle the fit did not see gets the calibration-derived sources back too
+    (a twin whose fit saw only the flank of two bars' end segments was covered 66 % without
+    this, 94 % with it): conservative there, and covered (measured 97.4 %)."""
     from mmd_ros.core.model import FIT_REPLACEABLE
     errors, covs, inside = [], [], []
     for seed in (1, 2, 3, 4, 5):
@@ -399,7 +411,7 @@ def test_after_the_loop_the_fit_s_uncertainty_is_in_the_model_and_covers(tmp_pat
     ratio = np.sqrt(np.mean(np.diagonal(c, axis1=1, axis2=2), axis=0)) / np.sqrt(np.mean(e * e, axis=0))
     d2 = np.einsum('ni,ni->n', e, np.linalg.solve(c, e[:, :, None])[:, :, 0])
     print('after the loop: ratio', np.round(ratio, 2), 'coverage', np.mean(d2 <= LIMIT))
-    assert np.all((ratio > 0.8) & (ratio < 1.6)), ratio
+    assert np.all((ratio > 0.8) & (ratio < 1.8)), ratio
     assert 0.93 <= np.mean(d2 <= LIMIT) <= 0.97, np.mean(d2 <= LIMIT)
     m = np.concatenate(inside)
     assert 0.5 < m.mean() < 1.0, m.mean()
@@ -407,9 +419,66 @@ def test_after_the_loop_the_fit_s_uncertainty_is_in_the_model_and_covers(tmp_pat
                 / np.sqrt(np.mean(e[m] * e[m], axis=0)))
     print('inside the fit\'s lengths:', round(float(m.mean()), 3), 'ratio', np.round(ratio_in, 2))
     assert np.all((ratio_in > 0.8) & (ratio_in < 1.25)), ratio_in
+    print('outside them: coverage', np.mean(d2[~m] <= LIMIT))
+    assert np.mean(d2[~m] <= LIMIT) >= 0.93
 
 
 # -- mmd process reports it -------------------------------------------------------------------
+def test_after_the_loop_a_scale_error_of_another_shape_is_covered_where_the_fit_did_not_look():
+    """The data judged by others come with effects the twin does not make. Here a length error
+    of another shape than the twin's (a bow across the bar plus a 37 mm sine: not periodic over
+    the CDF span) is added to the counts of four ideal twins; each is analysed on 60 s of
+    random motion (full pose) and judged against its true pose on 8 s of other motion. The
+    fit's harmonics once swung to 3 µm beyond the lengths it saw where the error was 0.2 µm,
+    and the budget had no claim for an error that the calibration never saw: 91.0 % in the
+    95 % ellipsoid, 61 % where a bar left the lengths the fit saw. Now the correction beyond
+    them is held within what it did within them, and the size of what it corrected there is
+    claimed beyond them: measured 94.5 % (85 % there, 15 % of the samples)."""
+    from pathlib import Path
+
+    from mmd_ros.analysis.identify import AnalysisOptions, analyze
+    from mmd_ros.logs.layout import RunLog
+    from mmd_ros.twin import AmbientProfile
+    meas = list(DEVICE.measuring_channels)
+    room = AmbientProfile.constant(21.0)
+    errors, covs, outside = [], [], []
+    for k in range(4):
+        g = np.random.default_rng(100 + k)
+        bow, ripple, phase = g.uniform(-1, 1, 6) * 0.4e-6, g.uniform(0.1, 0.3, 6) * 1e-6, g.uniform(0, 6.3, 6)
+        twin = TwinDevice(DEVICE, Effects.ideal(), seed=k + 1)
+        calibration = twin.calibrate(-211.0 * k, room, approaches=2)
+
+        def run_of(params, start):
+            run = twin.simulate(make_scenario('random_motion', params), room, start_s=start,
+                                reference='pose6', sample_rate_hz=200.0)
+            d = run.true_lengths
+            counts = run.counts.astype(np.float64)
+            counts[:, meas] += np.rint((bow * ((d - 0.33) / 0.06) ** 2
+                                        + ripple * np.sin(2 * np.pi * d / 0.037 + phase)) / RES)
+            return run, counts
+
+        fit, counts = run_of(['duration_s=60', f'seed={100 + k}'], 600.0)
+        log = RunLog(Path('twin'), twin.documented_device, calibration, None,
+                     np.round((600.0 + fit.times_s) * 1e9).astype(np.int64), counts,
+                     DEVICE.channel_names, fit.reference, metadata=fit.metadata)
+        result = analyze(log, options=AnalysisOptions(datum='none'))
+        assert 'scale_nonlinearity' in [f.effect for f in result.found], result.conclusion
+        run, counts = run_of(['duration_s=8', f'seed={k}'], 700.0)
+        res = Pipeline(twin.documented_device, calibration, result.model).process(
+            run.times_s, counts, with_covariance=True)
+        errors.append(pose_error(res.poses, run.true_poses)[res.valid])
+        covs.append(res.covariance[res.valid])
+        bars = Validity.from_model(result.model).bar_range_m
+        cdf = res.compensated.cdf_lengths_m[res.valid]
+        outside.append(~np.all((cdf >= bars[:, 0]) & (cdf <= bars[:, 1]), axis=1))
+    e, c, out = np.concatenate(errors), np.concatenate(covs), np.concatenate(outside)
+    d2 = np.einsum('ni,ni->n', e, np.linalg.solve(c, e[:, :, None])[:, :, 0])
+    print('coverage', np.mean(d2 <= LIMIT), 'outside', np.mean(d2[out] <= LIMIT), out.mean())
+    assert 0.05 < out.mean() < 0.5
+    assert 0.93 <= np.mean(d2 <= LIMIT) <= 0.97
+    assert np.mean(d2[out] <= LIMIT) >= 0.8
+
+
 def test_coverage_report_of_a_full_and_a_partial_reference():
     rng = np.random.default_rng(5)
     cov = np.broadcast_to(np.diag([1e-12] * 3 + [1e-10] * 3), (20000, 6, 6))

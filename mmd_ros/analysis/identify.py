@@ -56,6 +56,7 @@ from mmd_ros.analysis.uncertainty import ResidualRun, fitted_effects, with_fit_u
 from mmd_ros.core.calibration import Calibration
 from mmd_ros.core.kinematics import jacobian
 from mmd_ros.core.model import Model, ModelTerm
+from mmd_ros.core.terms import limited_to_seen
 from mmd_ros.core.units import ARCSEC_PER_RAD, M_PER_MM, M_PER_UM
 from mmd_ros.logs.layout import RunLog
 
@@ -901,10 +902,13 @@ def _datum_corrected(obs: Observation, residual: FloatArray, valid: NDArray[np.b
     return r
 
 
-def _build_model(model: Model, terms: list[ModelTerm], records: dict[str, Any]) -> Model:
-    """The extended model: the input model's terms, the new terms, and the records of this
-    analysis (``analysis`` history, ``validity``) in the file's extra keys. The one place where
-    an analysed model is assembled."""
+def _build_model(model: Model, terms: list[ModelTerm], records: dict[str, Any],
+                 seen_m: FloatArray | None = None) -> Model:
+    """The extended model: the input model's terms, the new terms (a length-dependent series
+    held beyond the bar lengths ``seen_m`` (6, 2) [m] its fit saw within the values it takes
+    within them), and the records of this analysis (``analysis`` history, ``validity``) in the
+    file's extra keys. The one place where an analysed model is assembled."""
+    terms = limited_to_seen(terms, seen_m)
     extra = dict(model.extra)
     for key, value in records.items():
         if key == 'analysis':
@@ -1250,7 +1254,7 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
             }),
             'validity': _ascii(_validity(runs, afters)),
         }
-        extended = _build_model(model, _terms_for(sel, chosen, last), records)
+        extended = _build_model(model, _terms_for(sel, chosen, last), records, np.stack(_seen_lengths(runs), axis=1))
 
     # -- leave one run out: each log predicted by the model fitted on the others
     unseen: list[ResidualRun] = []
@@ -1377,7 +1381,7 @@ def _leave_one_out(runs: list[_Run], active: list[_Active], model: Model,
                 continue
             refit.append((a, theta))
         missing = [a.effect.name for a, _ in refit if sel.group_index(a.effect, r) is None]
-        trial = _build_model(model, _terms_for(sel, refit, r), {})
+        trial = _build_model(model, _terms_for(sel, refit, r), {}, np.stack(_seen_lengths(others), axis=1))
         after = run_pipeline(r.run.device, r.calibration, trial, r.run.times_s, r.run.counts)
         every = np.flatnonzero(r.usable)
         res_a = _datum_corrected(r.obs, r.obs.residual(after), after.measured(r.obs.kind), every)

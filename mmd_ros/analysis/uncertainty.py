@@ -41,7 +41,9 @@ from mmd_ros.analysis.data import FitContext, Observation, Processed
 from mmd_ros.core.budget import LengthBudget
 from mmd_ros.core.kinematics import jacobian
 from mmd_ros.core.model import FIT_REPLACEABLE, FitUncertainty, Model, ModelTerm, ModelUncertainty
+from mmd_ros.core.terms import limited_to_seen
 from mmd_ros.core.uncertainty import pose_covariance
+from mmd_ros.core.validity import Validity
 
 __all__ = ['FittedEffect', 'MAX_DIRECTIONS', 'ResidualRun', 'fit_uncertainty', 'fitted_effects',
            'with_fit_uncertainty']
@@ -77,10 +79,11 @@ class ResidualRun:
     idx: IntArray
 
 
-def _term_directions(ctx: FitContext, found: list[FittedEffect], idx: IntArray
-                     ) -> tuple[list[list[ModelTerm]], FloatArray]:
-    """Principal directions of the fitted parameters as model terms, and the mean over the
-    samples ``idx`` of S Sigma_theta S^T of all of them, (6, 6) [m^2]."""
+def _term_directions(ctx: FitContext, found: list[FittedEffect], idx: IntArray,
+                     seen_m: FloatArray | None = None) -> tuple[list[list[ModelTerm]], FloatArray]:
+    """Principal directions of the fitted parameters as model terms (held beyond the lengths
+    ``seen_m`` as the model's own terms are), and the mean over the samples ``idx`` of
+    S Sigma_theta S^T of all of them, (6, 6) [m^2]."""
     candidates: list[tuple[float, list[ModelTerm]]] = []
     mean_total = np.zeros((6, 6))
     for f in found:
@@ -97,7 +100,8 @@ def _term_directions(ctx: FitContext, found: list[FittedEffect], idx: IntArray
         mean_total += np.einsum('nir,njr->ij', cols, cols) / max(idx.size, 1)
         size = np.mean(np.sum(cols * cols, axis=1), axis=0)       # mean |c_k|^2
         for k in range(dirs.shape[1]):
-            candidates.append((float(size[k]), f.effect.make_terms(ctx, f.hyper, dirs[:, k])))
+            candidates.append((float(size[k]), limited_to_seen(
+                f.effect.make_terms(ctx, f.hyper, dirs[:, k]), seen_m)))
     candidates.sort(key=lambda c: -c[0])
     total = sum(c[0] for c in candidates)
     chosen: list[list[ModelTerm]] = []
@@ -165,7 +169,9 @@ def fit_uncertainty(ctx: FitContext, found: list[FittedEffect], runs: list[Resid
     """
     ref = runs[0] if runs else None
     idx0 = ref.idx if ref is not None else np.zeros(0, np.int64)
-    directions, mean_terms = _term_directions(ctx, found, idx0[:4000])
+    validity = Validity.from_model(model)
+    directions, mean_terms = _term_directions(ctx, found, idx0[:4000],
+                                              None if validity is None else validity.bar_range_m)
     fit = FitUncertainty(np.zeros((6, 6)), (), 1.0, directions, mean_terms,
                          {'residual_from': ('logs the fit did not see (leave-one-run-out)' if unseen
                                             else 'held-out blocks of the fitted logs')})

@@ -375,6 +375,8 @@ class LengthBudget:
             self._fit_range_m = segments_seen(self.knots_m, self._fit_range_m)
         self._fitted_range_m = (validity.bar_range_m if validity is not None and self._length_terms
                                 else None)
+        self._seen_var_m2 = (self._length_spread(self._fitted_range_m)
+                             if self._fitted_range_m is not None else np.zeros(6))
         if self._length_terms and validity is None:
             self.notes.append('unchecked range: the model does not record the lengths its terms '
                               'were fitted on (validity.bar_range_mm)')
@@ -577,12 +579,33 @@ class LengthBudget:
             out = (cdf < self._fit_range_m[:, 0]) | (cdf > self._fit_range_m[:, 1])
         return np.where(out, 1.0, kept)
 
+    def _length_spread(self, range_m: FloatArray) -> FloatArray:
+        """Per bar, the mean square of the length terms' correction over the lengths
+        ``range_m`` (6, 2) the fit saw, about its straight-line fit there, (6,) [m^2]: the size
+        of the length-dependent error the calibration left and the data revealed."""
+        grid = np.linspace(0.0, 1.0, 201)[:, None]
+        lo = np.maximum(range_m[:, 0], self.knots_m[:, 0])     # the terms' span: the CDF's
+        hi = np.minimum(range_m[:, 1], self.knots_m[:, -1])
+        ok = np.isfinite(lo) & np.isfinite(hi) & (hi > lo)
+        lengths = np.where(ok, lo, self.knots_m[:, 0]) + grid * np.where(ok, hi - lo, 0.0)
+        n = grid.shape[0]
+        ctx = TermContext(np.zeros(n), np.zeros((n, 8)), lengths, lengths, np.zeros((n, 1)), np.zeros(n))
+        c = sum(term.correction(ctx) for term in self._length_terms)
+        a = np.column_stack([np.ones(n), grid[:, 0]])
+        rest = c - a @ np.linalg.lstsq(a, c, rcond=None)[0]
+        return np.where(ok, np.mean(rest * rest, axis=0), 0.0)
+
     def _unchecked(self, x: FloatArray, bar_error_m: FloatArray, eps: FloatArray,
                    temp_change_c: FloatArray) -> FloatArray:
-        """The unchecked_range source, (N, 6) [m^2]: for a bar whose CDF length lies outside the
-        lengths the fit saw, the square of how far the length-dependent terms' correction has
-        moved from its value at the nearest length the fit saw (the residual checked the
-        correction there; what it does beyond, no data checked), else 0."""
+        """The unchecked_range source, (N, 6) [m^2], for a bar whose CDF length lies outside the
+        lengths the fit saw, else 0: the square of how far the length-dependent terms'
+        correction has moved from its value at the nearest length the fit saw (the residual
+        checked the correction there; what it does beyond, no data checked), plus the mean
+        square of what the terms corrected within those lengths beyond a straight line
+        (:meth:`_length_spread`): there the data showed the calibration missing an error of
+        that size along the bar, and beyond them its shape is not known (a smooth error need
+        not be periodic over the CDF span, as the terms' series is; on an error of another
+        shape than the twin's, 61 % of the samples beyond were covered without this)."""
         n = x.shape[0]
         cdf = x + bar_error_m       # before the thermal compensation (the terms' shift is small)
         lo, hi = self._fitted_range_m[:, 0], self._fitted_range_m[:, 1]
@@ -597,7 +620,7 @@ class LengthBudget:
         if not out.any():
             return np.zeros((n, 6))
         c = correction(cdf) - correction(np.clip(cdf, lo, hi))
-        return np.where(out, c * c, 0.0)
+        return np.where(out, c * c + self._seen_var_m2, 0.0)
 
     def _hysteresis(self, n: int, observed: Observed | None
                     ) -> tuple[FloatArray | None, FloatArray] | None:
