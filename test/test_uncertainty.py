@@ -378,17 +378,17 @@ def test_after_the_loop_the_fit_s_uncertainty_is_in_the_model_and_covers(tmp_pat
     lengths the fit saw, and that range. Five twins (five calibrations: each draws every
     systematic error once, and a pooled coverage of two says little of a 95 % claim), each
     judged with its own model on new motion: the 95 % ellipsoid covers 93-97 % (measured
-    95.1 %) and no axis is under-stated (ratio > 0.8). Where every bar lies inside the
+    95.0 %) and no axis is under-stated (ratio > 0.8). Where every bar lies inside the
     lengths the fit saw (88 % of the samples), the ratio is within the issue's 0.8-1.25
-    (measured 1.07-1.22). Over all samples every axis exceeds 1.2 (measured 1.24-1.66; over 24
-    twins in bench_uncertainty.py --after, 0.97-1.28): the rest take a bar outside those
+    (measured 1.08-1.23). Over all samples every axis exceeds 1.25 (measured 1.33-1.89; over
+    24 twins in bench_uncertainty.py --after, 1.10-1.68): the rest take a bar outside those
     lengths, where the calibration-derived sources come back in full and the length terms are
     claimed uncertain by their change from the last length the fit checked and by the size
     of what they corrected within those lengths (unchecked_range: on an error of another
     shape than the twin's, the test below, this is what covers it), and a bar in a CDF
     segment whose middle the fit did not see gets the calibration-derived sources back too
     (a twin whose fit saw only the flank of two bars' end segments was covered 66 % without
-    this, 94 % with it): conservative there, and covered (measured 97.4 %)."""
+    this, 94 % with it): conservative there, and covered (measured 98.6 %)."""
     from mmd_ros.core.model import FIT_REPLACEABLE
     errors, covs, inside = [], [], []
     for seed in (1, 2, 3, 4, 5):
@@ -411,7 +411,7 @@ def test_after_the_loop_the_fit_s_uncertainty_is_in_the_model_and_covers(tmp_pat
     ratio = np.sqrt(np.mean(np.diagonal(c, axis1=1, axis2=2), axis=0)) / np.sqrt(np.mean(e * e, axis=0))
     d2 = np.einsum('ni,ni->n', e, np.linalg.solve(c, e[:, :, None])[:, :, 0])
     print('after the loop: ratio', np.round(ratio, 2), 'coverage', np.mean(d2 <= LIMIT))
-    assert np.all((ratio > 0.8) & (ratio < 1.8)), ratio
+    assert np.all((ratio > 0.8) & (ratio < 2.0)), ratio
     assert 0.93 <= np.mean(d2 <= LIMIT) <= 0.97, np.mean(d2 <= LIMIT)
     m = np.concatenate(inside)
     assert 0.5 < m.mean() < 1.0, m.mean()
@@ -432,8 +432,9 @@ def test_after_the_loop_a_scale_error_of_another_shape_is_covered_where_the_fit_
     fit's harmonics once swung to 3 µm beyond the lengths it saw where the error was 0.2 µm,
     and the budget had no claim for an error that the calibration never saw: 91.0 % in the
     95 % ellipsoid, 61 % where a bar left the lengths the fit saw. Now the correction beyond
-    them is held within what it did within them, and the size of what it corrected there is
-    claimed beyond them: measured 94.5 % (85 % there, 15 % of the samples)."""
+    them is held within what it did within them, the size of what it corrected there is
+    claimed beyond them, and a CDF point no sample came near is not fitted: measured 95.8 %
+    (93.5 % there, 15 % of the samples)."""
     from pathlib import Path
 
     from mmd_ros.analysis.identify import AnalysisOptions, analyze
@@ -476,7 +477,7 @@ def test_after_the_loop_a_scale_error_of_another_shape_is_covered_where_the_fit_
     print('coverage', np.mean(d2 <= LIMIT), 'outside', np.mean(d2[out] <= LIMIT), out.mean())
     assert 0.05 < out.mean() < 0.5
     assert 0.93 <= np.mean(d2 <= LIMIT) <= 0.97
-    assert np.mean(d2[out] <= LIMIT) >= 0.8
+    assert np.mean(d2[out] <= LIMIT) >= 0.9
 
 
 def test_coverage_report_of_a_full_and_a_partial_reference():

@@ -417,7 +417,7 @@ class ScaleNonlinearity(Effect):
         out = []
         for kind in ('sin', 'cos'):
             for k in range(1, SCALE_HARMONICS + 1):
-                out += _bar_names(f'{kind} {k}', 'µm', 1 / M_PER_UM, 20e-6)
+                out += _bar_names(f'{kind} {k}', 'µm', 1 / M_PER_UM, 5e-6)
         return out
 
     def signature(self, ctx, hyper, idx):
@@ -464,12 +464,25 @@ class CalibrationPoints(Effect):
         return _per_bar([b[:, :, j] for j in range(b.shape[2])])
 
     def coverage(self, ctx, hyper, idx):
+        """A point whose neighbourhood (a quarter of a segment either side) no sample reached is
+        seen only through the tail of its ramp, where its offset and a scale error cannot be
+        told apart: jointly with the scale term, 16 µm at a point 11 mm short of the lengths
+        seen, against 42 µm of harmonics, where the error was 0.5 µm."""
         knots = _knots(ctx)
         seg = np.median(np.diff(knots, axis=1), axis=1)
-        span = np.ptp(ctx.base.cdf_lengths_m[idx], axis=0)
+        lengths = ctx.base.cdf_lengths_m[idx]
+        span = np.ptp(lengths, axis=0)
         bars = span >= 0.25 * seg
-        ok = np.tile(bars, knots.shape[1])
-        return ok, '' if ok.all() else 'bars that move less than a quarter of a CDF segment: ' + _bars(~bars)
+        lo, hi = lengths.min(axis=0), lengths.max(axis=0)
+        reach = 0.25 * seg[:, None]
+        near = (knots + reach >= lo[:, None]) & (knots - reach <= hi[:, None])     # (6, n)
+        ok = (near & bars[:, None]).T.reshape(-1)          # parameters ordered point by point
+        notes = []
+        if not bars.all():
+            notes.append('bars that move less than a quarter of a CDF segment: ' + _bars(~bars))
+        if (bars[:, None] & ~near).any():
+            notes.append('points no sample came within a quarter of a segment of')
+        return ok, '; '.join(notes)
 
     def make_term(self, ctx, hyper, theta):
         knots = _knots(ctx)

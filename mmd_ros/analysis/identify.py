@@ -788,9 +788,15 @@ class _Selector:
         n_eff = self.test.n_eff(e0_test)
         best.n_eff = n_eff
         best.delta_ic = n_eff * math.log(max(mse1, 1e-300) / max(mse0, 1e-300)) + best.n_identifiable * math.log(n_eff)
+        # consistency over the held-out blocks: the logarithm of each block's mean-square
+        # ratio, not its difference, which the blocks of fast motion dominated (a skew's
+        # error grows with speed; a 24 % gain on a realistic twin, 14 of 20 blocks better,
+        # scored t 2.95 by differences and 3.5 by ratios)
         blocks = self.test.blocks
         ids = np.unique(blocks)
-        per = np.array([np.mean(e0_test[blocks == b] ** 2 - e1[blocks == b] ** 2) for b in ids])
+        tiny = 1e-300
+        per = np.array([math.log(max(float(np.mean(e0_test[blocks == b] ** 2)), tiny)
+                                 / max(float(np.mean(e1[blocks == b] ** 2)), tiny)) for b in ids])
         if per.size > 1 and per.std(ddof=1) > 0:
             best.t_stat = float(per.mean() / (per.std(ddof=1) / math.sqrt(per.size)))
         else:
@@ -834,13 +840,16 @@ class _Selector:
                             a.written, best[1]['weak'])
             self.active = others[:k] + [a] + others[k:]
 
-    def own_structure_ratio(self, active: _Active, theta: FloatArray, e_pred: FloatArray
-                            ) -> tuple[float, str]:
+    def own_structure_ratio(self, active: _Active, theta: FloatArray, e_pred: FloatArray,
+                            partners: list[tuple[_Active, FloatArray]] = ()) -> tuple[float, str]:
         """How much of the structure along the effect's own coordinate is left when it is in
         the model, relative to when it is not: V_with / V_without on the held-out fit samples
         of every log, V the variance explained by bin means of the feature (the effect's
-        diagnostic feature that carries most structure without it)."""
+        diagnostic feature that carries most structure without it). ``partners``: effects
+        taken out with it (those that follow the same coordinate share what they explain)."""
         contrib = self.columns(active.effect, active.hyper, 'test') @ theta
+        for b, t in partners:
+            contrib = contrib + self.columns(b.effect, b.hyper, 'test') @ t
         with_all = self.test.pieces(e_pred)
         without_all = self.test.pieces(e_pred + contrib)
         v_with: dict[str, float] = {}
@@ -984,7 +993,21 @@ def _select(sel: _Selector, effects: list[Effect], o: AnalysisOptions,
         steps.append(cands)
         significant = [c for c in cands if c.verdict == 'significant']
         if not significant:
-            break
+            pair = _joint_pair(sel, effects, cands, e0, o)
+            if pair is None:
+                break
+            initial = steps[0][0].mse0 if steps[0] else math.nan
+            for cand, eff in pair:
+                sel.active.append(_Active(eff, cand.hyper, cand.basis, cand.gain,
+                                          (cand.mse0 - cand.mse1) / initial if initial > 0 else math.nan,
+                                          cand.norms, weak=cand.weak))
+            first, second = pair[0][0], pair[1][0]
+            first.verdict = f'added jointly with {second.effect} (neither alone passed)'
+            second.verdict = f'added jointly with {first.effect}'
+            cands.remove(first)
+            cands[:] = [first, second] + [c for c in cands if c.effect != second.effect]
+            sel.refine()
+            continue
         # parsimony: the effect with the fewest identifiable parameters whose held-out
         # information criterion falls nearly as much as the best one's (the fall in the mean
         # square alone cannot tell 98.8 % from 99.85 %; the criterion's logarithm can)
@@ -1002,6 +1025,45 @@ def _select(sel: _Selector, effects: list[Effect], o: AnalysisOptions,
         if len(sel.active) > 1:
             sel.refine()
     return steps
+
+
+#: When no single effect passes, the pairs among this many of the best candidates are tried.
+PAIR_CANDIDATES = 3
+
+
+def _joint_pair(sel: _Selector, effects: list[Effect], cands: list[Candidate], e0: FloatArray,
+                o: AnalysisOptions) -> list[tuple[Candidate, Effect]] | None:
+    """Two effects that pass together when neither passes alone, or None.
+
+    Stepwise selection adds one effect at a time; two effects of similar signature (a channel
+    delay and friction both follow the direction of motion) each explain only part of a
+    residual that holds both, inconsistently over the blocks, and neither passes (a realistic
+    twin: skew 11 % with t 2.8, friction 8 % with t 2.3, ten times the noise floor left). Of
+    the ``PAIR_CANDIDATES`` best candidates that lower the held-out error, each pair is fitted
+    jointly (the better one first, the other's setting chosen with it in place) and judged
+    against the step's baseline by the same rules, the criterion charged for both effects'
+    parameters; the pair whose criterion falls most is returned, the better one first."""
+    hopeful = [c for c in cands if c.basis is not None and c.basis.shape[1] and c.gain > 0
+               and math.isfinite(c.delta_ic)]
+    hopeful = sorted(hopeful, key=lambda c: c.delta_ic)[:PAIR_CANDIDATES]
+    by_name = {e.name: e for e in effects}
+    best: tuple[float, list[tuple[Candidate, Effect]]] | None = None
+    for i, first in enumerate(hopeful):
+        for other in hopeful[i + 1:]:
+            sel.active.append(_Active(by_name[first.effect], first.hyper, first.basis, first.gain,
+                                      norms=first.norms, weak=first.weak))
+            try:
+                joint = sel.evaluate(by_name[other.effect], e0)
+            finally:
+                sel.active.pop()
+            if joint.verdict != 'significant':
+                continue
+            joint.delta_ic += first.n_identifiable * math.log(joint.n_eff)
+            if joint.delta_ic > -o.min_delta_ic:
+                continue
+            if best is None or joint.delta_ic < best[0]:
+                best = (joint.delta_ic, [(first, by_name[first.effect]), (joint, by_name[other.effect])])
+    return None if best is None else best[1]
 
 
 def _unchecked(sel: _Selector, a: _Active, theta: FloatArray, cov_beta: FloatArray) -> list[Unchecked]:
@@ -1119,7 +1181,9 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
     afters: list[tuple[Processed, FloatArray]] | None = None
     stats_pred = None
     chosen: list[tuple[_Active, FloatArray]] = []
-    for _ in range(2 * o.max_effects + 2):
+    set_aside: list[_Active] = []
+    retried: set[str] = set()
+    for _ in range(4 * o.max_effects + 2):
         if not sel.active:
             break
         fits, e_pred = sel.final_fit()
@@ -1139,6 +1203,14 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
         worst_k, worst_ratio, worst_txt = -1, 0.0, ''
         for k, (a, f) in enumerate(zip(sel.active, current)):
             ratio, feature = sel.own_structure_ratio(a, f.value, e_pred)
+            if ratio > o.claim_ratio:
+                # effects that follow the same coordinate (a scale error and the CDF points
+                # both follow a bar's length) share what they explain: each alone leaves it
+                # to the other, and dropping both left 10 x the floor along that length
+                partners = [(b, g.value) for j, (b, g) in enumerate(zip(sel.active, current))
+                            if j != k and feature in b.effect.diagnostics(first.ctx, b.hyper)]
+                if partners and sel.own_structure_ratio(a, f.value, e_pred, partners)[0] <= o.claim_ratio:
+                    continue
             if ratio > o.claim_ratio and ratio > worst_ratio:
                 worst_k, worst_ratio = k, ratio
                 worst_txt = (f'{100 * (1 - ratio):.0f} % of the structure along its own coordinate '
@@ -1147,9 +1219,22 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
         if worst_k >= 0:
             f = current[worst_k]
             f.claimed, f.reason = False, worst_txt
-            not_claimed.append(f)
-            del sel.active[worst_k]
+            not_claimed[:] = [g for g in not_claimed if g.effect != f.effect] + [f]
+            set_aside.append(sel.active.pop(worst_k))
             continue
+        # an effect set aside while a partner that followed the same coordinate was in the
+        # model (a scale error judged with the CDF points in place) is tried once more now
+        # that the rest is claimed: the last one set aside first
+        retry = next((a for a in reversed(set_aside) if a.effect.name not in retried), None)
+        if retry is not None:
+            retried.add(retry.effect.name)
+            fit = sel.reduce(retry.effect, retry.hyper)    # its directions with the rest in place
+            if fit['basis'].shape[1]:
+                sel.active.append(_Active(retry.effect, retry.hyper, fit['basis'], retry.step_gain,
+                                          retry.explained, fit['norms'], retry.written, fit['weak']))
+            continue
+        not_claimed[:] = [g for g in not_claimed
+                          if g.effect not in {a.effect.name for a in sel.active}]
         # the whole pose: what no reference saw must be determined, or stay at the floor
         flagged = []
         for k, (a, f, (theta, _s, cb)) in enumerate(zip(sel.active, current, fits)):
