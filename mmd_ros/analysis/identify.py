@@ -977,6 +977,13 @@ def _select(sel: _Selector, effects: list[Effect], o: AnalysisOptions,
             say: Callable[[str], None]) -> list[list[Candidate]]:
     """Stepwise selection (module docstring, 2)."""
     steps: list[list[Candidate]] = []
+
+    def activate(cand: Candidate, eff: Effect) -> None:
+        initial = steps[0][0].mse0 if steps[0] else math.nan
+        sel.active.append(_Active(eff, cand.hyper, cand.basis, cand.gain,
+                                  (cand.mse0 - cand.mse1) / initial if initial > 0 else math.nan,
+                                  cand.norms, weak=cand.weak))
+
     while len(sel.active) < o.max_effects:
         remaining = [e for e in effects if e.name not in {a.effect.name for a in sel.active}]
         if not remaining:
@@ -996,16 +1003,12 @@ def _select(sel: _Selector, effects: list[Effect], o: AnalysisOptions,
             pair = _joint_pair(sel, effects, cands, e0, o)
             if pair is None:
                 break
-            initial = steps[0][0].mse0 if steps[0] else math.nan
             for cand, eff in pair:
-                sel.active.append(_Active(eff, cand.hyper, cand.basis, cand.gain,
-                                          (cand.mse0 - cand.mse1) / initial if initial > 0 else math.nan,
-                                          cand.norms, weak=cand.weak))
+                activate(cand, eff)
             first, second = pair[0][0], pair[1][0]
             first.verdict = f'added jointly with {second.effect} (neither alone passed)'
             second.verdict = f'added jointly with {first.effect}'
-            cands.remove(first)
-            cands[:] = [first, second] + [c for c in cands if c.effect != second.effect]
+            cands[:] = [first, second] + [c for c in cands if c.effect not in (first.effect, second.effect)]
             sel.refine()
             continue
         # parsimony: the effect with the fewest identifiable parameters whose held-out
@@ -1017,11 +1020,7 @@ def _select(sel: _Selector, effects: list[Effect], o: AnalysisOptions,
         cands.remove(best)
         cands.insert(0, best)
         best.verdict = 'added'
-        eff = next(e for e in effects if e.name == best.effect)
-        initial = steps[0][0].mse0 if steps[0] else math.nan
-        sel.active.append(_Active(eff, best.hyper, best.basis, best.gain,
-                                  (best.mse0 - best.mse1) / initial if initial > 0 else math.nan,
-                                  best.norms, weak=best.weak))
+        activate(best, next(e for e in effects if e.name == best.effect))
         if len(sel.active) > 1:
             sel.refine()
     return steps

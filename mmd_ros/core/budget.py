@@ -33,7 +33,7 @@ from mmd_ros.core.compiled import fast, use_compiled
 from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.errors import CalibrationError
 from mmd_ros.core.model import Model, TermContext
-from mmd_ros.core.terms import MAX_GAP_S, SamplingSkewTerm
+from mmd_ros.core.terms import MAX_GAP_S, SamplingSkewTerm, lengths_within
 from mmd_ros.core.uncertainty import (
     InterpolationError, NoiseEstimator, capture_var, fit_interpolation_error,
     quantisation_cross_weights,
@@ -583,15 +583,11 @@ class LengthBudget:
         """Per bar, the mean square of the length terms' correction over the lengths
         ``range_m`` (6, 2) the fit saw, about its straight-line fit there, (6,) [m^2]: the size
         of the length-dependent error the calibration left and the data revealed."""
-        grid = np.linspace(0.0, 1.0, 201)[:, None]
-        lo = np.maximum(range_m[:, 0], self.knots_m[:, 0])     # the terms' span: the CDF's
-        hi = np.minimum(range_m[:, 1], self.knots_m[:, -1])
-        ok = np.isfinite(lo) & np.isfinite(hi) & (hi > lo)
-        lengths = np.where(ok, lo, self.knots_m[:, 0]) + grid * np.where(ok, hi - lo, 0.0)
-        n = grid.shape[0]
+        n = 201
+        lengths, ok = lengths_within(range_m, self.knots_m, n)     # the terms' span: the CDF's
         ctx = TermContext(np.zeros(n), np.zeros((n, 8)), lengths, lengths, np.zeros((n, 1)), np.zeros(n))
         c = sum(term.correction(ctx) for term in self._length_terms)
-        a = np.column_stack([np.ones(n), grid[:, 0]])
+        a = np.column_stack([np.ones(n), np.linspace(0.0, 1.0, n)])
         rest = c - a @ np.linalg.lstsq(a, c, rcond=None)[0]
         return np.where(ok, np.mean(rest * rest, axis=0), 0.0)
 

@@ -49,8 +49,8 @@ from mmd_ros.core.units import M_PER_MM, M_PER_NM, M_PER_UM, PPM
 __all__ = [
     'CdfOffsetsTerm', 'CyclicErrorTerm', 'DriftTerm', 'FrictionTerm', 'GravitySagTerm', 'HysteresisTerm',
     'JointOffsetsTerm', 'PlateScaleTerm', 'SamplingSkewTerm', 'ScaleNonlinearityTerm', 'ThermalGainTerm',
-    'ThermalInterpolationTerm', 'dahl_state', 'ema', 'friction_state', 'leg_geometry', 'limited_to_seen',
-    'play_positions',
+    'ThermalInterpolationTerm', 'dahl_state', 'ema', 'friction_state', 'leg_geometry', 'lengths_within',
+    'limited_to_seen', 'play_positions',
 ]
 
 FloatArray = NDArray[np.float64]
@@ -62,6 +62,17 @@ MAX_GAP_S = 0.1
 
 
 # -- helpers -----------------------------------------------------------------------------------
+def lengths_within(range_m: FloatArray, knots_m: FloatArray, n: int) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """``n`` lengths evenly spread over each bar's ``range_m`` (6, 2) [m] cut to its CDF span
+    (``knots_m``, (6, k)), shape (n, 6), and which bars have any (6,); a bar with none gets its
+    first calibration distance throughout."""
+    lo = np.maximum(range_m[:, 0], knots_m[:, 0])
+    hi = np.minimum(range_m[:, 1], knots_m[:, -1])
+    ok = np.isfinite(lo) & np.isfinite(hi) & (hi >= lo)
+    grid = np.linspace(0.0, 1.0, n)[:, None]
+    return np.where(ok, lo, knots_m[:, 0]) + grid * np.where(ok, hi - lo, 0.0), ok
+
+
 def limited_to_seen(terms: list[ModelTerm], seen_m: FloatArray | None) -> list[ModelTerm]:
     """``terms`` with each length-dependent series held, beyond the bar lengths ``seen_m``
     (6, 2) [m] a fit saw, within the values it takes within them (``limited_to``); the others
@@ -609,11 +620,8 @@ class ScaleNonlinearityTerm(ModelTerm):
     def _range_within(self, seen_m: FloatArray) -> tuple[FloatArray, FloatArray]:
         """Lowest and highest correction of each bar over its lengths in ``seen_m`` (within
         the CDF span), (6,) each [m]; 0 and 0 for a bar seen nowhere there."""
-        lo = np.maximum(seen_m[:, 0], self.knots_m[:, 0])
-        hi = np.minimum(seen_m[:, 1], self.knots_m[:, -1])
-        ok = np.isfinite(lo) & np.isfinite(hi) & (hi >= lo)
-        grid = np.linspace(0.0, 1.0, 401)[:, None]
-        c = self._raw(np.where(ok, lo, self.knots_m[:, 0]) + grid * np.where(ok, hi - lo, 0.0))
+        lengths, ok = lengths_within(seen_m, self.knots_m, 401)
+        c = self._raw(lengths)
         return np.where(ok, c.min(axis=0), 0.0), np.where(ok, c.max(axis=0), 0.0)
 
     @staticmethod
