@@ -114,6 +114,11 @@ class Effect:
     #: Whose property the parameters are: 'device' (shared by every run), 'calibration' (they
     #: belong to one calibration: fitted per calibration, re-analyse after a new one) or 'run'.
     scope = 'device'
+    #: The mean the term gives a pose component over a log is not fixed by how it varies: free
+    #: constants (CDF point offsets, harmonics, joint coordinates, a bar's offset at a run's
+    #: start). With a zeroed reference the fit then holds that mean (identify.py, _Rows); a
+    #: term of one physical law (sag, friction, skew, thermal) carries the mean its law gives
+    free_mean = False
 
     def applicable(self, ctx: FitContext) -> str | None:
         """None when the effect can be tested on this log, else why not."""
@@ -360,6 +365,7 @@ def _pose_features(ctx: FitContext) -> dict[str, FloatArray]:
 
 
 class Kinematic(Effect):
+    free_mean = True
     name = 'kinematic'
     term_type = 'joint_offsets'
     title = 'kinematic parameters (joint positions and bar length offsets)'
@@ -404,6 +410,7 @@ class Kinematic(Effect):
 
 
 class ScaleNonlinearity(Effect):
+    free_mean = True
     name = 'scale_nonlinearity'
     term_type = 'scale_nonlinearity'
     title = 'scale nonlinearity between CDF points'
@@ -447,6 +454,7 @@ class ScaleNonlinearity(Effect):
 
 
 class CalibrationPoints(Effect):
+    free_mean = True
     scope = 'calibration'
     name = 'calibration_points'
     term_type = 'cdf_offsets'
@@ -635,6 +643,7 @@ class GravitySag(Effect):
 
 class Drift(Effect):
     scope = 'run'
+    free_mean = True
     name = 'drift'
     term_type = 'drift'
     title = 'slow drift'

@@ -16,9 +16,12 @@ datum offsets and its own calibration.
    off what is already in the model (datum offsets per log, effects added before); directions
    with a singular value below ``rcond`` (unit-norm columns) cannot be separated, directions
    whose estimate is below ``min_t_param`` standard deviations are not determined by the data:
-   both are reported, not fitted. Least squares on the training blocks; judged on the held-out
-   blocks. Stepwise: an effect passes when it lowers the held-out RMS by at least ``min_gain``
-   (and ``min_floor_gain`` of the noise floor), the gain is consistent over the held-out blocks
+   both are reported, not fitted. With a zeroed reference a term of free constants (CDF
+   points, harmonics, joint coordinates, offsets) is also held to move the mean of no component
+   over a log further than the budget claims for it: the reference cannot see that mean.
+   Least squares on the training blocks; judged on the held-out blocks. Stepwise: an effect
+   passes when it lowers the held-out RMS by at least ``min_gain`` (and ``min_floor_gain`` of
+   the noise floor), the gain is consistent over the held-out blocks
    (t >= ``min_t``) and the held-out information criterion falls by at least ``min_delta_ic``.
    Nothing is added once the held-out residual is at the noise floor. Of those that pass, the
    one with the fewest identified parameters that removes at least ``parsimony`` of what the
@@ -52,7 +55,7 @@ from mmd_ros.analysis.data import (
 )
 from mmd_ros.analysis.effects import Effect, Parameter, catalogue
 from mmd_ros.analysis.errors import AnalysisError
-from mmd_ros.analysis.uncertainty import ResidualRun, fitted_effects, with_fit_uncertainty
+from mmd_ros.analysis.uncertainty import ResidualRun, claimed_sigma, fitted_effects, with_fit_uncertainty
 from mmd_ros.core.calibration import Calibration
 from mmd_ros.core.kinematics import jacobian
 from mmd_ros.core.model import Model, ModelTerm
@@ -366,6 +369,9 @@ class _Run:
     raw: FloatArray          # MMD - reference, NaN-free (zeros where not usable)
     res_before: FloatArray   # NaN where not usable, datum removed (training mean)
     usable: NDArray[np.bool_]
+    #: with a zeroed reference, the budget's sigma of each observed component (k,) [m, rad]:
+    #: how far the fit may move a component's mean, which the reference cannot see
+    datum_sigma: FloatArray | None = None
 
     def group(self, scope: str) -> str:
         return {'device': 'device', 'calibration': self.cal_key, 'run': self.ident}[scope]
@@ -415,16 +421,28 @@ def _prepare(index: int, run: RunLog, model: Model, calibration: Calibration | N
     floor = noise_floor(obs, run.device, before, np.nan_to_num(res_before), split.train_idx, ctx.thermal_on)
     floor = np.maximum(floor, 1e-12)
     ctx.residual, ctx.floor, ctx.train_idx = res_before, floor, split.train_idx
+    datum_sigma = np.maximum(claimed_sigma(ctx, split.fit_train), 1e-12) if obs.datum else None
     return _Run(index, run, str(run.path), run.content_hash(), calibration_key(calibration),
-                calibration, obs, ctx, split, floor, np.nan_to_num(raw), res_before, usable)
+                calibration, obs, ctx, split, floor, np.nan_to_num(raw), res_before, usable, datum_sigma)
 
 
 # -- observation rows --------------------------------------------------------------------------
 class _Rows:
-    """Weighted observation rows of a set of samples of one log: y (m,), nuisance (m, q)."""
+    """Weighted observation rows of a set of samples of one log: y (m,), nuisance (m, q).
+
+    With a zeroed reference (an offset per component removed, the nuisance columns) the data
+    say nothing of how a term moves the mean of a component over the log. A term of one
+    physical law carries the mean its law gives; in a term of free constants
+    (``Effect.free_mean``) a direction seen only through how it varies can carry any mean
+    along: a localised scale error, fitted with the CDF points and harmonics, put 2.4 µrad of
+    constant pitch into a run whose varying part it halved. ``prior_sigma`` (k,) [m, rad], on
+    training rows: k rows more, each such a term's mean change of a component over these
+    samples in units of that sigma (what the budget claims for it), target 0 (zero for the
+    other terms); scaled by sqrt(m / N_eff) so that m correlated rows do not outweigh them.
+    """
 
     def __init__(self, ctx: FitContext, idx: IntArray, residual: FloatArray, weights: FloatArray,
-                 block: IntArray) -> None:
+                 block: IntArray, prior_sigma: FloatArray | None = None) -> None:
         self.ctx, self.idx, self.w = ctx, idx, weights
         obs = ctx.obs
         k = len(obs.components)
@@ -433,7 +451,9 @@ class _Rows:
         if obs.kind == 'pose':
             jac = jacobian(ctx.device.geometry, ctx.base.poses[idx])
             self.jinv = np.linalg.inv(jac)[:, obs.components, :]  # (n, k, 6)
-        self.y = (-residual[idx] * weights).reshape(-1)
+        data = -residual[idx] * weights
+        self.y = data.reshape(-1)
+        self.n_data = self.y.size
         self.blocks = np.repeat(block[idx], k)
         if obs.datum:
             nuis = np.zeros((idx.size, k, k))
@@ -441,15 +461,28 @@ class _Rows:
             self.nuisance = nuis.reshape(-1, k)
         else:
             self.nuisance = np.zeros((idx.size * k, 0))
+        self.prior_w: FloatArray | None = None
+        if prior_sigma is not None and obs.datum and idx.size:
+            inflation = max(idx.size * k / max(effective_samples(data - data.mean(axis=0)), 1.0), 1.0)
+            self.prior_w = math.sqrt(inflation) / (idx.size * weights * prior_sigma)
+            self.y = np.concatenate([self.y, np.zeros(k)])
+            self.blocks = np.concatenate([self.blocks, np.full(k, -1)])
+            self.nuisance = np.concatenate([self.nuisance, np.zeros((k, k))])
 
-    def project(self, cols: FloatArray) -> FloatArray:
-        """Length-space columns (n, 6, P) to weighted observation columns (n k, P)."""
+    def project(self, cols: FloatArray, hold_mean: bool = False) -> FloatArray:
+        """Length-space columns (n, 6, P) to weighted observation columns (n k, P), and the
+        rows of the mean of each component when it is held (``prior_sigma``; zero rows for an
+        effect whose physics fixes its mean, ``hold_mean`` False)."""
         if self.jinv is not None:
             obs = np.einsum('nkj,njp->nkp', self.jinv, cols)
         else:
             obs = cols[:, self.ctx.obs.components, :]
         obs = obs * self.w[None, :, None]
-        return obs.reshape(-1, cols.shape[2])
+        out = obs.reshape(-1, cols.shape[2])
+        if self.prior_w is not None:
+            held = np.sum(obs, axis=0) * self.prior_w[:, None] if hold_mean else np.zeros((self.k, out.shape[1]))
+            out = np.concatenate([out, held])
+        return out
 
 
 class _Part:
@@ -459,7 +492,8 @@ class _Part:
         self.rows = []
         for r in runs:
             idx = r.split.fit_train if which == 'train' else r.split.fit_test
-            self.rows.append(_Rows(r.ctx, idx, r.raw, 1.0 / r.floor, r.split.block + 100_000 * r.index))
+            self.rows.append(_Rows(r.ctx, idx, r.raw, 1.0 / r.floor, r.split.block + 100_000 * r.index,
+                                   r.datum_sigma if which == 'train' else None))
         self.runs = runs
         self.y = np.concatenate([x.y for x in self.rows])
         self.blocks = np.concatenate([x.blocks for x in self.rows])
@@ -473,8 +507,8 @@ class _Part:
             col += n
 
     def pieces(self, e: FloatArray) -> list[FloatArray]:
-        """A stacked vector split per log, each (n_r, k_r)."""
-        return [e[a:b].reshape(-1, x.k) for x, a, b in zip(self.rows, self.starts[:-1], self.starts[1:])]
+        """A stacked vector split per log, each (n_r, k_r) (its samples' rows only)."""
+        return [e[a:a + x.n_data].reshape(-1, x.k) for x, a in zip(self.rows, self.starts[:-1])]
 
     def n_eff(self, e: FloatArray) -> float:
         """Effective number of independent samples of a stacked residual (per log, summed)."""
@@ -575,7 +609,8 @@ class _Selector:
             out = np.zeros((p.y.size, n_p * self.n_groups(effect)))
             for rows, r, a, b in zip(p.rows, p.runs, p.starts[:-1], p.starts[1:]):
                 g = self.group_index(effect, r)
-                out[a:b, g * n_p:(g + 1) * n_p] = rows.project(effect.signature(r.ctx, hyper, rows.idx))
+                out[a:b, g * n_p:(g + 1) * n_p] = rows.project(effect.signature(r.ctx, hyper, rows.idx),
+                                                                effect.free_mean)
             self._sig[key] = out
         return self._sig[key]
 

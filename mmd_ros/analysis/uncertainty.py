@@ -22,10 +22,15 @@ claim in two ways (``msg_docs/frames.md``):
   lengths the fit saw: the budget brings them back for a bar outside the model's
   ``validity.bar_range_mm``. Not when the fit removed an offset per component (a zeroed
   reference, ``--datum offset``, the default for a pose): the residual then lacks the constant
-  part of the error, so those sources stay and the residual adds only what exceeds them. A reference that sees only some pose components cannot tell the
-  bars apart: the calibration-derived sources stay, scaled by the factor k that makes the
-  observed components' predicted variance match what was observed, never below 1 (what the
-  reference did not see is not claimed better than before).
+  part of the error, so those sources stay and the residual adds only what exceeds them. Their
+  variance is scaled by k (``systematic_scale``, never below 1) so that they claim, per
+  observed component, as much as the terms with free constants (``Effect.free_mean``)
+  corrected over the log: what those terms corrected is an error the calibration may not know
+  of, and its mean over a log, which the reference does not see, is about as large as it
+  varied. A reference that sees only some pose components cannot tell the bars apart: the
+  calibration-derived sources stay, scaled by the factor k that makes the observed
+  components' predicted variance match what was observed, never below 1 (what the reference
+  did not see is not claimed better than before).
 """
 
 from __future__ import annotations
@@ -45,8 +50,8 @@ from mmd_ros.core.terms import limited_to_seen
 from mmd_ros.core.uncertainty import pose_covariance
 from mmd_ros.core.validity import Validity
 
-__all__ = ['FittedEffect', 'MAX_DIRECTIONS', 'ResidualRun', 'fit_uncertainty', 'fitted_effects',
-           'with_fit_uncertainty']
+__all__ = ['FittedEffect', 'MAX_DIRECTIONS', 'ResidualRun', 'claimed_sigma', 'fit_uncertainty',
+           'fitted_effects', 'with_fit_uncertainty']
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -60,11 +65,13 @@ DIRECTION_SHARE = 0.99
 @dataclass
 class FittedEffect:
     """One effect the written model applies, as :func:`fit_uncertainty` needs it: the effect,
-    its setting, and the covariance (P, P) of the parameters the model applies [SI]."""
+    its setting, the covariance (P, P) of the parameters the model applies and their values
+    (P,) [SI]."""
 
     effect: Any
     hyper: Any
     covariance: FloatArray
+    theta: FloatArray | None = None
 
 
 @dataclass
@@ -131,13 +138,20 @@ def _spread(idx: IntArray, most: int = PREDICTED_SAMPLES) -> IntArray:
 
 def _predicted(run: ResidualRun, model: Model, fit: FitUncertainty, idx: IntArray
                ) -> tuple[FloatArray, FloatArray]:
-    """The budget's sources at ``idx`` of a run, (n, 6, 6) each: those it keeps after a fit
-    and those a measured residual may replace."""
+    """The budget's sources at ``idx`` of a run under the fitted model, (n, 6, 6) each: those
+    it keeps after a fit and those a measured residual may replace."""
     trial = Model(model.thermal_mode, model.plate_expansion, None, list(model.terms), {},
                   model.source, ModelUncertainty(fit=fit))
-    budget = LengthBudget(run.ctx.device, run.ctx.calibration, trial)
-    a = run.after
-    observed = budget.observe(a.cdf_lengths_m, a.reference_error_m, run.ctx.times_s)
+    return _sources(run.ctx, run.after, trial, idx)
+
+
+def _sources(ctx: FitContext, processed: Processed, model: Model, idx: IntArray
+             ) -> tuple[FloatArray, FloatArray]:
+    """The sources of ``model``'s budget at ``idx`` of a pipeline pass over a log, (n, 6, 6)
+    each: those kept after a fit, and those a measured residual may replace."""
+    budget = LengthBudget(ctx.device, ctx.calibration, model)
+    a = processed
+    observed = budget.observe(a.cdf_lengths_m, a.reference_error_m, ctx.times_s)
     cov, bias = budget.sources(a.lengths_m[idx], a.reference_error_m[idx], a.temp_change_c[idx],
                                a.bar_error_m[idx], None, observed[idx])
     zero = np.zeros((idx.size, 6, 6))
@@ -152,6 +166,67 @@ def _predicted(run: ResidualRun, model: Model, fit: FitUncertainty, idx: IntArra
             else:
                 replaceable = replaceable + b[:, :, None] * b[:, None, :]
     return kept, replaceable
+
+
+def _scale_terms(ctx: FitContext, processed: Processed, kept: FloatArray, replaceable: FloatArray,
+                 residual: FloatArray, sub: IntArray) -> tuple[float, float]:
+    """The two sums of the least-squares factor k on the replaceable sources that makes the
+    observed components' predicted variance match the residual's: sum (seen - kept) repl and
+    sum repl^2 over the components (``residual`` at ``sub``, (n, k) [m, rad])."""
+    comp = list(ctx.obs.components)
+    if ctx.obs.kind == 'pose':
+        jinv = np.linalg.inv(jacobian(ctx.device.geometry, processed.poses[sub]))
+        scale = processed.plate_scale[sub]
+        kept = pose_covariance(jinv, kept, scale)
+        replaceable = pose_covariance(jinv, replaceable, scale)
+    kept_p = np.mean(np.diagonal(kept, axis1=1, axis2=2)[:, comp], axis=0)
+    repl_p = np.mean(np.diagonal(replaceable, axis1=1, axis2=2)[:, comp], axis=0)
+    seen_var = np.mean(residual ** 2, axis=0)
+    if ctx.obs.sigma is not None:
+        seen_var = seen_var - ctx.obs.sigma ** 2
+    return float(np.sum((seen_var - kept_p) * repl_p)), float(np.sum(repl_p * repl_p))
+
+
+def _free_mean_scale(ctx: FitContext, free: list[FittedEffect]) -> float:
+    """The factor k on the calibration-derived sources' variance that makes them claim, per
+    observed component, the variance over the log of what the terms with free constants
+    correct (least squares over the components): 0 without such terms."""
+    free = [f for f in free if f.theta is not None]
+    if not free or ctx.train_idx is None or ctx.train_idx.size < 10:
+        return 0.0
+    sub = _spread(ctx.train_idx, 2000)
+    corr = sum(f.effect.signature(ctx, f.hyper, sub) @ f.theta for f in free)     # (n, 6)
+    _, replaceable = _sources(ctx, ctx.base, ctx.model, sub)
+    if ctx.obs.kind == 'pose':
+        jinv = np.linalg.inv(jacobian(ctx.device.geometry, ctx.base.poses[sub]))
+        corr = np.einsum('nij,nj->ni', jinv, corr)
+        corr[:, :3] *= ctx.base.plate_scale[sub, None]
+        replaceable = pose_covariance(jinv, replaceable, ctx.base.plate_scale[sub])
+    comp = list(ctx.obs.components)
+    varied = np.var(corr[:, comp], axis=0)
+    repl = np.mean(np.diagonal(replaceable, axis1=1, axis2=2)[:, comp], axis=0)
+    den = float(np.sum(repl * repl))
+    return float(np.sum(varied * repl)) / den if den > 0 else 0.0
+
+
+def claimed_sigma(ctx: FitContext, idx: IntArray) -> FloatArray:
+    """What the budget of the model a fit starts from claims for each observed component of a
+    log, the RMS over the samples ``idx`` of its predicted sigma, (k,) [m, rad].
+
+    A zeroed reference (an offset per component removed) cannot see how a fit moves the mean of
+    a component; this is how far the fit may move it (:mod:`mmd_ros.analysis.identify`), and
+    what the budget, whose calibration-derived sources stay after such a fit, claims for it."""
+    budget = LengthBudget(ctx.device, ctx.calibration, ctx.model)
+    b = ctx.base
+    sub = _spread(idx, 2000)
+    observed = budget.observe(b.cdf_lengths_m, b.reference_error_m, ctx.times_s)
+    sigma_d = budget.covariance(b.lengths_m[sub], b.reference_error_m[sub], b.temp_change_c[sub],
+                                b.bar_error_m[sub], None, observed[sub])
+    if ctx.obs.kind == 'pose':
+        jinv = np.linalg.inv(jacobian(ctx.device.geometry, b.poses[sub]))
+        sigma_d = pose_covariance(jinv, sigma_d, b.plate_scale[sub])
+    var = np.mean(np.diagonal(sigma_d, axis1=1, axis2=2), axis=0)
+    return np.sqrt(var[list(ctx.obs.components)])
 
 
 def fit_uncertainty(ctx: FitContext, found: list[FittedEffect], runs: list[ResidualRun],
@@ -194,6 +269,16 @@ def fit_uncertainty(ctx: FitContext, found: list[FittedEffect], runs: list[Resid
         # when an offset per component was removed: the constant part of the error (which
         # those sources mostly are) is then missing from it, and they stay
         replace = bool(seen.all()) and not any(run.ctx.obs.datum for run, _ in full)
+        if any(run.ctx.obs.datum for run, _ in full):
+            # a zeroed reference: the mean of each component over a log, which those sources
+            # stand for, is not seen. An effect of one physical law carries the mean its law
+            # gives; a term with free constants was held to move it no further than the budget
+            # claims (identify._Rows), but what such terms corrected is an error the
+            # calibration's sources may not know of, and its mean over a log is unchecked by
+            # about as much as it varied: the sources are scaled to claim that much
+            estimate = _free_mean_scale(ctx, [f for f in found if f.effect.free_mean])
+            fit.systematic_scale = max(estimate, 1.0)
+            fit.record['scale_estimate'] = round(estimate, 4)
         n = 0
         for run, idx in full:
             obs = run.ctx.obs
@@ -224,19 +309,10 @@ def fit_uncertainty(ctx: FitContext, found: list[FittedEffect], runs: list[Resid
         # some pose components: scale what the reference cannot attribute to bars
         num = den = 0.0
         for run, idx in partial:
-            comp = run.ctx.obs.components
             sub = _spread(idx)
             kept, replaceable = _predicted(run, model, fit, sub)
-            jinv = np.linalg.inv(jacobian(run.ctx.device.geometry, run.after.poses[sub]))
-            scale = run.after.plate_scale[sub]
-            kept_p = np.mean(np.diagonal(pose_covariance(jinv, kept, scale), axis1=1, axis2=2)[:, comp], axis=0)
-            repl_p = np.mean(np.diagonal(pose_covariance(jinv, replaceable, scale), axis1=1,
-                                         axis2=2)[:, comp], axis=0)
-            seen_var = np.mean(run.residual[idx] ** 2, axis=0)
-            if run.ctx.obs.sigma is not None:
-                seen_var = seen_var - run.ctx.obs.sigma ** 2
-            num += float(np.sum((seen_var - kept_p) * repl_p))
-            den += float(np.sum(repl_p * repl_p))
+            a, b = _scale_terms(run.ctx, run.after, kept, replaceable, run.residual[sub], sub)
+            num, den = num + a, den + b
         estimate = num / den if den > 0 else 1.0
         fit.systematic_scale = max(estimate, 1.0)
         fit.record['scale_estimate'] = round(estimate, 4)
@@ -256,7 +332,8 @@ def fitted_effects(sel: Any, chosen: list[tuple[Any, FloatArray]], found: list[A
         if g is None or cov is None:
             continue
         n_p = theta.size // sel.n_groups(a.effect)
-        out.append(FittedEffect(a.effect, a.hyper, cov[g * n_p:(g + 1) * n_p, g * n_p:(g + 1) * n_p]))
+        part = slice(g * n_p, (g + 1) * n_p)
+        out.append(FittedEffect(a.effect, a.hyper, cov[part, part], np.asarray(theta)[part]))
     return out
 
 
