@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from foreign_effects import sech_friction
 from mmd_ros.analysis import AnalysisOptions, analyze
 from mmd_ros.analysis.data import make_observation, noise_floor, run_pipeline
 from mmd_ros.cli.main import main
@@ -289,24 +290,6 @@ def test_effects_that_follow_the_same_coordinate_are_found_together(k):
 
 
 # -- estimators on effects shaped otherwise ----------------------------------------------------
-def sech_friction(lengths: np.ndarray, width_m: float) -> np.ndarray:
-    """A friction state that turns over along s = sigma - (sigma - s_a) sech^2(u / w) after a
-    reversal (slowly at first, unlike Dahl's exponential), u the travel since the reversal."""
-    out = np.zeros_like(lengths)
-    for j in range(lengths.shape[1]):
-        x = lengths[:, j]
-        sigma, s_a, x_a, s = 0.0, 0.0, x[0], 0.0
-        for k in range(1, x.size):
-            step = x[k] - x[k - 1]
-            if abs(step) > 1e-12 and np.sign(step) != sigma:
-                s_a, x_a, sigma = s, x[k - 1], float(np.sign(step))
-            if sigma:
-                u = min((x[k] - x_a) * sigma / width_m, 300.0)
-                s = sigma - (sigma - s_a) / math.cosh(u) ** 2
-            out[k, j] = s
-    return out
-
-
 def injected_log(tmp_path: Path, name: str, error_of, scenario: str = 'random_motion',
                  params: tuple[str, ...] = ('duration_s=40',), reference: str = 'pose6') -> Path:
     """A clean log of the ideal twin (by default 40 s of 6-DOF motion) whose measuring-bar

@@ -1100,6 +1100,50 @@ def _joint_pair(sel: _Selector, effects: list[Effect], cands: list[Candidate], e
     return None if best is None else best[1]
 
 
+def _parameter_covariance(a: _Active, theta: FloatArray, cov_beta: FloatArray,
+                          every_bar: bool = False) -> FloatArray:
+    """Covariance (P, P) of an effect's parameters as written [SI]: the identified directions'
+    from the fit; and, unless a reference sees every bar (``every_bar``: its residual then
+    measures what the terms leave, analysis/uncertainty.py), the other directions of the
+    exercised parameters (not identified, or needing implausible values) with the mean square
+    s^2 of the written parameters each: the minimum-norm fit set them to zero, an arbitrary
+    choice (with a laser along x the friction amplitudes' other combinations left 1 µrad of
+    roll that nothing claimed). A direction dropped as within ``min_t_param`` sigma of zero is
+    determined, to be small: sigma^2 s^2 / (sigma^2 + s^2), the two taken as independent
+    estimates (a weak direction of a laser run had sigma 0.8 µm where s was 0.3 µm)."""
+    cov = a.basis @ cov_beta @ a.basis.T
+    if every_bar:
+        return cov
+    norms = np.asarray(a.norms if a.norms is not None else np.zeros(a.basis.shape[0]), dtype=np.float64)
+    used = norms > 0
+    if not used.any() or a.basis.shape[1] == 0:
+        return cov
+    inv = np.zeros_like(norms)
+    inv[used] = 1.0 / norms[used]
+    values = np.asarray(theta)[used]
+    known = [a.basis[used]]
+    weak = None
+    if a.weak is not None and a.weak[0].shape[1]:
+        weak = a.weak[0][used] * inv[used, None]                 # parameter scale
+        known.append(weak)
+    q = _orthonormal(np.concatenate(known, axis=1))
+    rest = np.eye(int(used.sum())) - q @ q.T
+    # as large as the written parameters are (the minimum-norm values of what was determined:
+    # their spread is no measure of what was not)
+    size2 = float(np.mean(values ** 2))
+    block = size2 * 0.5 * (rest + rest.T)
+    if weak is not None:
+        # a weak direction's sigma, unless the data say less of it than that size does
+        # (the two combined as independent estimates)
+        length = np.linalg.norm(weak, axis=0)
+        unit = weak / np.maximum(length, 1e-300)
+        sd2 = (a.weak[1] * length) ** 2
+        var = sd2 * size2 / np.maximum(sd2 + size2, 1e-300) if size2 > 0 else sd2
+        block = block + (unit * var) @ unit.T
+    cov[np.ix_(used, used)] += block
+    return cov
+
+
 def _unchecked(sel: _Selector, a: _Active, theta: FloatArray, cov_beta: FloatArray) -> list[Unchecked]:
     """What the effect would do to the pose components (or bars) a log's reference does not
     see, where the data do not determine it.
@@ -1217,6 +1261,9 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
     chosen: list[tuple[_Active, FloatArray]] = []
     set_aside: list[_Active] = []
     retried: set[str] = set()
+    # a reference that sees every bar measures what the terms leave (the model's residual);
+    # without one, what the data did not determine must be claimed by the terms themselves
+    every_bar = any(len(r.obs.components) == 6 for r in runs)
     for _ in range(4 * o.max_effects + 2):
         if not sel.active:
             break
@@ -1231,7 +1278,7 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
                                  a.step_gain, a.effect.interpret(
                                      first.ctx, a.hyper, first_theta if first_theta is not None else theta,
                                      sigma[:first_theta.size] if first_theta is not None else sigma),
-                                 covariance=a.basis @ cb @ a.basis.T))
+                                 covariance=_parameter_covariance(a, theta, cb, every_bar)))
         # an effect must remove most of the structure along its own coordinate; one that fits
         # only part of it follows something else (the worst is dropped, then all are refitted)
         worst_k, worst_ratio, worst_txt = -1, 0.0, ''
