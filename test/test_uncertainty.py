@@ -499,9 +499,10 @@ def test_a_zeroed_fit_of_a_localised_length_error_moves_no_mean_it_cannot_see():
     combination carried 2.4 µrad of constant pitch that the zeroed residual could not show
     (0.44 µrad before): pitch 0.56 -> 2.34 µrad on new motion, and 0 % of it in the 95 %
     ellipsoid. The fit may now move a component's mean only as far as the budget claims for
-    it, and the budget's calibration-derived sources are scaled to what the residual before
-    the fit showed that the calibration never saw: measured mean changes of 1.4 and 0.5 of the
-    claimed sigma at most, 100 % in the ellipsoid on the new motion of both twins."""
+    it, and the budget's calibration-derived sources are scaled to claim as much as the terms
+    of free constants corrected: measured mean changes of at most 2.6 and 2.0 times the
+    claimed sigma (pitch 1.4 and 0.7), 98.8 % in the ellipsoid on the new motion of both
+    twins."""
     errors, covs = [], []
     for k in (0, 1):
         g = np.random.default_rng(100 + k)
