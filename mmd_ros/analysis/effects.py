@@ -115,9 +115,10 @@ class Effect:
     #: belong to one calibration: fitted per calibration, re-analyse after a new one) or 'run'.
     scope = 'device'
     #: The mean the term gives a pose component over a log is not fixed by how it varies: free
-    #: constants (CDF point offsets, harmonics, joint coordinates, a bar's offset at a run's
-    #: start). With a zeroed reference the fit then holds that mean (identify.py, _Rows); a
-    #: term of one physical law (sag, friction, skew, thermal) carries the mean its law gives
+    #: constants (CDF point offsets, harmonics, joint coordinates, a drift's offsets at a run's
+    #: start, held with its rates). With a zeroed reference the fit then holds that mean
+    #: (identify.py, _Rows); a term of one physical law (sag, friction, skew, thermal) carries
+    #: the mean its law gives
     free_mean = False
 
     def applicable(self, ctx: FitContext) -> str | None:
