@@ -17,7 +17,7 @@ datum offsets and its own calibration.
    with a singular value below ``rcond`` (unit-norm columns) cannot be separated, directions
    whose estimate is below ``min_t_param`` standard deviations are not determined by the data:
    both are reported, not fitted. With a zeroed reference a term of free constants (CDF
-   points, harmonics, joint coordinates, offsets) is also held to move the mean of no component
+   points, harmonics, joint coordinates, a drift) is also held to move the mean of no component
    over a log further than the budget claims for it: the reference cannot see that mean.
    Least squares on the training blocks; judged on the held-out blocks. Stepwise: an effect
    passes when it lowers the held-out RMS by at least ``min_gain`` (and ``min_floor_gain`` of
@@ -41,7 +41,7 @@ from __future__ import annotations
 import hashlib
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
 from typing import Any, Callable
 
@@ -542,6 +542,11 @@ class _Active:
     #: directions dropped as within 2 sigma of zero, (P, w) in unit-norm scale, and their sigma
     weak: tuple[FloatArray, FloatArray] | None = None
 
+    def refitted(self, hyper: Any, fit: dict[str, Any]) -> _Active:
+        """The same effect at setting ``hyper`` with the directions of a :meth:`_Selector.reduce`
+        fit (its gains and written flag kept)."""
+        return replace(self, hyper=hyper, basis=fit['basis'], norms=fit['norms'], weak=fit['weak'])
+
 
 class _Selector:
     """Stepwise selection on the fit subsets of the training and held-out blocks of all logs."""
@@ -871,8 +876,7 @@ class _Selector:
                 hyper, fit, ic = self._best_setting(a.effect)
                 best = (hyper, fit) if fit is not None and math.isfinite(ic) else None
             if best is not None:
-                a = _Active(a.effect, best[0], best[1]['basis'], a.step_gain, a.explained, best[1]['norms'],
-                            a.written, best[1]['weak'])
+                a = a.refitted(*best)
             self.active = others[:k] + [a] + others[k:]
 
     def own_structure_ratio(self, active: _Active, theta: FloatArray, e_pred: FloatArray,
@@ -1311,8 +1315,7 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
             retried.add(retry.effect.name)
             fit = sel.reduce(retry.effect, retry.hyper)    # its directions with the rest in place
             if fit['basis'].shape[1]:
-                sel.active.append(_Active(retry.effect, retry.hyper, fit['basis'], retry.step_gain,
-                                          retry.explained, fit['norms'], retry.written, fit['weak']))
+                sel.active.append(retry.refitted(retry.hyper, fit))
             continue
         not_claimed[:] = [g for g in not_claimed
                           if g.effect not in {a.effect.name for a in sel.active}]
@@ -1526,8 +1529,7 @@ def _leave_one_out(runs: list[_Run], active: list[_Active], model: Model,
         sel = _Selector(others, o)
         for a in active:
             fit = sel.reduce(a.effect, a.hyper)
-            sel.active.append(_Active(a.effect, a.hyper, fit['basis'], a.step_gain, a.explained,
-                                      fit['norms'], a.written, fit['weak']))
+            sel.active.append(a.refitted(a.hyper, fit))
         # the directions each effect identifies, chosen again with the others in place (as the
         # analysis does): reduced one after another, an early effect's directions were judged
         # against a residual still holding the later ones, and lost those it then could not

@@ -43,7 +43,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mmd_ros.analysis.data import FitContext, Observation, Processed
-from mmd_ros.core.budget import LengthBudget
+from mmd_ros.core.budget import LengthBudget, Observed
 from mmd_ros.core.kinematics import jacobian
 from mmd_ros.core.model import FIT_REPLACEABLE, FitUncertainty, Model, ModelTerm, ModelUncertainty
 from mmd_ros.core.terms import limited_to_seen
@@ -145,13 +145,23 @@ def _predicted(run: ResidualRun, model: Model, fit: FitUncertainty, idx: IntArra
     return _sources(run.ctx, run.after, trial, idx)
 
 
+def _observing(ctx: FitContext, processed: Processed, model: Model) -> tuple[LengthBudget, Observed]:
+    """``model``'s budget for a log and what it observes over a pipeline pass of it (read
+    noise, motion); for the model the fit starts from and its own pass, made once per log."""
+    def make() -> tuple[LengthBudget, Observed]:
+        budget = LengthBudget(ctx.device, ctx.calibration, model)
+        return budget, budget.observe(processed.cdf_lengths_m, processed.reference_error_m, ctx.times_s)
+    if processed is ctx.base and model is ctx.model:
+        return ctx.cached('base_budget', make)
+    return make()
+
+
 def _sources(ctx: FitContext, processed: Processed, model: Model, idx: IntArray
              ) -> tuple[FloatArray, FloatArray]:
     """The sources of ``model``'s budget at ``idx`` of a pipeline pass over a log, (n, 6, 6)
     each: those kept after a fit, and those a measured residual may replace."""
-    budget = LengthBudget(ctx.device, ctx.calibration, model)
+    budget, observed = _observing(ctx, processed, model)
     a = processed
-    observed = budget.observe(a.cdf_lengths_m, a.reference_error_m, ctx.times_s)
     cov, bias = budget.sources(a.lengths_m[idx], a.reference_error_m[idx], a.temp_change_c[idx],
                                a.bar_error_m[idx], None, observed[idx])
     zero = np.zeros((idx.size, 6, 6))
@@ -216,10 +226,9 @@ def claimed_sigma(ctx: FitContext, idx: IntArray) -> FloatArray:
     A zeroed reference (an offset per component removed) cannot see how a fit moves the mean of
     a component; this is how far the fit may move it (:mod:`mmd_ros.analysis.identify`), and
     what the budget, whose calibration-derived sources stay after such a fit, claims for it."""
-    budget = LengthBudget(ctx.device, ctx.calibration, ctx.model)
+    budget, observed = _observing(ctx, ctx.base, ctx.model)
     b = ctx.base
     sub = _spread(idx, 2000)
-    observed = budget.observe(b.cdf_lengths_m, b.reference_error_m, ctx.times_s)
     sigma_d = budget.covariance(b.lengths_m[sub], b.reference_error_m[sub], b.temp_change_c[sub],
                                 b.bar_error_m[sub], None, observed[sub])
     if ctx.obs.kind == 'pose':
