@@ -176,11 +176,15 @@ def test_two_effects_at_once_are_both_found(logs):
 
 
 def test_an_effect_outside_the_catalogue_is_not_claimed(logs):
-    """A 1 µm Gaussian bump, 1 mm wide, in bar 1's scale: nothing in the catalogue is that."""
+    """A 1 µm Gaussian bump, 1 mm wide, in bar 1's scale: nothing in the catalogue is that. No
+    term is written; the residual, beyond what the budget claims, is written as an uncertainty
+    only (the model's terms unchanged)."""
     bump = 'bump={channel: 0, centre_m: 0.31, width_m: 1e-3, height_m: 1e-6}'
     run = read_run(logs('random_motion', MOTION, (bump,), 'pose6'))
     result = analyze(run)
-    assert result.found == [] and result.model is None, [f.effect for f in result.found]
+    assert result.found == [] and result.uncertainty_only, [f.effect for f in result.found]
+    assert len(result.model.terms) == len(run.model.terms if run.model else Model().terms)
+    assert result.model.uncertainty.fit.residual_m2[0, 0] == result.model.uncertainty.fit.residual_m2.diagonal().max()
     assert not result.at_floor
     assert 'unexplained structure remains' in result.conclusion
     assert result.structure_after[0][0] == 'bar1 length', result.structure_after[:3]

@@ -38,6 +38,7 @@ datum offsets and its own calibration.
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import math
 import time
@@ -55,7 +56,8 @@ from mmd_ros.analysis.data import (
 )
 from mmd_ros.analysis.effects import Effect, Parameter, catalogue
 from mmd_ros.analysis.errors import AnalysisError
-from mmd_ros.analysis.uncertainty import ResidualRun, claimed_sigma, fitted_effects, with_fit_uncertainty
+from mmd_ros.analysis.uncertainty import (
+    ResidualRun, beyond_claim, claimed_sigma, fitted_effects, with_fit_uncertainty)
 from mmd_ros.core.calibration import Calibration
 from mmd_ros.core.kinematics import jacobian
 from mmd_ros.core.model import Model, ModelTerm
@@ -97,6 +99,7 @@ class AnalysisOptions:
     cyclic_periods_m: tuple[float, ...] | None = None
     accept_unchecked: bool = False
     leave_one_out: bool = True
+    under_claim: float = 1.25
 
 
 @dataclass
@@ -309,6 +312,9 @@ class Analysis:
     unchecked: list[Found] = field(default_factory=list)
     validation: str = ''
     log_problem: dict[str, Any] | None = None  # the first log not read whole (LogProblem.as_dict)
+    #: nothing found, but the residual above what the budget claims: the model written carries it
+    #: as an uncertainty only (why, as text; '' otherwise)
+    uncertainty_only: str = ''
 
     @property
     def changed(self) -> bool:
@@ -344,6 +350,7 @@ class Analysis:
             'remaining': {'at_noise_floor': self.at_floor,
                           'structure': [{'feature': f, 'r2': r} for f, r in self.structure_after]},
             'model_changed': self.changed,
+            'uncertainty_only': self.uncertainty_only or None,
             'conclusion': self.conclusion,
             'seconds': self.seconds,
             'options': {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.options.__dict__.items()},
@@ -966,7 +973,7 @@ def _build_model(model: Model, terms: list[ModelTerm], records: dict[str, Any],
         else:
             extra[key] = value
     return Model(model.thermal_mode, model.plate_expansion, model.length_sigma_m,
-                 [*model.terms, *terms], extra, '<extended model>')
+                 [*model.terms, *terms], extra, '<extended model>', copy.deepcopy(model.uncertainty))
 
 
 def _terms_for(sel: _Selector, chosen: list[tuple[_Active, FloatArray]], run: _Run) -> list[ModelTerm]:
@@ -1406,24 +1413,9 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
 
     # -- the model file
     extended = None
-    record_units = {s.name: s.unit for s in summaries[0].before}
     if chosen:
-        last = runs[-1]
-        records = {
-            'analysis': _ascii({
-                'created': datetime.now(timezone.utc).isoformat(timespec='seconds'),
-                'logs': [r.name for r in runs], 'log': first.name,
-                'reference': '; '.join(f'{r.run.path.name}: {r.obs.description}' for r in runs),
-                'added': [{'effect': f.effect, 'term': f.term_type, 'setting': f.hyper_label,
-                           'parameters': f.parameter_rows()} for f in found],
-                'held_out_rms_before': {s.name: s.rms for s in summaries[0].before},
-                'held_out_rms_after': {s.name: s.rms for s in summaries[0].after or []},
-                'units': record_units,
-                'per_calibration_parameters_of': last.cal_key,
-            }),
-            'validity': _ascii(_validity(runs, afters)),
-        }
-        extended = _build_model(model, _terms_for(sel, chosen, last), records, np.stack(_seen_lengths(runs), axis=1))
+        extended = _build_model(model, _terms_for(sel, chosen, runs[-1]), _records(runs, found, summaries),
+                                np.stack(_seen_lengths(runs), axis=1))
 
     # -- leave one run out: each log predicted by the model fitted on the others
     unseen: list[ResidualRun] = []
@@ -1458,6 +1450,25 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
                 ResidualRun(r.ctx, after, res, r.split.test_idx)
                 for r, (after, res) in zip(runs, afters)])
 
+    # -- nothing written, and a residual the budget claims too little for: the model's terms
+    # stay and its uncertainty carries the residual (an error no catalogued effect explains,
+    # an interference at a frequency no term follows, is still one the covariance must cover)
+    uncertainty_only = ''
+    if extended is None:
+        every = [np.flatnonzero(r.usable) for r in runs]
+        beyond = [(float(x[j] / max(lim[j], o.under_claim)), float(x[j]), r, j)
+                  for r, idx in zip(runs, every)
+                  for x, lim in [beyond_claim(r.ctx, r.res_before, idx)] for j in range(x.size)]
+        excess, ratio, r, k = max(beyond, key=lambda t: t[0], default=(0.0, 0.0, first, 0))
+        if excess > 1.0:
+            uncertainty_only = (f'{r.obs.names[k]} of {r.run.path.name} has {ratio:.2g} × the RMS the '
+                                'budget claims')
+            extended = _build_model(model, [], _records(runs, [], summaries, uncertainty_only))
+            extended = with_fit_uncertainty(
+                extended, runs[-1].ctx, [], [ResidualRun(r.ctx, r.ctx.base, r.res_before, idx)
+                                             for r, idx in zip(runs, every)],
+                residual_from='the logs analysed, every usable sample (no term was fitted to them)')
+
     first_summary = summaries[0]
     contributions: dict[str, FloatArray] = {}
     per_bar_after = None
@@ -1467,14 +1478,35 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
             contributions[f.effect] = (first.res_before - res_after_first if len(found) == 1
                                        else _contribution(sel, first, f))
     conclusion = _conclusion(runs, summaries, found, not_claimed, unchecked, at_floor,
-                             structure_after, validation)
+                             structure_after, validation, uncertainty_only)
     return Analysis(first.name, o, first.obs, first.split, first.run.times_s, first.floor, first.ctx.base,
                     afters[0][0] if afters else None, first.res_before, res_after_first, steps, found,
                     not_claimed, first_summary.before, first_summary.after, stats_pred,
                     structure_before, structure_after, at_floor, validated and bool(found), extended,
                     conclusion, features, contributions, _per_bar(first.ctx, first.res_before, first.split.test_idx),
                     per_bar_after, time.perf_counter() - started, not_applicable, summaries, unchecked,
-                    validation, next((s.log_problem for s in summaries if s.log_problem), None))
+                    validation, next((s.log_problem for s in summaries if s.log_problem), None),
+                    uncertainty_only)
+
+
+def _records(runs: list[_Run], found: list[Found], summaries: list[RunSummary],
+             uncertainty_only: str = '') -> dict[str, Any]:
+    """The records a written model carries of its analysis: the ``analysis`` history entry
+    (logs, references, what was added and the held-out figures) and the ``validity`` range."""
+    entry = {
+        'created': datetime.now(timezone.utc).isoformat(timespec='seconds'),
+        'logs': [r.name for r in runs], 'log': runs[0].name,
+        'reference': '; '.join(f'{r.run.path.name}: {r.obs.description}' for r in runs),
+        'added': [{'effect': f.effect, 'term': f.term_type, 'setting': f.hyper_label,
+                   'parameters': f.parameter_rows()} for f in found],
+        'held_out_rms_before': {s.name: s.rms for s in summaries[0].before},
+        'held_out_rms_after': {s.name: s.rms for s in summaries[0].after or []},
+        'units': {s.name: s.unit for s in summaries[0].before},
+        'per_calibration_parameters_of': runs[-1].cal_key,
+    }
+    if uncertainty_only:
+        entry['uncertainty_only'] = uncertainty_only
+    return {'analysis': _ascii(entry), 'validity': _ascii(_validity(runs))}
 
 
 def _made_worse(runs: list[_Run], afters: list[tuple[Processed, FloatArray]]) -> str:
@@ -1494,7 +1526,7 @@ def _made_worse(runs: list[_Run], afters: list[tuple[Processed, FloatArray]]) ->
     return ''
 
 
-def _validity(runs: list[_Run], afters: list[tuple[Processed, FloatArray]] | None) -> dict[str, Any]:
+def _validity(runs: list[_Run]) -> dict[str, Any]:
     """What the model was fitted and validated on: the runs (by content hash), their references,
     the range of each bar's length and of the temperature (nodes warn outside them)."""
     lo, hi = _seen_lengths(runs)
@@ -1646,7 +1678,7 @@ def _unit(unit: str) -> str:
 
 def _conclusion(runs: list[_Run], summaries: list[RunSummary], found: list[Found],
                 not_claimed: list[Found], unchecked: list[Found], at_floor: bool,
-                structure: list[tuple[str, float]], validation: str) -> str:
+                structure: list[tuple[str, float]], validation: str, uncertainty_only: str = '') -> str:
     parts = []
     first = runs[0]
     floor_txt = '; '.join(', '.join(f'{n} {f:.3g} {_unit(u)}' for (n, f), u in zip(s.floor.items(), s.units))
@@ -1670,17 +1702,20 @@ def _conclusion(runs: list[_Run], summaries: list[RunSummary], found: list[Found
         parts.append('Not written: ' + '; '.join(f'{f.title}: {f.reason}' for f in unchecked) + '.')
     if not_claimed:
         parts.append('Not claimed: ' + '; '.join(f'{f.title} ({f.reason})' for f in not_claimed) + '.')
+    unchanged = ('The model is unchanged.' if not uncertainty_only else
+                 f'No term is added, but {uncertainty_only}: the model written carries that residual '
+                 'as an uncertainty only (uncertainty.fit), for the pose covariance to cover it.')
     if at_floor:
         if not found:
             parts.append(f'No significant effect: the held-out residual ({_fmt(summaries[0].before)}) '
-                         f'is at the noise floor ({floor_txt}). The model is unchanged.')
+                         f'is at the noise floor ({floor_txt}). {unchanged}')
         else:
             parts.append(f'What remains is at the noise floor ({floor_txt}).')
     else:
         lead = ('No catalogued effect explains the residual; ' if not found and not unchecked else '')
         parts.append(f'{lead}unexplained structure remains above the noise floor ({floor_txt})'
                      + (f', correlated with {features}' if features else '') + '.'
-                     + (' The model is unchanged.' if not found else ''))
+                     + (f' {unchanged}' if not found else ''))
     if not several:
         parts.append('Validation is within-run only (one log); record further runs for a '
                      'leave-one-run-out figure.')

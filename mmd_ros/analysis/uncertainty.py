@@ -41,6 +41,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.stats import chi2
 
 from mmd_ros.analysis.data import FitContext, Observation, Processed
 from mmd_ros.core.budget import LengthBudget, Observed
@@ -50,8 +51,8 @@ from mmd_ros.core.terms import limited_to_seen
 from mmd_ros.core.uncertainty import pose_covariance
 from mmd_ros.core.validity import Validity
 
-__all__ = ['FittedEffect', 'MAX_DIRECTIONS', 'ResidualRun', 'claimed_sigma', 'fit_uncertainty',
-           'fitted_effects', 'with_fit_uncertainty']
+__all__ = ['FittedEffect', 'MAX_DIRECTIONS', 'ResidualRun', 'beyond_claim', 'claimed_sigma',
+           'fit_uncertainty', 'fitted_effects', 'with_fit_uncertainty']
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -140,8 +141,10 @@ def _predicted(run: ResidualRun, model: Model, fit: FitUncertainty, idx: IntArra
                ) -> tuple[FloatArray, FloatArray]:
     """The budget's sources at ``idx`` of a run under the fitted model, (n, 6, 6) each: those
     it keeps after a fit and those a measured residual may replace."""
+    previous = model.uncertainty
     trial = Model(model.thermal_mode, model.plate_expansion, None, list(model.terms), {},
-                  model.source, ModelUncertainty(fit=fit))
+                  model.source, ModelUncertainty(previous.thermal_mismatch_fraction,
+                                                 previous.read_noise_m, fit))
     return _sources(run.ctx, run.after, trial, idx)
 
 
@@ -156,19 +159,20 @@ def _observing(ctx: FitContext, processed: Processed, model: Model) -> tuple[Len
     return make()
 
 
-def _sources(ctx: FitContext, processed: Processed, model: Model, idx: IntArray
-             ) -> tuple[FloatArray, FloatArray]:
+def _sources(ctx: FitContext, processed: Processed, model: Model, idx: IntArray,
+             apart: tuple[str, ...] = FIT_REPLACEABLE) -> tuple[FloatArray, FloatArray]:
     """The sources of ``model``'s budget at ``idx`` of a pipeline pass over a log, (n, 6, 6)
-    each: those kept after a fit, and those a measured residual may replace."""
+    each: all but the sources ``apart``, and those (by default: those kept after a fit, and
+    those a measured residual may replace)."""
     budget, observed = _observing(ctx, processed, model)
     a = processed
     cov, bias = budget.sources(a.lengths_m[idx], a.reference_error_m[idx], a.temp_change_c[idx],
                                a.bar_error_m[idx], None, observed[idx])
     zero = np.zeros((idx.size, 6, 6))
-    kept = sum((np.asarray(c) for name, c in cov.items() if name not in FIT_REPLACEABLE), zero)
-    replaceable = sum((np.asarray(c) for name, c in cov.items() if name in FIT_REPLACEABLE), zero)
-    for into_kept, names in ((True, [k for k in bias if k not in FIT_REPLACEABLE]),
-                             (False, [k for k in bias if k in FIT_REPLACEABLE])):
+    kept = sum((np.asarray(c) for name, c in cov.items() if name not in apart), zero)
+    replaceable = sum((np.asarray(c) for name, c in cov.items() if name in apart), zero)
+    for into_kept, names in ((True, [k for k in bias if k not in apart]),
+                             (False, [k for k in bias if k in apart])):
         if names:
             b = sum(bias[k] for k in names)
             if into_kept:
@@ -178,19 +182,22 @@ def _sources(ctx: FitContext, processed: Processed, model: Model, idx: IntArray
     return kept, replaceable
 
 
+def _component_var(ctx: FitContext, processed: Processed, cov: FloatArray, sub: IntArray) -> FloatArray:
+    """The mean over the samples ``sub`` of a bar-length covariance (n, 6, 6) [m^2] in each
+    observed component of a log, (k,) [m^2, rad^2]."""
+    if ctx.obs.kind == 'pose':
+        jinv = np.linalg.inv(jacobian(ctx.device.geometry, processed.poses[sub]))
+        cov = pose_covariance(jinv, cov, processed.plate_scale[sub])
+    return np.mean(np.diagonal(cov, axis1=1, axis2=2)[:, list(ctx.obs.components)], axis=0)
+
+
 def _scale_terms(ctx: FitContext, processed: Processed, kept: FloatArray, replaceable: FloatArray,
                  residual: FloatArray, sub: IntArray) -> tuple[float, float]:
     """The two sums of the least-squares factor k on the replaceable sources that makes the
     observed components' predicted variance match the residual's: sum (seen - kept) repl and
     sum repl^2 over the components (``residual`` at ``sub``, (n, k) [m, rad])."""
-    comp = list(ctx.obs.components)
-    if ctx.obs.kind == 'pose':
-        jinv = np.linalg.inv(jacobian(ctx.device.geometry, processed.poses[sub]))
-        scale = processed.plate_scale[sub]
-        kept = pose_covariance(jinv, kept, scale)
-        replaceable = pose_covariance(jinv, replaceable, scale)
-    kept_p = np.mean(np.diagonal(kept, axis1=1, axis2=2)[:, comp], axis=0)
-    repl_p = np.mean(np.diagonal(replaceable, axis1=1, axis2=2)[:, comp], axis=0)
+    kept_p = _component_var(ctx, processed, kept, sub)
+    repl_p = _component_var(ctx, processed, replaceable, sub)
     seen_var = np.mean(residual ** 2, axis=0)
     if ctx.obs.sigma is not None:
         seen_var = seen_var - ctx.obs.sigma ** 2
@@ -238,6 +245,68 @@ def claimed_sigma(ctx: FitContext, idx: IntArray) -> FloatArray:
     return np.sqrt(var[list(ctx.obs.components)])
 
 
+#: The budget's sources drawn anew at every sample; the others (the calibration's points and
+#: interpolation, the thermal compensation, the reference bar's zero, friction) are drawn once
+#: per calibration or per run.
+PER_SAMPLE = ('quantisation', 'read_noise')
+#: Degrees of freedom with which one log shows the sources not drawn per sample: smooth
+#: functions of the six bars' lengths and temperatures, about one per bar in a component.
+SYSTEMATIC_DOF = 6
+#: Level at which a residual above the budget's claim is taken as more than chance.
+CLAIM_LEVEL = 0.99
+
+
+def _independent_samples(series: FloatArray) -> float:
+    """Effective number of independent samples of a series in time order: n over its
+    integrated autocorrelation time 1 + 2 sum rho_k, summed up to the first lag where rho
+    falls below zero (a slow structure under fast noise keeps rho up for many lags, which the
+    lag-1 figure misses: an ISO run's dwells)."""
+    c = series - series.mean()
+    n = c.size
+    spectrum = np.fft.rfft(c, 1 << int(math.ceil(math.log2(2 * n))))
+    acf = np.fft.irfft(np.abs(spectrum) ** 2)[:n]
+    if acf[0] <= 0:
+        return float(n)
+    rho = acf / acf[0]
+    below = np.flatnonzero(rho < 0)
+    last = int(below[0]) if below.size else n
+    return float(max(n / (1.0 + 2.0 * np.sum(rho[1:last])), 1.0))
+
+
+def beyond_claim(ctx: FitContext, residual: FloatArray, idx: IntArray) -> tuple[FloatArray, FloatArray]:
+    """How many times what the budget of the model a fit starts from claims each observed
+    component's residual is, and how many times it could be by chance, (k,) each.
+
+    The ratio is the residual's RMS over the samples ``idx`` (the reference's own noise taken
+    out) over the RMS sigma the budget predicts there. Above 1 the budget claims too little,
+    but most of its sources are one draw per calibration or run, which one log shows with
+    about :data:`SYSTEMATIC_DOF` degrees of freedom, and only :data:`PER_SAMPLE` sources with
+    the residual's effective sample count: the limit is the ratio that the claim reaches at
+    :data:`CLAIM_LEVEL` of chi-square with those degrees of freedom. Beyond it an error the
+    budget does not know of (an interference, an effect outside the catalogue) is in the
+    data."""
+    k = len(ctx.obs.components)
+    r = residual[idx]
+    ok = np.all(np.isfinite(r), axis=1)
+    if ok.sum() < 10:
+        return np.zeros(k), np.full(k, np.inf)
+    r, idx = r[ok], idx[ok]
+    seen = np.mean(r ** 2, axis=0)
+    if ctx.obs.sigma is not None:
+        seen = seen - ctx.obs.sigma ** 2
+    sub = _spread(idx, 2000)
+    once, each = (_component_var(ctx, ctx.base, c, sub)
+                  for c in _sources(ctx, ctx.base, ctx.model, sub, PER_SAMPLE))
+    claimed = once + each
+
+    def quantile(dof: FloatArray | float) -> FloatArray:
+        return chi2.ppf(CLAIM_LEVEL, dof) / dof
+
+    n_eff = np.array([_independent_samples(r[:, j]) for j in range(k)])
+    limit = np.sqrt((each * quantile(n_eff) + once * quantile(SYSTEMATIC_DOF)) / claimed)
+    return np.sqrt(np.maximum(seen, 0.0) / claimed), limit
+
+
 def fit_uncertainty(ctx: FitContext, found: list[FittedEffect], runs: list[ResidualRun],
                     model: Model, *, unseen: bool = False) -> FitUncertainty:
     """The ``uncertainty.fit`` section of the model a fit writes (see the module docstring).
@@ -256,6 +325,11 @@ def fit_uncertainty(ctx: FitContext, found: list[FittedEffect], runs: list[Resid
     validity = Validity.from_model(model)
     directions, mean_terms = _term_directions(ctx, found, idx0[:4000],
                                               None if validity is None else validity.bar_range_m)
+    previous = model.uncertainty.fit
+    if not found and previous is not None:
+        # nothing fitted now (the residual written as an uncertainty only): the directions of
+        # the terms an earlier analysis fitted stay with those terms
+        directions, mean_terms = list(previous.directions), previous.mean_terms_m2
     fit = FitUncertainty(np.zeros((6, 6)), (), 1.0, directions, mean_terms,
                          {'residual_from': ('logs the fit did not see (leave-one-run-out)' if unseen
                                             else 'held-out blocks of the fitted logs')})
@@ -347,11 +421,14 @@ def fitted_effects(sel: Any, chosen: list[tuple[Any, FloatArray]], found: list[A
 
 
 def with_fit_uncertainty(model: Model, ctx: FitContext, found: list[FittedEffect],
-                         runs: list[ResidualRun], *, unseen: bool = False) -> Model:
+                         runs: list[ResidualRun], *, unseen: bool = False,
+                         residual_from: str | None = None) -> Model:
     """``model`` with its ``uncertainty.fit`` section measured by the fit (the overrides of the
-    model it started from are kept); see :func:`fit_uncertainty`."""
+    model it started from are kept); see :func:`fit_uncertainty`. ``residual_from`` replaces
+    the record of where the residual comes from."""
     previous = model.uncertainty
-    model.uncertainty = ModelUncertainty(
-        previous.thermal_mismatch_fraction, previous.read_noise_m,
-        fit_uncertainty(ctx, found, runs, model, unseen=unseen))
+    fit = fit_uncertainty(ctx, found, runs, model, unseen=unseen)
+    if residual_from is not None:
+        fit.record['residual_from'] = residual_from
+    model.uncertainty = ModelUncertainty(previous.thermal_mismatch_fraction, previous.read_noise_m, fit)
     return model
