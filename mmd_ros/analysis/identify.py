@@ -57,7 +57,7 @@ from mmd_ros.analysis.data import (
 from mmd_ros.analysis.effects import Effect, Parameter, catalogue
 from mmd_ros.analysis.errors import AnalysisError
 from mmd_ros.analysis.uncertainty import (
-    ResidualRun, beyond_claim, claimed_sigma, fitted_effects, with_fit_uncertainty)
+    CLAIM_LEVEL, ResidualRun, beyond_claim, claimed_sigma, fitted_effects, with_fit_uncertainty)
 from mmd_ros.core.calibration import Calibration
 from mmd_ros.core.kinematics import jacobian
 from mmd_ros.core.model import Model, ModelTerm
@@ -1456,9 +1456,10 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
     uncertainty_only = ''
     if extended is None:
         every = [np.flatnonzero(r.usable) for r in runs]
+        level = 1.0 - (1.0 - CLAIM_LEVEL) / sum(len(r.obs.components) for r in runs)
         beyond = [(float(x[j] / max(lim[j], o.under_claim)), float(x[j]), r, j)
                   for r, idx in zip(runs, every)
-                  for x, lim in [beyond_claim(r.ctx, r.res_before, idx)] for j in range(x.size)]
+                  for x, lim in [beyond_claim(r.ctx, r.res_before, idx, level)] for j in range(x.size)]
         excess, ratio, r, k = max(beyond, key=lambda t: t[0], default=(0.0, 0.0, first, 0))
         if excess > 1.0:
             uncertainty_only = (f'{r.obs.names[k]} of {r.run.path.name} has {ratio:.2g} × the RMS the '

@@ -51,8 +51,8 @@ from mmd_ros.core.terms import limited_to_seen
 from mmd_ros.core.uncertainty import pose_covariance
 from mmd_ros.core.validity import Validity
 
-__all__ = ['FittedEffect', 'MAX_DIRECTIONS', 'ResidualRun', 'beyond_claim', 'claimed_sigma',
-           'fit_uncertainty', 'fitted_effects', 'with_fit_uncertainty']
+__all__ = ['CLAIM_LEVEL', 'FittedEffect', 'MAX_DIRECTIONS', 'ResidualRun', 'beyond_claim',
+           'claimed_sigma', 'fit_uncertainty', 'fitted_effects', 'with_fit_uncertainty']
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -252,7 +252,8 @@ PER_SAMPLE = ('quantisation', 'read_noise')
 #: Degrees of freedom with which one log shows the sources not drawn per sample: smooth
 #: functions of the six bars' lengths and temperatures, about one per bar in a component.
 SYSTEMATIC_DOF = 6
-#: Level at which a residual above the budget's claim is taken as more than chance.
+#: Level at which a residual above the budget's claim is taken as more than chance, over all
+#: the components compared at once (each at 1 - (1 - level) / their number: Bonferroni).
 CLAIM_LEVEL = 0.99
 
 
@@ -273,7 +274,8 @@ def _independent_samples(series: FloatArray) -> float:
     return float(max(n / (1.0 + 2.0 * np.sum(rho[1:last])), 1.0))
 
 
-def beyond_claim(ctx: FitContext, residual: FloatArray, idx: IntArray) -> tuple[FloatArray, FloatArray]:
+def beyond_claim(ctx: FitContext, residual: FloatArray, idx: IntArray,
+                 level: float = CLAIM_LEVEL) -> tuple[FloatArray, FloatArray]:
     """How many times what the budget of the model a fit starts from claims each observed
     component's residual is, and how many times it could be by chance, (k,) each.
 
@@ -282,7 +284,7 @@ def beyond_claim(ctx: FitContext, residual: FloatArray, idx: IntArray) -> tuple[
     but most of its sources are one draw per calibration or run, which one log shows with
     about :data:`SYSTEMATIC_DOF` degrees of freedom, and only :data:`PER_SAMPLE` sources with
     the residual's effective sample count: the limit is the ratio that the claim reaches at
-    :data:`CLAIM_LEVEL` of chi-square with those degrees of freedom. Beyond it an error the
+     ``level`` of chi-square with those degrees of freedom. Beyond it an error the
     budget does not know of (an interference, an effect outside the catalogue) is in the
     data."""
     k = len(ctx.obs.components)
@@ -300,7 +302,7 @@ def beyond_claim(ctx: FitContext, residual: FloatArray, idx: IntArray) -> tuple[
     claimed = once + each
 
     def quantile(dof: FloatArray | float) -> FloatArray:
-        return chi2.ppf(CLAIM_LEVEL, dof) / dof
+        return chi2.ppf(level, dof) / dof
 
     n_eff = np.array([_independent_samples(r[:, j]) for j in range(k)])
     limit = np.sqrt((each * quantile(n_eff) + once * quantile(SYSTEMATIC_DOF)) / claimed)
