@@ -10,7 +10,10 @@ claim in two ways (``msg_docs/frames.md``):
   c_k = S sqrt(lambda_k) v_k), and the pipeline adds sum_k c_k c_k^T per sample. The
   directions that carry least (at most 1 % of the mean trace together) are left out of the
   per-sample sum and enter, with all others, as their mean over the fit's samples
-  (``mean_terms_nm2``, for a stage without counts);
+  (``mean_terms_nm2``, for a stage without counts). Parameters that belong to the fitted run
+  (a drift's offset and rate, ``Effect.scope == 'run'``) are an extrapolation on any other
+  run: each bar's own correction is one more direction, and its variance over the fitted run
+  enters that bar's residual (another run may drift of its own);
 - **the residual**: with a reference that determines every bar (a full pose, or bar lengths)
   the bar-length residual, J dp, has a covariance R, the reference's own variance (the log's
   ``reference_sigma``) taken out. With several logs it is each log's error under the model
@@ -88,10 +91,12 @@ class ResidualRun:
 
 
 def _term_directions(ctx: FitContext, found: list[FittedEffect], idx: IntArray,
-                     seen_m: FloatArray | None = None) -> tuple[list[list[ModelTerm]], FloatArray]:
+                     seen_m: FloatArray | None = None
+                     ) -> tuple[list[list[ModelTerm]], FloatArray, FloatArray]:
     """Principal directions of the fitted parameters as model terms (held beyond the lengths
-    ``seen_m`` as the model's own terms are), and the mean over the samples ``idx`` of
-    S Sigma_theta S^T of all of them, (6, 6) [m^2]."""
+    ``seen_m`` as the model's own terms are), the mean over the samples ``idx`` of
+    S Sigma_theta S^T of all of them, (6, 6) [m^2], and what another run may hold of the
+    effects whose parameters belong to one run, (6, 6) [m^2] (below)."""
     candidates: list[tuple[float, list[ModelTerm]]] = []
     mean_total = np.zeros((6, 6))
     for f in found:
@@ -113,13 +118,35 @@ def _term_directions(ctx: FitContext, found: list[FittedEffect], idx: IntArray,
     candidates.sort(key=lambda c: -c[0])
     total = sum(c[0] for c in candidates)
     chosen: list[list[ModelTerm]] = []
+    run_own = np.zeros((6, 6))
+    for f in found:
+        if f.effect.scope != 'run' or f.theta is None or not np.any(f.theta):
+            continue
+        # parameters that belong to the fitted run (a drift: an offset at its start and a rate)
+        # are, on any other run, an extrapolation no data checked: each bar's correction is
+        # claimed as uncertain as it is large, bar by bar (a reading that settled over each
+        # run's first seconds, fitted as a drift on one run, left 7.7 % of another run's
+        # samples in the ellipsoid)
+        sig = f.effect.signature(ctx, f.hyper, idx)                            # (n, 6, P)
+        touches = np.any(sig != 0.0, axis=0)                                   # (6, P)
+        for bar in range(6):
+            mine = touches[bar] & ~np.any(np.delete(touches, bar, axis=0), axis=0)
+            theta = np.where(mine, f.theta, 0.0)
+            if not np.any(theta):
+                continue
+            own = sig @ theta                                                  # (n, 6)
+            mean_total += own.T @ own / max(idx.size, 1)
+            chosen.append(limited_to_seen(f.effect.make_terms(ctx, f.hyper, theta), seen_m))
+            # and another run may have a drift of its own, as large as this one varied
+            run_own[bar, bar] += float(np.var(own[:, bar]))
+    forced = len(chosen)
     carried = 0.0
     for size, terms in candidates:
-        if len(chosen) >= MAX_DIRECTIONS or (total > 0 and carried >= DIRECTION_SHARE * total):
+        if len(chosen) - forced >= MAX_DIRECTIONS or (total > 0 and carried >= DIRECTION_SHARE * total):
             break
         chosen.append(terms)
         carried += size
-    return chosen, mean_total
+    return chosen, mean_total, run_own
 
 
 def _psd(matrix: FloatArray) -> FloatArray:
@@ -325,14 +352,14 @@ def fit_uncertainty(ctx: FitContext, found: list[FittedEffect], runs: list[Resid
     ref = runs[0] if runs else None
     idx0 = ref.idx if ref is not None else np.zeros(0, np.int64)
     validity = Validity.from_model(model)
-    directions, mean_terms = _term_directions(ctx, found, idx0[:4000],
-                                              None if validity is None else validity.bar_range_m)
+    directions, mean_terms, run_own = _term_directions(
+        ctx, found, idx0[:4000], None if validity is None else validity.bar_range_m)
     previous = model.uncertainty.fit
     if not found and previous is not None:
         # nothing fitted now (the residual written as an uncertainty only): the directions of
         # the terms an earlier analysis fitted stay with those terms
         directions, mean_terms = list(previous.directions), previous.mean_terms_m2
-    fit = FitUncertainty(np.zeros((6, 6)), (), 1.0, directions, mean_terms,
+    fit = FitUncertainty(run_own, (), 1.0, directions, mean_terms,
                          {'residual_from': ('logs the fit did not see (leave-one-run-out)' if unseen
                                             else 'held-out blocks of the fitted logs')})
     full, partial = [], []
@@ -384,7 +411,7 @@ def fit_uncertainty(ctx: FitContext, found: list[FittedEffect], runs: list[Resid
         excess = _psd(observed_cov / n - predicted / n)
         excess[~seen, :] = 0.0
         excess[:, ~seen] = 0.0
-        fit.residual_m2 = excess
+        fit.residual_m2 = excess + run_own
         fit.replaces = tuple(FIT_REPLACEABLE) if replace else ()
         fit.record['samples'] = int(n)
         fit.record['residual_rms_nm'] = [round(float(math.sqrt(max(v, 0.0) / n)) * 1e9, 3)
