@@ -571,6 +571,30 @@ def test_an_interference_no_term_follows_is_carried_as_an_uncertainty(datum):
     assert np.all((ratio >= 0.8) & (ratio <= 1.25))
 
 
+def test_an_interference_seen_by_a_laser_is_carried_to_the_whole_pose():
+    """The 37 Hz interference above, seen by an x-axis laser on an ISO run: nothing is found,
+    and the residual beyond the budget's claim (1.7 x in x) cannot be told apart per bar, so the
+    calibration's sources are scaled to claim it in every component. On 6-DOF motion of two
+    twins: measured 98.9 % and 99.5 % in the 95 % ellipsoid (20.8 % and 23.7 % with the
+    unchanged model)."""
+    covered, without = [], []
+    for k in range(2):
+        phase = np.random.default_rng(100 + k).uniform(0, 6.3, 6)
+        result, calibration, twin, run_of = _foreign_twin(k, lambda d: 30e-9 * np.sin(
+            2 * np.pi * 37.0 * np.arange(d.shape[0])[:, None] / 200.0 + phase), 'offset',
+            fit=('iso_linear', ['axis=x', 'n_cycles=5'], 'laser_x'))
+        assert result.found == [] and result.uncertainty_only, result.conclusion
+        assert result.model.terms == [] and result.model.uncertainty.fit.systematic_scale > 1.5
+        run, counts = run_of(['duration_s=8', f'seed={k}'], 700.0)
+        for model, into in ((Model(), without), (result.model, covered)):
+            res = Pipeline(twin.documented_device, calibration, model).process(
+                run.times_s, counts, with_covariance=True)
+            e, c = pose_error(res.poses, run.true_poses)[res.valid], res.covariance[res.valid]
+            into.append(np.mean(_d2(e, c) <= LIMIT))
+    print('coverage', np.round(covered, 4), 'without the model', np.round(without, 4))
+    assert max(without) < 0.5 and min(covered) >= 0.93
+
+
 @pytest.mark.parametrize('datum', ['offset', 'none'])
 def test_a_drift_fitted_on_one_run_is_claimed_on_another(datum):
     """A reading that settles by up to 0.3 µm over 10-40 s from each run's start (a bar
