@@ -57,7 +57,8 @@ from mmd_ros.analysis.data import (
 from mmd_ros.analysis.effects import Effect, Parameter, catalogue
 from mmd_ros.analysis.errors import AnalysisError
 from mmd_ros.analysis.uncertainty import (
-    CLAIM_LEVEL, ResidualRun, beyond_claim, claimed_sigma, fitted_effects, with_fit_uncertainty)
+    CLAIM_LEVEL, ResidualRun, beyond_claim, claimed_sigma, fitted_effects, measured_read_noise,
+    with_fit_uncertainty)
 from mmd_ros.core.calibration import Calibration
 from mmd_ros.core.kinematics import jacobian
 from mmd_ros.core.model import Model, ModelTerm
@@ -1464,6 +1465,9 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
         if excess > 1.0:
             uncertainty_only = (f'{r.obs.names[k]} of {r.run.path.name} has {ratio:.2g} × the RMS the '
                                 'budget claims')
+        else:
+            uncertainty_only = _noise_beyond_claim(runs, o.under_claim)
+        if uncertainty_only:
             extended = _build_model(model, [], _records(runs, [], summaries, uncertainty_only))
             extended = with_fit_uncertainty(
                 extended, runs[-1].ctx, [], [ResidualRun(r.ctx, r.ctx.base, r.res_before, idx)
@@ -1488,6 +1492,25 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
                     per_bar_after, time.perf_counter() - started, not_applicable, summaries, unchecked,
                     validation, next((s.log_problem for s in summaries if s.log_problem), None),
                     uncertainty_only)
+
+
+def _noise_beyond_claim(runs: list[_Run], limit: float) -> str:
+    """Why the read noise measured where the logs' bars stood still must go into the model
+    (a stream that never stands still claims the calibration's figure), or '': when it makes a
+    bar's per-sample claim (its count's quantisation and the read noise) more than ``limit``
+    times larger than the calibration's figure does."""
+    noise = measured_read_noise([r.ctx for r in runs])
+    if noise is None:
+        return ''
+    calibrated = max((r.calibration.uncertainty.read_noise_m or 0.0 for r in runs), default=0.0)
+    q2 = runs[0].ctx.device.encoder_resolution_m ** 2 / 12.0
+    grow = np.sqrt((q2 + noise[:6] ** 2) / (q2 + calibrated ** 2))
+    j = int(np.argmax(grow))
+    if grow[j] <= limit:
+        return ''
+    return (f'bar{j + 1}\'s read noise where it stood still, {noise[j] * 1e9:.3g} nm against the '
+            f'calibration\'s {calibrated * 1e9:.3g} nm, makes its per-sample claim {grow[j]:.2g} × '
+            'larger')
 
 
 def _records(runs: list[_Run], found: list[Found], summaries: list[RunSummary],
@@ -1704,7 +1727,7 @@ def _conclusion(runs: list[_Run], summaries: list[RunSummary], found: list[Found
     if not_claimed:
         parts.append('Not claimed: ' + '; '.join(f'{f.title} ({f.reason})' for f in not_claimed) + '.')
     unchanged = ('The model is unchanged.' if not uncertainty_only else
-                 f'No term is added, but {uncertainty_only}: the model written carries that residual '
+                 f'No term is added, but {uncertainty_only}: the model written carries it '
                  'as an uncertainty only (uncertainty.fit), for the pose covariance to cover it.')
     if at_floor:
         if not found:

@@ -141,9 +141,8 @@ def _markdown(a: Analysis, figs: dict[str, str], model_path: Path | None) -> str
         L += ['Not applicable: ' + '; '.join(f'{k} ({v})' for k, v in a.not_applicable.items()), '']
     L += ['## 3. Effects found', '']
     if not a.found and a.uncertainty_only:
-        L += [f'None. But {a.uncertainty_only}: the model written keeps its terms and carries that '
-              'residual as an uncertainty only (`uncertainty.fit`), for the pose covariance to '
-              'cover it.', '']
+        L += [f'None. But {a.uncertainty_only}: the model written keeps its terms and carries it '
+              'as an uncertainty only (`uncertainty.fit`), for the pose covariance to cover it.', '']
     elif not a.found:
         L += ['None: the model is unchanged.', '']
     for f in a.found:

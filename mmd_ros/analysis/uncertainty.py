@@ -55,7 +55,8 @@ from mmd_ros.core.uncertainty import pose_covariance
 from mmd_ros.core.validity import Validity
 
 __all__ = ['CLAIM_LEVEL', 'FittedEffect', 'MAX_DIRECTIONS', 'ResidualRun', 'beyond_claim',
-           'claimed_sigma', 'fit_uncertainty', 'fitted_effects', 'with_fit_uncertainty']
+           'claimed_sigma', 'fit_uncertainty', 'fitted_effects', 'measured_read_noise',
+           'with_fit_uncertainty']
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -253,6 +254,20 @@ def _free_mean_scale(ctx: FitContext, free: list[FittedEffect]) -> float:
     return float(np.sum(varied * repl)) / den if den > 0 else 0.0
 
 
+def measured_read_noise(ctxs: list[FitContext]) -> FloatArray | None:
+    """The read noise of each channel (six measuring bars, then the reference bars) that the
+    budget's stream estimate found where the bars of the logs stood still, the largest over the
+    logs, (6 + k,) [m]: 0 where no log stood still long enough, None where none did at all."""
+    found = [_observing(c, c.base, c.model)[0].noise.sigma_m() for c in ctxs]
+    if not found or not all(f.size == found[0].size for f in found):
+        return None
+    stacked = np.stack(found)
+    if not np.isfinite(stacked).any():
+        return None
+    return np.nan_to_num(np.nanmax(np.where(np.isfinite(stacked), stacked, -np.inf), axis=0),
+                         neginf=0.0)
+
+
 def claimed_sigma(ctx: FitContext, idx: IntArray) -> FloatArray:
     """What the budget of the model a fit starts from claims for each observed component of a
     log, the RMS over the samples ``idx`` of its predicted sigma, (k,) [m, rad].
@@ -361,7 +376,8 @@ def fit_uncertainty(ctx: FitContext, found: list[FittedEffect], runs: list[Resid
         directions, mean_terms = list(previous.directions), previous.mean_terms_m2
     fit = FitUncertainty(run_own, (), 1.0, directions, mean_terms,
                          {'residual_from': ('logs the fit did not see (leave-one-run-out)' if unseen
-                                            else 'held-out blocks of the fitted logs')})
+                                            else 'held-out blocks of the fitted logs')},
+                         measured_read_noise([run.ctx for run in runs]))
     full, partial = [], []
     for run in runs:
         obs: Observation = run.ctx.obs

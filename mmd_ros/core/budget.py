@@ -256,13 +256,19 @@ class LengthBudget:
         self.ref_distances_m = np.array([device.pair(c.pair).distance_m for c in refs])
         self.scale_cte = device.scale_cte_per_c
 
-        # -- read noise: the model's figure, else the stream's, else the calibration's
+        # -- read noise: the model's figure, else the stream's, else the larger of the
+        # calibration's and what an analysis measured where the bars of its logs stood still
+        # (a mount vibrating at the machine, which a stream that never stands still cannot show)
         self.fixed_noise_m = unc.read_noise_m
         self.calibration_noise_m = figures.read_noise_m
         if self.fixed_noise_m is None and self.calibration_noise_m is None:
             self.notes.append('read noise: the calibration does not give it; estimated from the '
                               'stream where bars stand still, 0 until then')
         self.noise = NoiseEstimator(6 + len(refs), res)
+        self.fallback_noise_m = np.full(self.noise.columns, self.calibration_noise_m or 0.0)
+        measured = None if fit is None else fit.read_noise_m
+        if measured is not None and measured.size == self.noise.columns:
+            self.fallback_noise_m = np.maximum(self.fallback_noise_m, measured)
 
         # -- calibration points (Eq. 10 hat functions), per measuring bar
         calibration.cdfs(measuring)  # every measuring bar has points (else CalibrationError)
@@ -449,9 +455,9 @@ class LengthBudget:
         if estimate.strides[0] == 0:     # one estimate for every sample (a stream's transfer)
             row = estimate[0]
             if self._resolved is None or self._resolved[0] is not row:
-                self._resolved = (row, np.where(np.isfinite(row), row, self.calibration_noise_m or 0.0))
+                self._resolved = (row, np.where(np.isfinite(row), row, self.fallback_noise_m))
             return np.broadcast_to(self._resolved[1], estimate.shape)
-        return np.where(np.isfinite(estimate), estimate, self.calibration_noise_m or 0.0)
+        return np.where(np.isfinite(estimate), estimate, self.fallback_noise_m)
 
     def read_noise_m(self) -> FloatArray:
         """Read noise in force now per column (six measuring bars, then the reference bars) [m]."""
@@ -806,8 +812,9 @@ class LengthBudget:
             'resolution_nm': self.resolution_m * 1e9,
             'read_noise_nm': [round(float(v) * 1e9, 3) for v in noise],
             'read_noise_from': ('model file' if self.fixed_noise_m is not None else
-                                ['stream' if w >= self.noise.min_windows else 'calibration'
-                                 for w in self.noise.windows]),
+                                ['stream' if w >= self.noise.min_windows else
+                                 'analysis' if f > (self.calibration_noise_m or 0.0) else 'calibration'
+                                 for w, f in zip(self.noise.windows, self.fallback_noise_m)]),
             'calibration_point_nm': round(math.sqrt(self.point_var_m2) * 1e9, 3),
             'routine_temp_change_c': self.figures.routine_temp_change_c,
             'calibration_drift_nm': round(float(np.max(np.abs(self.drift_m))) * 1e9, 3),

@@ -28,6 +28,7 @@ register themselves in :data:`TERM_TYPES` by name.
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -226,7 +227,8 @@ class HysteresisTerm(ModelTerm):
 FIT_REPLACEABLE = ('calibration_points', 'calibration_drift', 'reference_distances', 'interpolation',
                    'hysteresis')
 #: Keys of a model file's ``uncertainty.fit`` section.
-FIT_KEYS = ('residual_nm2', 'replaces', 'systematic_scale', 'mean_terms_nm2', 'directions', 'from')
+FIT_KEYS = ('residual_nm2', 'replaces', 'systematic_scale', 'mean_terms_nm2', 'directions', 'from',
+            'read_noise_nm')
 
 
 def _matrix6(value: Any, source: str, key: str) -> FloatArray:
@@ -257,6 +259,10 @@ class FitUncertainty:
     mean_terms_m2 : (6, 6) — the mean of sum_k c_k c_k^T over the fit's samples, for a stage
         that cannot evaluate the terms (fk_node sees no counts) [m^2]
     record : where the figures come from (log, reference, samples)
+    read_noise_m : (6 + k,) — the read noise of each channel (six measuring bars, then the
+        reference bars) measured where the analysed logs' bars stood still [m], or None: what a
+        stream claims until it has stood still long enough to show its own (the larger of this
+        and the calibration's figure)
     """
 
     residual_m2: FloatArray = field(default_factory=lambda: np.zeros((6, 6)))
@@ -265,6 +271,7 @@ class FitUncertainty:
     directions: list[list[ModelTerm]] = field(default_factory=list)
     mean_terms_m2: FloatArray = field(default_factory=lambda: np.zeros((6, 6)))
     record: dict[str, Any] = field(default_factory=dict)
+    read_noise_m: FloatArray | None = None
 
     def reset(self) -> None:
         for group in self.directions:
@@ -281,6 +288,8 @@ class FitUncertainty:
             'directions': [[{'type': t.type_name, **t.params()} for t in group]
                            for group in self.directions],
             'from': self.record,
+            **({} if self.read_noise_m is None else
+               {'read_noise_nm': [round(float(v) * 1e9, 4) for v in self.read_noise_m]}),
         }
 
     @classmethod
@@ -304,8 +313,17 @@ class FitUncertainty:
         directions = [[term_from_dict(item, source, f'{path}.directions[{k}][{j}]')
                        for j, item in enumerate(g)] for k, g in enumerate(groups)]
         record = data.get('from') or {}
+        noise = f.get(data, 'read_noise_nm', path, default=None)
+        if noise is not None:
+            arr = np.asarray(noise, dtype=object)
+            if (arr.ndim != 1 or not 6 <= arr.size <= 8
+                    or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                               and math.isfinite(v) and 0 <= v < 1e4 for v in arr)):
+                raise ConfigError(source, f'{path}.read_noise_nm', 'must list 6 to 8 read noises '
+                                  f'in nm (measuring bars, then reference bars), each 0 … 1e4, got {noise!r}')
+            noise = np.asarray(noise, dtype=np.float64) * 1e-9
         return cls(residual, tuple(replaces), scale, directions, mean_terms,
-                   dict(record) if isinstance(record, dict) else {})
+                   dict(record) if isinstance(record, dict) else {}, noise)
 
 
 @dataclass
