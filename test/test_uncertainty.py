@@ -536,6 +536,25 @@ def _d2(e, c):
     return np.einsum('ni,ni->n', e, np.linalg.solve(c, e[:, :, None])[:, :, 0])
 
 
+def _interference(k: int):
+    """A 37 Hz, 30 nm reading error on every bar, each at its own phase (twin k's), as a
+    length error of the samples at 200 Hz."""
+    phase = np.random.default_rng(100 + k).uniform(0, 6.3, 6)
+    return lambda d: 30e-9 * np.sin(2 * np.pi * 37.0 * np.arange(d.shape[0])[:, None] / 200.0 + phase)
+
+
+def _new_motion(k: int, model, calibration, twin, run_of):
+    """8 s of new random motion of twin k: the share of its samples in the 95 % ellipsoid with
+    the unchanged model, and its pose errors and covariances with ``model``."""
+    run, counts = run_of(['duration_s=8', f'seed={k}'], 700.0)
+    out = []
+    for m in (Model(), model):
+        res = Pipeline(twin.documented_device, calibration, m).process(run.times_s, counts,
+                                                                        with_covariance=True)
+        out.append((pose_error(res.poses, run.true_poses)[res.valid], res.covariance[res.valid]))
+    return float(np.mean(_d2(*out[0]) <= LIMIT)), out[1][0], out[1][1]
+
+
 @pytest.mark.parametrize('datum', ['offset', 'none'])
 def test_an_interference_no_term_follows_is_carried_as_an_uncertainty(datum):
     """A mount vibrating at 37 Hz adds 30 nm to every bar's reading, each at its own phase. No
@@ -546,22 +565,14 @@ def test_an_interference_no_term_follows_is_carried_as_an_uncertainty(datum):
     model's terms unchanged): measured 98.6 % zeroed, 98.3 % absolute, ratios 0.98-1.04."""
     errors, covs, without = [], [], []
     for k in range(4):
-        phase = np.random.default_rng(100 + k).uniform(0, 6.3, 6)
-        result, calibration, twin, run_of = _foreign_twin(k, lambda d: 30e-9 * np.sin(
-            2 * np.pi * 37.0 * np.arange(d.shape[0])[:, None] / 200.0 + phase), datum)
+        result, calibration, twin, run_of = _foreign_twin(k, _interference(k), datum)
         assert result.found == [] and result.uncertainty_only, result.conclusion
         assert result.model.terms == [] and result.model.uncertainty.fit.residual_m2.trace() > 0
         assert 'uncertainty only' in result.conclusion
-        run, counts = run_of(['duration_s=8', f'seed={k}'], 700.0)
-        for model in (Model(), result.model):
-            res = Pipeline(twin.documented_device, calibration, model).process(
-                run.times_s, counts, with_covariance=True)
-            e, c = pose_error(res.poses, run.true_poses)[res.valid], res.covariance[res.valid]
-            if model is result.model:
-                errors.append(e)
-                covs.append(c)
-            else:
-                without.append(np.mean(_d2(e, c) <= LIMIT))
+        before, e, c = _new_motion(k, result.model, calibration, twin, run_of)
+        without.append(before)
+        errors.append(e)
+        covs.append(c)
     e, c = np.concatenate(errors), np.concatenate(covs)
     d2 = _d2(e, c)
     ratio = np.sqrt(np.mean(np.diagonal(c, axis1=1, axis2=2), axis=0) / np.mean(e ** 2, axis=0))
@@ -579,18 +590,13 @@ def test_an_interference_seen_by_a_laser_is_carried_to_the_whole_pose():
     measured 99.9 % in the 95 % ellipsoid (20.8 % and 23.7 % with the unchanged model)."""
     covered, without = [], []
     for k in range(2):
-        phase = np.random.default_rng(100 + k).uniform(0, 6.3, 6)
-        result, calibration, twin, run_of = _foreign_twin(k, lambda d: 30e-9 * np.sin(
-            2 * np.pi * 37.0 * np.arange(d.shape[0])[:, None] / 200.0 + phase), 'offset',
-            fit=('iso_linear', ['axis=x', 'n_cycles=5'], 'laser_x'))
+        result, calibration, twin, run_of = _foreign_twin(
+            k, _interference(k), 'offset', fit=('iso_linear', ['axis=x', 'n_cycles=5'], 'laser_x'))
         assert result.found == [] and result.uncertainty_only, result.conclusion
         assert result.model.terms == [] and result.model.uncertainty.fit.systematic_scale > 1.5
-        run, counts = run_of(['duration_s=8', f'seed={k}'], 700.0)
-        for model, into in ((Model(), without), (result.model, covered)):
-            res = Pipeline(twin.documented_device, calibration, model).process(
-                run.times_s, counts, with_covariance=True)
-            e, c = pose_error(res.poses, run.true_poses)[res.valid], res.covariance[res.valid]
-            into.append(np.mean(_d2(e, c) <= LIMIT))
+        before, e, c = _new_motion(k, result.model, calibration, twin, run_of)
+        without.append(before)
+        covered.append(np.mean(_d2(e, c) <= LIMIT))
     print('coverage', np.round(covered, 4), 'without the model', np.round(without, 4))
     assert max(without) < 0.5 and min(covered) >= 0.93
 
@@ -607,21 +613,16 @@ def test_an_interference_seen_at_standstill_is_carried_by_its_read_noise(tmp_pat
     are claimed at 0.75 and 0.87 of their error, the rest at 0.91-1.19)."""
     covered, without = [], []
     for k in range(2):
-        phase = np.random.default_rng(100 + k).uniform(0, 6.3, 6)
-        result, calibration, twin, run_of = _foreign_twin(k, lambda d: 30e-9 * np.sin(
-            2 * np.pi * 37.0 * np.arange(d.shape[0])[:, None] / 200.0 + phase), 'offset',
-            fit=('iso_rotary', ['axis=psi', 'n_cycles=3'], 'rotary_psi'))
+        result, calibration, twin, run_of = _foreign_twin(
+            k, _interference(k), 'offset', fit=('iso_rotary', ['axis=psi', 'n_cycles=3'], 'rotary_psi'))
         assert result.found == [] and 'read noise' in result.uncertainty_only, result.conclusion
         noise = result.model.uncertainty.fit.read_noise_m
         assert noise is not None and np.max(noise[:6]) > 20e-9
         path = result.model.save(tmp_path / f'model{k}.yaml')
         assert np.allclose(load_model(path).uncertainty.fit.read_noise_m, noise, atol=1e-13)
-        run, counts = run_of(['duration_s=8', f'seed={k}'], 700.0)
-        for model, into in ((Model(), without), (result.model, covered)):
-            res = Pipeline(twin.documented_device, calibration, model).process(
-                run.times_s, counts, with_covariance=True)
-            e, c = pose_error(res.poses, run.true_poses)[res.valid], res.covariance[res.valid]
-            into.append(np.mean(_d2(e, c) <= LIMIT))
+        before, e, c = _new_motion(k, result.model, calibration, twin, run_of)
+        without.append(before)
+        covered.append(np.mean(_d2(e, c) <= LIMIT))
     print('coverage', np.round(covered, 4), 'without the model', np.round(without, 4))
     assert max(without) < 0.5 and min(covered) >= 0.9
 
@@ -643,11 +644,9 @@ def test_a_drift_fitted_on_one_run_is_claimed_on_another(datum):
         result, calibration, twin, run_of = _foreign_twin(k, lambda d: size * (
             1 - np.exp(-np.arange(d.shape[0])[:, None] / 200.0 / tau)), datum)
         assert [f.effect for f in result.found] == ['drift'], result.conclusion
-        run, counts = run_of(['duration_s=8', f'seed={k}'], 700.0)
-        res = Pipeline(twin.documented_device, calibration, result.model).process(
-            run.times_s, counts, with_covariance=True)
-        errors.append(pose_error(res.poses, run.true_poses)[res.valid])
-        covs.append(res.covariance[res.valid])
+        _, e, c = _new_motion(k, result.model, calibration, twin, run_of)
+        errors.append(e)
+        covs.append(c)
     covered = np.mean(_d2(np.concatenate(errors), np.concatenate(covs)) <= LIMIT)
     print('coverage', covered)
     assert covered >= 0.93
