@@ -313,8 +313,8 @@ class Analysis:
     unchecked: list[Found] = field(default_factory=list)
     validation: str = ''
     log_problem: dict[str, Any] | None = None  # the first log not read whole (LogProblem.as_dict)
-    #: nothing found, but the residual above what the budget claims: the model written carries it
-    #: as an uncertainty only (why, as text; '' otherwise)
+    #: nothing found, but the residual (or the read noise where bars stood still) beyond what the
+    #: budget claims: the model written carries it as an uncertainty only (why, as text; '' else)
     uncertainty_only: str = ''
 
     @property
@@ -1451,9 +1451,10 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
                 ResidualRun(r.ctx, after, res, r.split.test_idx)
                 for r, (after, res) in zip(runs, afters)])
 
-    # -- nothing written, and a residual the budget claims too little for: the model's terms
-    # stay and its uncertainty carries the residual (an error no catalogued effect explains,
-    # an interference at a frequency no term follows, is still one the covariance must cover)
+    # -- nothing written, and a residual the budget claims too little for, or a read noise where
+    # the bars stood still that a stream in motion would not claim: the model's terms stay and
+    # its uncertainty carries them (an error no catalogued effect explains, an interference at
+    # a frequency no term follows, is still one the covariance must cover)
     uncertainty_only = ''
     if extended is None:
         every = [np.flatnonzero(r.usable) for r in runs]
