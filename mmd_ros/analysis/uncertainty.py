@@ -326,9 +326,8 @@ def beyond_claim(ctx: FitContext, residual: FloatArray, idx: IntArray,
     but most of its sources are one draw per calibration or run, which one log shows with
     about :data:`SYSTEMATIC_DOF` degrees of freedom, and only :data:`PER_SAMPLE` sources with
     the residual's effective sample count: the limit is the ratio that the claim reaches at
-     ``level`` of chi-square with those degrees of freedom. Beyond it an error the
-    budget does not know of (an interference, an effect outside the catalogue) is in the
-    data."""
+    ``level`` of chi-square with those degrees of freedom. Beyond it an error the budget does
+    not know of (an interference, an effect outside the catalogue) is in the data."""
     k = len(ctx.obs.components)
     r = residual[idx]
     ok = np.all(np.isfinite(r), axis=1)
