@@ -280,11 +280,7 @@ def claimed_sigma(ctx: FitContext, idx: IntArray) -> FloatArray:
     sub = _spread(idx, 2000)
     sigma_d = budget.covariance(b.lengths_m[sub], b.reference_error_m[sub], b.temp_change_c[sub],
                                 b.bar_error_m[sub], None, observed[sub])
-    if ctx.obs.kind == 'pose':
-        jinv = np.linalg.inv(jacobian(ctx.device.geometry, b.poses[sub]))
-        sigma_d = pose_covariance(jinv, sigma_d, b.plate_scale[sub])
-    var = np.mean(np.diagonal(sigma_d, axis1=1, axis2=2), axis=0)
-    return np.sqrt(var[list(ctx.obs.components)])
+    return np.sqrt(_component_var(ctx, b, sigma_d, sub))
 
 
 #: The budget's sources drawn anew at every sample; the others (the calibration's points and

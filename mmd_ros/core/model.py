@@ -28,7 +28,6 @@ register themselves in :data:`TERM_TYPES` by name.
 
 from __future__ import annotations
 
-import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -313,15 +312,13 @@ class FitUncertainty:
         directions = [[term_from_dict(item, source, f'{path}.directions[{k}][{j}]')
                        for j, item in enumerate(g)] for k, g in enumerate(groups)]
         record = data.get('from') or {}
-        noise = f.get(data, 'read_noise_nm', path, default=None)
-        if noise is not None:
-            arr = np.asarray(noise, dtype=object)
-            if (arr.ndim != 1 or not 6 <= arr.size <= 8
-                    or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
-                               and math.isfinite(v) and 0 <= v < 1e4 for v in arr)):
-                raise ConfigError(source, f'{path}.read_noise_nm', 'must list 6 to 8 read noises '
-                                  f'in nm (measuring bars, then reference bars), each 0 … 1e4, got {noise!r}')
-            noise = np.asarray(noise, dtype=np.float64) * 1e-9
+        noise = None
+        if data.get('read_noise_nm') is not None:
+            what = '6 to 8 read noises in nm (measuring bars, then reference bars), each 0 … 1e4'
+            noise = f.floats(data, 'read_noise_nm', path, (-1,), what=what)
+            if not 6 <= noise.size <= 8 or np.any((noise < 0) | (noise >= 1e4)):
+                raise ConfigError(source, f'{path}.read_noise_nm', f'must be {what}, got {noise.tolist()}')
+            noise = noise * 1e-9
         return cls(residual, tuple(replaces), scale, directions, mean_terms,
                    dict(record) if isinstance(record, dict) else {}, noise)
 
