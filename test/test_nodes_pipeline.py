@@ -164,8 +164,10 @@ def test_calibrate_measure_record_and_replay(tmp_path):
         # fk_node has finished what the live stream left it: its count stands still
         assert client.wait_for(lambda: settled(client, 'fk_node: kinematics', 'poses_published'), 120)
         published_before = int(kin()['poses_published'])
-        nodes.start('replay_node', *params(log=str(log_file), rate=0.0, wait_for_subscribers=1,
-                                            qos_depth=DEPTH))
+        # the replay keeps its default queue: its flow control then paces it by the stages'
+        # progress (with a queue as deep as the stages' the whole log would go out at once, and
+        # a starved stage could still lose some of it)
+        nodes.start('replay_node', *params(log=str(log_file), rate=0.0, wait_for_subscribers=1))
         assert nodes.procs['replay_node'].wait(300) == 0, nodes.dump()
         replay = client.status(': replay')['values']
         assert int(replay['sent']) == run.stamps_ns.size and int(replay['lost']) == 0, replay
