@@ -120,6 +120,12 @@ class Effect:
     #: (identify.py, _Rows); a term of one physical law (sag, friction, skew, thermal) carries
     #: the mean its law gives
     free_mean = False
+    #: The setting is a continuous quantity estimated from the data (a period, a travel): its
+    #: uncertainty is claimed with the parameters' (identify.py, _Selector.setting_shift)
+    continuous_setting = False
+    #: The continuous setting is a measured quantity (a period): refined to the least error of
+    #: the fit, not by the information criterion (identify.py, _Selector._best_setting)
+    setting_measured = False
 
     def applicable(self, ctx: FitContext) -> str | None:
         """None when the effect can be tested on this log, else why not."""
@@ -185,6 +191,8 @@ class Hysteresis(Effect):
     physics = ('friction in the ball joints and guides makes a bar read differently when it '
                'lengthens and when it shortens (section 5.3); the friction state turns over '
                'gradually after a reversal (Dahl), within a travel estimated from the data')
+    continuous_setting = True
+
     def hypers(self, ctxs):
         return list(FRICTION_TRAVELS_M)
 
@@ -523,6 +531,8 @@ class CyclicError(Effect):
         return channels, np.array(origin)
 
     scope = 'calibration'   # the phase is counted from the calibration's first point
+    continuous_setting = True
+    setting_measured = True
 
     def hypers(self, ctxs):
         opts = getattr(ctxs[0].options, 'cyclic_periods_m', None)

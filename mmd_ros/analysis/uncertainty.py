@@ -77,6 +77,8 @@ class FittedEffect:
     hyper: Any
     covariance: FloatArray
     theta: FloatArray | None = None
+    #: a continuous setting one sigma away and the parameters that go with it (or None)
+    shifted: tuple[float, FloatArray] | None = None
 
 
 @dataclass
@@ -116,6 +118,16 @@ def _term_directions(ctx: FitContext, found: list[FittedEffect], idx: IntArray,
         for k in range(dirs.shape[1]):
             candidates.append((float(size[k]), limited_to_seen(
                 f.effect.make_terms(ctx, f.hyper, dirs[:, k]), seen_m)))
+    for f in found:
+        if f.shifted is None or f.theta is None:
+            continue
+        # the setting one sigma away, with the parameters that go with it: the change is one
+        # more direction (not linear in the setting: as terms, the shifted ones minus these)
+        hyper, theta = f.shifted
+        cols = (f.effect.signature(ctx, hyper, idx) @ theta - f.effect.signature(ctx, f.hyper, idx) @ f.theta)
+        mean_total += cols.T @ cols / max(idx.size, 1)
+        candidates.append((float(np.mean(np.sum(cols * cols, axis=1))), limited_to_seen(
+            f.effect.make_terms(ctx, hyper, theta) + f.effect.make_terms(ctx, f.hyper, -f.theta), seen_m)))
     candidates.sort(key=lambda c: -c[0])
     total = sum(c[0] for c in candidates)
     chosen: list[list[ModelTerm]] = []
@@ -456,7 +468,9 @@ def fitted_effects(sel: Any, chosen: list[tuple[Any, FloatArray]], found: list[A
             continue
         n_p = theta.size // sel.n_groups(a.effect)
         part = slice(g * n_p, (g + 1) * n_p)
-        out.append(FittedEffect(a.effect, a.hyper, cov[part, part], np.asarray(theta)[part]))
+        shift = getattr(f, 'setting_shift', None)
+        out.append(FittedEffect(a.effect, a.hyper, cov[part, part], np.asarray(theta)[part],
+                                None if shift is None else (shift[0], np.asarray(shift[1])[part])))
     return out
 
 
