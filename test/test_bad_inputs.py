@@ -165,6 +165,10 @@ CASES = [
     ('cyclic channels bools', {'m.yaml': term('cyclic_error', period_um='20', resolution_nm='50',
                                               channels='[true, 1, 2, 3, 4, 5]', count_origin='0',
                                               sin_nm='0', cos_nm='0')}, WITH_MODEL, 'channels'),
+    ('cyclic calibration counts repeated', {'m.yaml': term(
+        'cyclic_error', period_um='20', resolution_nm='50', channels='[0, 1, 2, 3, 4, 5]',
+        count_origin='0', sin_nm='0', cos_nm='0', calibration_counts=str([[1, 1]] * 6))},
+     WITH_MODEL, 'calibration_counts'),
     ('thermal gain inf', {'m.yaml': term('thermal_gain', gain='.inf')}, WITH_MODEL, 'gain'),
     ('knots text', {'m.yaml': term('cdf_offsets', knots_mm='[["a", "b"]]', offsets_um='[[0, 0]]')},
      WITH_MODEL, 'knots_mm'),

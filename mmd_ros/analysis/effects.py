@@ -144,8 +144,16 @@ class Effect:
     def refine_bounds(self, hyper: Any, tried: list[Any], ctxs: list[FitContext]
                       ) -> tuple[float, float] | None:
         """For a continuous setting: the interval around the best one tried in which to refine
-        it (golden section in its logarithm); None when the setting is not refined."""
+        its value (golden section in its logarithm); None when the setting is not refined."""
         return None
+
+    def setting_value(self, hyper: Any) -> float | None:
+        """The continuous value of a setting (refined; its uncertainty claimed), or None."""
+        return float(hyper) if self.continuous_setting and isinstance(hyper, float) else None
+
+    def with_setting_value(self, hyper: Any, value: float) -> Any:
+        """The setting ``hyper`` with its continuous value replaced by ``value``."""
+        return float(value)
 
     def parameters(self, ctx: FitContext, hyper: Any) -> list[Parameter]:
         raise NotImplementedError
@@ -514,11 +522,20 @@ class CalibrationPoints(Effect):
 
 
 class CyclicError(Effect):
+    """The setting is (period, read in the calibration): the calibration read the same scale,
+    so each of its points took the error at its count and the CDF carries those values between
+    them (the error as a calibrated bar reads it, :class:`CyclicErrorTerm`); an error added to
+    the runs only (another program's logs) lacks that part. Both are tried, the data choose."""
+
     name = 'cyclic_error'
     term_type = 'cyclic_error'
     title = 'encoder cyclic error'
     physics = ('the interpolation of the scale\'s sine signals errs periodically with the signal '
-               'period; the error follows the scale position, not time')
+               'period; the error follows the scale position, not time, and the calibration '
+               'read it too')
+    scope = 'calibration'   # the phase is counted from the calibration's first point
+    continuous_setting = True
+    setting_measured = True
 
     def _setup(self, ctx: FitContext) -> tuple[list[int], FloatArray]:
         names = ctx.device.channel_names
@@ -530,18 +547,28 @@ class CyclicError(Effect):
             origin.append(float(np.asarray(bar.counts)[order][0]))
         return channels, np.array(origin)
 
-    scope = 'calibration'   # the phase is counted from the calibration's first point
-    continuous_setting = True
-    setting_measured = True
+    @staticmethod
+    def _knots(ctx: FitContext, hyper: tuple[float, bool]) -> list[FloatArray] | None:
+        """Each bar's calibration counts, when the calibration read the error."""
+        if not hyper[1]:
+            return None
+        names = ctx.device.channel_names
+        return [np.sort(np.asarray(ctx.calibration.bars[names[ch]].counts, dtype=np.float64))
+                for ch in ctx.device.measuring_channels]
 
     def hypers(self, ctxs):
         opts = getattr(ctxs[0].options, 'cyclic_periods_m', None)
-        if opts:
-            return list(opts)
-        return [p for p, _ in cyclic_periods(ctxs, self._setup)]
+        periods = list(opts) if opts else [p for p, _ in cyclic_periods(ctxs, self._setup)]
+        return [(float(p), read) for p in periods for read in (True, False)]
+
+    def setting_value(self, hyper):
+        return hyper[0]
+
+    def with_setting_value(self, hyper, value):
+        return (float(value), hyper[1])
 
     def hyper_label(self, hyper):
-        return f'period {hyper / M_PER_UM:.5g} µm'
+        return f'period {hyper[0] / M_PER_UM:.5g} µm' + ('' if hyper[1] else ', not in the calibration')
 
     def refine_bounds(self, hyper, tried, ctxs):
         # one bin of the spectrum either side: the phase drifts by a cycle over the travel
@@ -549,8 +576,9 @@ class CyclicError(Effect):
                       for c in ctxs if c.train_idx is not None and c.train_idx.size), default=0.0)
         if travel <= 0:
             return None
-        step = hyper * hyper / travel
-        return max(hyper - step, 0.5 * hyper), hyper + step
+        period = hyper[0]
+        step = period * period / travel
+        return max(period - step, 0.5 * period), period + step
 
     def parameters(self, ctx, hyper):
         return _bar_names('sin', 'nm', 1e9, 2e-6) + _bar_names('cos', 'nm', 1e9, 2e-6)
@@ -562,28 +590,30 @@ class CyclicError(Effect):
     def signature(self, ctx, hyper, idx):
         channels, origin = self._setup(ctx)
         s, c = CyclicErrorTerm.features(ctx.counts[idx], channels, origin,
-                                        ctx.device.encoder_resolution_m, hyper)
+                                        ctx.device.encoder_resolution_m, hyper[0], self._knots(ctx, hyper))
         return _per_bar([s, c])
 
     def coverage(self, ctx, hyper, idx):
         span = np.ptp(self._phase_position(ctx, idx), axis=0)
-        bars = span >= 2 * hyper
+        bars = span >= 2 * hyper[0]
         return np.tile(bars, 2), '' if bars.all() else 'bars that move less than two signal periods: ' + _bars(~bars)
 
     def make_term(self, ctx, hyper, theta):
         channels, origin = self._setup(ctx)
-        return CyclicErrorTerm(hyper, ctx.device.encoder_resolution_m, channels, origin,
-                               theta[:6], theta[6:])
+        return CyclicErrorTerm(hyper[0], ctx.device.encoder_resolution_m, channels, origin,
+                               theta[:6], theta[6:], self._knots(ctx, hyper))
 
     def diagnostics(self, ctx, hyper):
         all_idx = np.arange(ctx.times_s.size)
         u = self._phase_position(ctx, all_idx)
-        return {f'bar{i + 1} scale phase': np.mod(u[:, i] / hyper, 1.0)
+        return {f'bar{i + 1} scale phase': np.mod(u[:, i] / hyper[0], 1.0)
                 for i in np.flatnonzero(_moving_bars(ctx))}
 
     def interpret(self, ctx, hyper, theta, sigma):
         amp = np.hypot(theta[:6], theta[6:]) * 1e9
-        return [f'amplitude {amp.min():.0f} … {amp.max():.0f} nm at a {hyper / M_PER_UM:g} µm period']
+        where = ('read in the calibration too' if hyper[1] else
+                 'not read by the calibration (its points do not carry it)')
+        return [f'amplitude {amp.min():.0f} … {amp.max():.0f} nm at a {hyper[0] / M_PER_UM:g} µm period, {where}']
 
 
 class SamplingSkew(Effect):

@@ -181,7 +181,7 @@ class Found:
     unchecked: list[Unchecked] = field(default_factory=list)
     covariance: FloatArray | None = None  # (P, P) of the parameters [SI], the setting held
     #: a continuous setting one sigma away and the parameters that go with it (or None)
-    setting_shift: tuple[float, FloatArray] | None = None
+    setting_shift: tuple[Any, FloatArray] | None = None
 
     def parameter_rows(self) -> list[dict[str, Any]]:
         rows = []
@@ -789,6 +789,7 @@ class _Selector:
         if not scores:
             return (first_fit[0], first_fit[1], math.inf) if first_fit else (None, None, math.inf)
         ic, hyper, fit = min(scores, key=lambda t: t[0])
+        tried = hyper
         bounds = effect.refine_bounds(hyper, grid, [r.ctx for r in self.runs])
         if bounds is not None:
             lo, hi = math.log(bounds[0]), math.log(bounds[1])
@@ -803,7 +804,7 @@ class _Selector:
 
             def score(x: float) -> float:
                 if x not in cache:
-                    f = self.reduce(effect, math.exp(x))
+                    f = self.reduce(effect, effect.with_setting_value(tried, math.exp(x)))
                     cache[x] = (measure(f) if f['basis'].shape[1] else math.inf, f)
                 return cache[x][0]
 
@@ -816,7 +817,8 @@ class _Selector:
                     a = c1
             x = min(cache, key=lambda v: cache[v][0])
             if cache[x][0] < measure(fit):
-                ic, hyper, fit = self.training_ic(cache[x][1]), math.exp(x), cache[x][1]
+                ic, hyper, fit = (self.training_ic(cache[x][1]), effect.with_setting_value(tried, math.exp(x)),
+                                  cache[x][1])
         return hyper, fit, ic
 
     def evaluate(self, effect: Effect, e0_test: FloatArray) -> Candidate:
@@ -945,7 +947,7 @@ class _Selector:
             start += r
         return out, self.test.y - d_te @ coef
 
-    def setting_shift(self, a: _Active, theta: FloatArray) -> tuple[float, FloatArray] | None:
+    def setting_shift(self, a: _Active, theta: FloatArray) -> tuple[Any, FloatArray] | None:
         """A continuous setting (a cyclic error's period, a friction turn-over travel) one
         standard deviation away, and the effect's parameters that go with it: (hyper + sd,
         theta + the change); None for a setting that is not continuous.
@@ -958,11 +960,12 @@ class _Selector:
         effect's correction per unit setting (central difference), and with the directions
         dropped as weak (they trade with the setting); the setting's variance and its
         covariance with the effect's coefficients give the one-sigma shift."""
-        h = a.hyper
-        if not a.effect.continuous_setting or not isinstance(h, float) or h <= 0 or a.basis.shape[1] == 0:
+        h = a.effect.setting_value(a.hyper)
+        if h is None or h <= 0 or a.basis.shape[1] == 0:
             return None
         dh = SETTING_STEP * h
-        slope = (self.columns(a.effect, h + dh, 'train') - self.columns(a.effect, h - dh, 'train')) @ theta / (2 * dh)
+        up, down = (a.effect.with_setting_value(a.hyper, v) for v in (h + dh, h - dh))
+        slope = (self.columns(a.effect, up, 'train') - self.columns(a.effect, down, 'train')) @ theta / (2 * dh)
         start = self.train.nuisance.shape[1]
         for other in self.active:
             if other is a:
@@ -973,7 +976,7 @@ class _Selector:
             norms = np.asarray(a.norms, dtype=np.float64)
             inv = np.where(norms > 0, 1.0 / np.where(norms > 0, norms, 1.0), 0.0)
             own.append(a.weak[0] * inv[:, None])                  # parameter scale
-        columns = self.columns(a.effect, h, 'train')
+        columns = self.columns(a.effect, a.hyper, 'train')
         design = np.concatenate([self.base('train')] + [columns @ b for b in own[1:]] + [slope[:, None]], axis=1)
         _, cov = self._fit(design, self.train.y)
         var = float(cov[-1, -1])
@@ -983,7 +986,7 @@ class _Selector:
         r = a.basis.shape[1]
         rows = np.r_[start:start + r, self.base('train').shape[1]:design.shape[1] - 1]
         change = np.concatenate(own, axis=1) @ (cov[rows, -1] / sd)
-        return h + sd, np.asarray(theta) + change
+        return a.effect.with_setting_value(a.hyper, h + sd), np.asarray(theta) + change
 
     def theta_for(self, effect: Effect, theta: FloatArray, run: _Run) -> FloatArray | None:
         """The parameters of ``effect`` that apply to ``run`` (its calibration's or run's set),

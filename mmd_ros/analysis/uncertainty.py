@@ -78,7 +78,7 @@ class FittedEffect:
     covariance: FloatArray
     theta: FloatArray | None = None
     #: a continuous setting one sigma away and the parameters that go with it (or None)
-    shifted: tuple[float, FloatArray] | None = None
+    shifted: tuple[Any, FloatArray] | None = None
 
 
 @dataclass

@@ -737,25 +737,39 @@ class CyclicErrorTerm(ModelTerm):
     type_name = 'cyclic_error'
 
     def __init__(self, period_m: float, resolution_m: float, channels: list[int],
-                 count_origin: FloatArray, sin_m: FloatArray, cos_m: FloatArray) -> None:
+                 count_origin: FloatArray, sin_m: FloatArray, cos_m: FloatArray,
+                 calibration_counts: list[FloatArray] | None = None) -> None:
         self.period_m = float(period_m)
         self.resolution_m = float(resolution_m)
         self.channels = [int(c) for c in channels]
         self.count_origin = np.asarray(count_origin, dtype=np.float64)
         self.sin_m = np.asarray(sin_m, dtype=np.float64)
         self.cos_m = np.asarray(cos_m, dtype=np.float64)
+        self.calibration_counts = (None if calibration_counts is None else
+                                   [np.sort(np.asarray(q, dtype=np.float64)) for q in calibration_counts])
         self.reset()
 
     @staticmethod
     def features(counts: FloatArray, channels: list[int], count_origin: FloatArray,
-                 resolution_m: float, period_m: float) -> tuple[FloatArray, FloatArray]:
-        """Signatures per unit sine and cosine amplitude, each (N, 6)."""
-        phase = 2 * np.pi * ((counts[:, channels] - count_origin) * (resolution_m / period_m))
-        return -np.sin(phase), -np.cos(phase)
+                 resolution_m: float, period_m: float,
+                 calibration_counts: list[FloatArray] | None = None) -> tuple[FloatArray, FloatArray]:
+        """Signatures per unit sine and cosine amplitude, each (N, 6). With the counts of each
+        bar's calibration points, the error as the calibrated bar reads it: the calibration
+        read the same scale, so each point's distance took the error at that count, and the
+        CDF's line through the points carries it between them (Eq. 10)."""
+        scale = resolution_m / period_m
+        phase = 2 * np.pi * ((counts[:, channels] - count_origin) * scale)
+        s, c = -np.sin(phase), -np.cos(phase)
+        if calibration_counts is not None:
+            for i, knots in enumerate(calibration_counts):
+                at = 2 * np.pi * ((knots - count_origin[i]) * scale)
+                s[:, i] += _through_points(counts[:, channels[i]], knots, np.sin(at))
+                c[:, i] += _through_points(counts[:, channels[i]], knots, np.cos(at))
+        return s, c
 
     def correction(self, ctx: TermContext) -> FloatArray:
         s, c = self.features(ctx.counts, self.channels, self.count_origin, self.resolution_m,
-                             self.period_m)
+                             self.period_m, self.calibration_counts)
         return self.sin_m * s + self.cos_m * c
 
     @classmethod
@@ -765,16 +779,34 @@ class CyclicErrorTerm(ModelTerm):
                 and all(validate.number_problem(c, low=0, high=63, integer=True) is None
                         for c in channels)):
             raise ConfigError(source, 'channels', f'must list the terminal channels of bars 1..6, got {channels!r}')
+        points = params.get('calibration_counts')
+        knots = None
+        if points is not None:
+            knots = list(validate.floats(points, source, 'calibration_counts', (6, -1),
+                                         what='six lists of the calibration points\' counts (one per bar)'))
+            if knots[0].size < 2 or not all(np.all(np.diff(np.sort(k)) > 0) for k in knots):
+                raise ConfigError(source, 'calibration_counts', 'must list at least two distinct '
+                                  f'counts per bar, got {points!r}')
         return cls(_number(params, 'period_um', source, positive=True) * M_PER_UM,
                    _number(params, 'resolution_nm', source, positive=True) * M_PER_NM, channels,
                    six_values(params, 'count_origin', source),
                    six_values(params, 'sin_nm', source) * M_PER_NM,
-                   six_values(params, 'cos_nm', source) * M_PER_NM)
+                   six_values(params, 'cos_nm', source) * M_PER_NM, knots)
 
     def params(self) -> dict[str, Any]:
-        return {'period_um': self.period_m / M_PER_UM, 'resolution_nm': self.resolution_m / M_PER_NM,
-                'channels': self.channels, 'count_origin': self.count_origin.tolist(),
-                'sin_nm': (self.sin_m / M_PER_NM).tolist(), 'cos_nm': (self.cos_m / M_PER_NM).tolist()}
+        out = {'period_um': self.period_m / M_PER_UM, 'resolution_nm': self.resolution_m / M_PER_NM,
+               'channels': self.channels, 'count_origin': self.count_origin.tolist(),
+               'sin_nm': (self.sin_m / M_PER_NM).tolist(), 'cos_nm': (self.cos_m / M_PER_NM).tolist()}
+        if self.calibration_counts is not None:
+            out['calibration_counts'] = [k.tolist() for k in self.calibration_counts]
+        return out
+
+
+def _through_points(x: FloatArray, knots: FloatArray, values: FloatArray) -> FloatArray:
+    """The line through (knots, values) at x, the end segments extended (as the CDF is)."""
+    i = np.clip(np.searchsorted(knots, x, side='right') - 1, 0, knots.size - 2)
+    slope = (values[i + 1] - values[i]) / (knots[i + 1] - knots[i])
+    return values[i] + slope * (x - knots[i])
 
 
 # -- timing ------------------------------------------------------------------------------------
