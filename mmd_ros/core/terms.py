@@ -731,7 +731,11 @@ class CyclicErrorTerm(ModelTerm):
     signals errs periodically with the signal period. Bar i reads a_i sin(phi) + b_i cos(phi)
     too long, phi = 2 pi (q_i - q0_i) resolution / period, counted from ``count_origin`` (the
     bar's calibration count on the first reference pair, so the phase refers to the scale, not
-    to the power-on count). Correction: minus that. Re-fit after a new calibration.
+    to the power-on count). With ``calibration_counts`` (each bar's counts at its calibration
+    points) the error as the calibrated bar reads it: the calibration read the same scale, so
+    the CDF's line through its points (Eq. 10) carries the error's values at those counts, and
+    the bar reads the error minus that line. Correction: minus that. Re-fit after a new
+    calibration.
     """
 
     type_name = 'cyclic_error'
