@@ -31,7 +31,7 @@ from mmd_ros.core.model import Model
 from mmd_ros.core.pipeline import Pipeline
 from mmd_ros.core.validity import Validity
 from mmd_ros.twin import Effects, TwinDevice, make_scenario
-from mmd_ros.twin.recording import ambient_profile
+from mmd_ros.twin.recording import ambient_profile, run_log
 
 LIMIT = chi2.ppf(0.95, 6)
 CASES = {
@@ -109,16 +109,10 @@ def run_case(device, name: str, scenario: str, runs: int, seconds: float, after:
 def fit(twin, room, calibration, k, datum: str = 'none'):
     """mmd analyze on a 60 s random run with the full pose reference, absolute (``datum``
     'none') or zeroed (an offset per component removed, 'offset': the default for a pose)."""
-    from pathlib import Path
-
     from mmd_ros.analysis.identify import AnalysisOptions, analyze
-    from mmd_ros.logs.layout import RunLog
     run = twin.simulate(make_scenario('random_motion', ['duration_s=60', f'seed={100 + k}']), room,
                         start_s=600.0, reference='pose6')
-    stamps = np.round((600.0 + run.times_s) * 1e9).astype(np.int64)
-    log = RunLog(Path('twin'), twin.documented_device, calibration, None, stamps, run.counts.astype(np.float64),
-                 twin.device.channel_names, run.reference, metadata=run.metadata)
-    result = analyze(log, options=AnalysisOptions(datum=datum))
+    result = analyze(run_log(twin, calibration, run, 600.0), options=AnalysisOptions(datum=datum))
     found = '+'.join(f.effect for f in result.found) or 'nothing'
     return result.model or Model(), found, 700.0
 

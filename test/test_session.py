@@ -24,9 +24,9 @@ from mmd_ros.cli.main import main
 from mmd_ros.core.device import find_config, load_device
 from mmd_ros.core.model import Model
 from mmd_ros.core.validity import Validity
-from mmd_ros.logs.layout import RunLog, read_run, write_run
+from mmd_ros.logs.layout import read_run, write_run
 from mmd_ros.twin import AmbientProfile, Effects, TwinDevice, make_scenario
-from mmd_ros.twin.recording import SimulationSpec, ambient_profile, simulate_to_log
+from mmd_ros.twin.recording import SimulationSpec, ambient_profile, run_log, simulate_to_log
 
 RATE = 200.0
 ISO = ('n_cycles=5',)
@@ -277,10 +277,7 @@ def test_effects_that_follow_the_same_coordinate_are_found_together(k):
     calibration = twin.calibrate(-211.0 * k, room, approaches=2)
     run = twin.simulate(make_scenario('random_motion', ['duration_s=60', f'seed={100 + k}']), room,
                         start_s=600.0, reference='pose6')
-    log = RunLog(Path('twin'), twin.documented_device, calibration, None,
-                 np.round((600.0 + run.times_s) * 1e9).astype(np.int64), run.counts.astype(np.float64),
-                 DEVICE.channel_names, run.reference, metadata=run.metadata)
-    result = analyze(log, options=AnalysisOptions(datum='none'))
+    result = analyze(run_log(twin, calibration, run, 600.0), options=AnalysisOptions(datum='none'))
     found = [f.effect for f in result.found]
     assert {'sampling_skew', 'hysteresis', 'scale_nonlinearity'} <= set(found), result.conclusion
     if k == 5:

@@ -30,7 +30,7 @@ from mmd_ros.core.uncertainty import (
     fit_interpolation_error, quantisation_cross_cov, read_noise_from_dither, two_sided_figures,
 )
 from mmd_ros.twin import Effects, TwinDevice, make_scenario
-from mmd_ros.twin.recording import ambient_profile
+from mmd_ros.twin.recording import ambient_profile, run_log
 
 DEVICE = load_device(find_config('mmd_prototype.yaml'))
 RES = DEVICE.encoder_resolution_m
@@ -434,10 +434,7 @@ def _foreign_twin(k: int, length_error, datum: str,
     motion with a full pose reference; ``datum``: 'none' absolute, 'offset' zeroed). Returns the
     analysis, the calibration, the twin and ``run_of(params, start)`` -> (run, counts) of
     random 6-DOF motion."""
-    from pathlib import Path
-
     from mmd_ros.analysis.identify import AnalysisOptions, analyze
-    from mmd_ros.logs.layout import RunLog
     from mmd_ros.twin import AmbientProfile
     meas = list(DEVICE.measuring_channels)
     room = AmbientProfile.constant(21.0)
@@ -453,9 +450,7 @@ def _foreign_twin(k: int, length_error, datum: str,
 
     scenario, params, reference = fit
     run, counts = run_of([p.format(seed=100 + k) for p in params], 600.0, scenario, reference)
-    log = RunLog(Path('twin'), twin.documented_device, calibration, None,
-                 np.round((600.0 + run.times_s) * 1e9).astype(np.int64), counts,
-                 DEVICE.channel_names, run.reference, metadata=run.metadata)
+    log = run_log(twin, calibration, run, 600.0, counts)
     return analyze(log, options=AnalysisOptions(datum=datum)), calibration, twin, run_of
 
 
@@ -694,10 +689,7 @@ def test_a_cyclic_error_the_calibration_read_too_is_fitted_as_the_calibrated_bar
     say so (both are tried): one effect, whose law fixes the mean. Measured 100 % on both
     (99.9 % over four twins, ratios 1.4-2.6: the zeroed reference leaves the calibration's
     sources claimed in full)."""
-    from pathlib import Path
-
     from mmd_ros.analysis.identify import analyze
-    from mmd_ros.logs.layout import RunLog
     room = ambient_profile('section_4_1')
     covered = []
     for k in (0, 2):
@@ -706,10 +698,7 @@ def test_a_cyclic_error_the_calibration_read_too_is_fitted_as_the_calibrated_bar
         calibration = twin.calibrate(-211.0 * k, room, approaches=2)
         run = twin.simulate(make_scenario('random_motion', ['duration_s=60', f'seed={100 + k}']), room,
                             start_s=600.0, reference='pose6')
-        log = RunLog(Path('twin'), twin.documented_device, calibration, None,
-                     np.round((600.0 + run.times_s) * 1e9).astype(np.int64), run.counts.astype(np.float64),
-                     DEVICE.channel_names, run.reference, metadata=run.metadata)
-        result = analyze(log)                                   # the default: zeroed reference
+        result = analyze(run_log(twin, calibration, run, 600.0))    # the default: zeroed reference
         assert [f.effect for f in result.found] == ['cyclic_error'], result.conclusion
         period, in_calibration = result.found[0].hyper
         assert in_calibration and math.isclose(period, 13e-6, rel_tol=1e-3), result.found[0].hyper

@@ -18,7 +18,7 @@ from mmd_ros.core.progress import Progress
 from mmd_ros.core.yamlio import read_yaml
 from mmd_ros.logs.layout import (
     BAR_NAMES, FRAME_LOWER, REFERENCE_POSE_NAMES, RUN_METADATA, TOPIC_CALIBRATION, TOPIC_DEVICE,
-    TOPIC_MACHINE_JOINTS, TOPIC_RAW, TOPIC_REF_LENGTHS, TOPIC_REF_POSE,
+    TOPIC_MACHINE_JOINTS, TOPIC_RAW, TOPIC_REF_LENGTHS, TOPIC_REF_POSE, RunLog,
 )
 from mmd_ros.logs.outputs import replacing
 from mmd_ros.logs.writer import LogWriter
@@ -28,7 +28,7 @@ from mmd_ros.twin.scenarios import make_scenario
 from mmd_ros.twin.thermal import AmbientProfile
 from mmd_ros.twin.twin import TwinDevice
 
-__all__ = ['EPOCH_S', 'SimulationSpec', 'ambient_profile', 'simulate_to_log', 'spec_inputs']
+__all__ = ['EPOCH_S', 'SimulationSpec', 'ambient_profile', 'run_log', 'simulate_to_log', 'spec_inputs']
 
 #: Default time stamp of the twin's clock zero: 2024-01-01T00:00:00Z [s since the epoch].
 EPOCH_S = 1_704_067_200
@@ -95,6 +95,17 @@ def spec_inputs(spec: SimulationSpec) -> list[Path]:
     if spec.ambient.endswith(('.yaml', '.yml')):
         files.append(Path(spec.ambient))
     return files
+
+
+def run_log(twin: TwinDevice, calibration: Calibration, run: Any, start_s: float,
+            counts: np.ndarray | None = None, name: str = 'twin') -> RunLog:
+    """A run of ``twin`` (:meth:`TwinDevice.simulate`, begun at ``start_s`` [s]) as the log
+    :func:`mmd_ros.logs.layout.read_run` would give, in memory, with the documented device and
+    ``calibration``; ``counts`` (N, channels) in place of the run's (an effect added to them)."""
+    return RunLog(Path(name), twin.documented_device, calibration, None,
+                  np.round((start_s + run.times_s) * 1e9).astype(np.int64),
+                  np.asarray(run.counts if counts is None else counts, dtype=np.float64),
+                  twin.device.channel_names, run.reference, metadata=run.metadata)
 
 
 def simulate_to_log(spec: SimulationSpec, out: Path, *, progress: bool = True
