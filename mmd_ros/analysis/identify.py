@@ -182,6 +182,8 @@ class Found:
     covariance: FloatArray | None = None  # (P, P) of the parameters [SI], the setting held
     #: a continuous setting one sigma away and the parameters that go with it (or None)
     setting_shift: tuple[Any, FloatArray] | None = None
+    #: a form of the effect the data could not rule out (``Effect.undetermined_forms``)
+    alternatives: list[Any] = field(default_factory=list)
 
     def parameter_rows(self) -> list[dict[str, Any]]:
         rows = []
@@ -1349,7 +1351,8 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
                                      first.ctx, a.hyper, first_theta if first_theta is not None else theta,
                                      sigma[:first_theta.size] if first_theta is not None else sigma),
                                  covariance=_parameter_covariance(a, theta, cb, every_bar),
-                                 setting_shift=shift))
+                                 setting_shift=shift,
+                                 alternatives=a.effect.undetermined_forms(a.hyper, [r.ctx for r in runs])))
         # an effect must remove most of the structure along its own coordinate; one that fits
         # only part of it follows something else (the worst is dropped, then all are refitted)
         worst_k, worst_ratio, worst_txt = -1, 0.0, ''
