@@ -142,6 +142,12 @@ class Observation:
         return np.array([ARCSEC_PER_RAD if u == 'arcsec' else 1.0 / M_PER_UM for u in self.units])
 
     @property
+    def sees_every_bar(self) -> bool:
+        """The reference sees all six pose components or bar lengths: what a term does to
+        every bar is then determined (not only its effect on some components)."""
+        return len(self.components) == 6
+
+    @property
     def description(self) -> str:
         if self.kind == 'lengths':
             return f'known bar lengths ({", ".join(self.names)})'

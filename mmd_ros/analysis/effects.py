@@ -569,18 +569,15 @@ class CyclicError(Effect):
         # other smooth errors only by a reference that sees every bar: from a C-axis run
         # without read noise it was chosen for an error the calibration had not read, with a
         # period 1e-4 off, and 6-DOF motion got worse (0.9 % in the ellipsoid)
-        return [(float(p), read) for p in periods for read in ((True, False) if self._every_bar(ctxs) else (False,))]
-
-    @staticmethod
-    def _every_bar(ctxs: list[FitContext]) -> bool:
-        return any(len(c.obs.components) == 6 for c in ctxs)
+        every_bar = any(c.obs.sees_every_bar for c in ctxs)
+        return [(float(p), read) for p in periods for read in ((True, False) if every_bar else (False,))]
 
     def undetermined_forms(self, hyper, ctxs):
         # the calibration's part, not tried without a reference that sees every bar: a real
         # encoder's calibration reads its error, so its line through the points is claimed
         # (an 80 nm error the calibration read, fitted from an x-axis laser run, left 47 % and
         # 65 % of new 6-DOF motion in the ellipsoid)
-        return [] if hyper[1] or self._every_bar(ctxs) else [(hyper[0], True)]
+        return [] if hyper[1] or any(c.obs.sees_every_bar for c in ctxs) else [(hyper[0], True)]
 
     def setting_value(self, hyper):
         return hyper[0]

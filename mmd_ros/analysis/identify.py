@@ -562,6 +562,16 @@ class _Active:
         fit (its gains and written flag kept)."""
         return replace(self, hyper=hyper, basis=fit['basis'], norms=fit['norms'], weak=fit['weak'])
 
+    def weak_basis(self) -> FloatArray | None:
+        """The directions dropped as weak in parameter scale, (P, w) (as :attr:`basis` is),
+        or None when there are none."""
+        if self.weak is None or not self.weak[0].shape[1]:
+            return None
+        norms = np.asarray(self.norms, dtype=np.float64)
+        inv = np.zeros_like(norms)
+        inv[norms > 0] = 1.0 / norms[norms > 0]
+        return self.weak[0] * inv[:, None]
+
 
 class _Selector:
     """Stepwise selection on the fit subsets of the training and held-out blocks of all logs."""
@@ -973,11 +983,8 @@ class _Selector:
             if other is a:
                 break
             start += other.basis.shape[1]
-        own = [a.basis]
-        if a.weak is not None and a.weak[0].shape[1]:
-            norms = np.asarray(a.norms, dtype=np.float64)
-            inv = np.where(norms > 0, 1.0 / np.where(norms > 0, norms, 1.0), 0.0)
-            own.append(a.weak[0] * inv[:, None])                  # parameter scale
+        weak = a.weak_basis()
+        own = [a.basis] if weak is None else [a.basis, weak]
         columns = self.columns(a.effect, a.hyper, 'train')
         design = np.concatenate([self.base('train')] + [columns @ b for b in own[1:]] + [slope[:, None]], axis=1)
         _, cov = self._fit(design, self.train.y)
@@ -1186,13 +1193,11 @@ def _parameter_covariance(a: _Active, theta: FloatArray, cov_beta: FloatArray,
     used = norms > 0
     if not used.any() or a.basis.shape[1] == 0:
         return cov
-    inv = np.zeros_like(norms)
-    inv[used] = 1.0 / norms[used]
     values = np.asarray(theta)[used]
     known = [a.basis[used]]
-    weak = None
-    if a.weak is not None and a.weak[0].shape[1]:
-        weak = a.weak[0][used] * inv[used, None]                 # parameter scale
+    weak = a.weak_basis()
+    if weak is not None:
+        weak = weak[used]
         known.append(weak)
     q = _orthonormal(np.concatenate(known, axis=1))
     rest = np.eye(int(used.sum())) - q @ q.T
@@ -1331,7 +1336,7 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
     retried: set[str] = set()
     # a reference that sees every bar measures what the terms leave (the model's residual);
     # without one, what the data did not determine must be claimed by the terms themselves
-    every_bar = any(len(r.obs.components) == 6 for r in runs)
+    every_bar = any(r.obs.sees_every_bar for r in runs)
     for _ in range(4 * o.max_effects + 2):
         if not sel.active:
             break

@@ -384,8 +384,8 @@ def fit_uncertainty(ctx: FitContext, found: list[FittedEffect], runs: list[Resid
     ref = runs[0] if runs else None
     idx0 = ref.idx if ref is not None else np.zeros(0, np.int64)
     validity = Validity.from_model(model)
-    directions, mean_terms, run_own = _term_directions(
-        ctx, found, idx0[:4000], None if validity is None else validity.bar_range_m)
+    sample, seen_m = idx0[:4000], None if validity is None else validity.bar_range_m
+    directions, mean_terms, run_own = _term_directions(ctx, found, sample, seen_m)
     previous = model.uncertainty.fit
     if not found and previous is not None:
         # nothing fitted now (the residual written as an uncertainty only): the directions of
@@ -402,8 +402,7 @@ def fit_uncertainty(ctx: FitContext, found: list[FittedEffect], runs: list[Resid
     # scale of the calibration's sources, and a C-axis fit's coverage fell from 93 % to 72 %)
     for f in found:
         for hyper in f.alternatives if f.theta is not None else []:
-            terms, mean = _change_to(ctx, f, hyper, f.theta, idx0[:4000],
-                                     None if validity is None else validity.bar_range_m)
+            terms, mean = _change_to(ctx, f, hyper, f.theta, sample, seen_m)
             fit.directions.append(terms)
             fit.mean_terms_m2 = fit.mean_terms_m2 + mean
     return fit
