@@ -57,6 +57,9 @@ def _set(data, path, value):
     (('terminal', 'channels', 2, 'bar'), 1, 'terminal.channels'),
     (('terminal', 'counter_bits'), 31, 'terminal.counter_bits'),
     (('terminal', 'latch_skew_us'), -5, 'terminal.latch_skew_us'),
+    (('bars', 'subdivision_error_nm'), 30, 'bars.signal_period_um'),     # a bound without its period
+    (('bars', 'signal_period_um'), 20, 'bars.subdivision_error_nm'),
+    (('bars', 'subdivision_error_nm'), -30, 'bars.subdivision_error_nm'),
     (('format_version',), 2, 'format_version'),
 ])
 def test_bad_files_are_refused_naming_the_key(path, value, key):
@@ -66,6 +69,13 @@ def test_bad_files_are_refused_naming_the_key(path, value, key):
         parse_device(data, 'bad.yaml')
     assert info.value.key == key
     assert 'bad.yaml' in str(info.value)
+
+
+def test_a_signal_period_given_in_metres_is_caught():
+    data = copy.deepcopy(RAW)
+    data['bars'].update(subdivision_error_nm=30, signal_period_um=20e-6)
+    with pytest.raises(ConfigError, match='in um'):
+        parse_device(data, 'bad.yaml')
 
 
 def test_joints_given_in_metres_are_caught():

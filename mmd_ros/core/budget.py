@@ -12,7 +12,8 @@ Where the numbers come from:
 - the device description: the encoder resolution, the scale CTE (Eq. 13's approximation), the
   reference distances' standard uncertainty (``reference_plate.distance_uncertainty_um``, when
   stated), the bars' thermal mismatch (``bars.thermal_mismatch_fraction``), the terminal's
-  latch skew (``terminal.latch_skew_us``, its datasheet);
+  latch skew (``terminal.latch_skew_us``, its datasheet), the encoders' sub-divisional error
+  (``bars.subdivision_error_nm`` and ``bars.signal_period_um``, their datasheet);
 - the calibration: its points (hat functions of Eq. 10, the interpolation error fitted to
   them) and what the routine measured (read noise, hysteresis, seating repeatability);
 - the stream: each channel's read noise where it stands still (:class:`NoiseEstimator`);
@@ -53,6 +54,9 @@ DIRECTION_TRAVEL_M = 1e-6
 FRICTION_TERMS = ('hysteresis', 'friction')
 #: Model terms that compensate the channels' latch skew (the latch_skew source is then off).
 SKEW_TERMS = ('sampling_skew',)
+#: Model terms that compensate the encoders' sub-divisional error on the measuring bars (the
+#: subdivision source is then off for them).
+CYCLIC_TERMS = ('cyclic_error',)
 #: Fitted terms whose correction depends on a bar's length only (the unchecked_range source).
 LENGTH_TERMS = ('scale_nonlinearity', 'cdf_offsets')
 #: Travel after a reversal by which a bar's friction state has turned over (an assumption:
@@ -196,7 +200,8 @@ class _Friction:
 
 #: The budget's sources, in the order reports list them.
 SOURCES = ('quantisation', 'read_noise', 'reference_bar', 'calibration_points',
-           'calibration_drift', 'reference_distances', 'interpolation', 'thermal_approximation',
+           'calibration_drift', 'reference_distances', 'interpolation', 'subdivision',
+           'thermal_approximation',
            'thermal_mismatch', 'hysteresis', 'latch_skew', 'unchecked_range', 'fitted_terms',
            'residual')
 
@@ -370,6 +375,17 @@ class LengthBudget:
                              else float(skew or 0.0))
         self._velocity = _Velocity(1.0 / device.sample_rate_hz)
 
+        # -- the encoders' sub-divisional error (their datasheet): a bar reads e(q) at count q,
+        # periodic in the signal period, with a phase no one knows; the calibration's points
+        # carry theirs too. Off on the measuring bars when a fitted term compensates it
+        sde = device.subdivision_error_m
+        if sde is None:
+            self.notes.append('sub-division error: the device description does not state the '
+                              'encoders\' (bars.subdivision_error_nm, bars.signal_period_um)')
+        self.subdivision_m = float(sde or 0.0)
+        self.signal_period_m = float(device.signal_period_m or 0.0)
+        self.subdivision_compensated = any(t.type_name in CYCLIC_TERMS for t in model.terms)
+
         # -- a fitted length-dependent term where the fit never saw the bar: its correction
         # there is an extrapolation that no data checked (the model's validity record)
         validity = Validity.from_model(model)
@@ -392,6 +408,8 @@ class LengthBudget:
         self.systematic_scale = fit.systematic_scale if fit is not None else 1.0
         self.residual_m2 = fit.residual_m2 if fit is not None else np.zeros((6, 6))
         self.mean_terms_m2 = fit.mean_terms_m2 if fit is not None else np.zeros((6, 6))
+        self._subdivision_ref = self.subdivision_m * math.sqrt(self._kept('subdivision'))
+        self._subdivision_factor = 0.0 if self.subdivision_compensated else self._kept('subdivision')
         # what the per-sample path needs, decided once
         self._has_drift = bool(np.any(self.drift_m))
         self._has_pairs = bool(np.any(self.pair_var_m2 > 0))
@@ -488,7 +506,7 @@ class LengthBudget:
             # reading is within a count of its zero (delta ~ eps, Eq. 11)
             cross = self._cross(noise[-1, 6:], eps)
             ref_var = np.maximum(res2 / 12.0 + noise[:, 6:] ** 2 + self.zero_var_m2 - 2.0 * cross,
-                                 0.0)                                                  # (N, k)
+                                 0.0) + self._reference_subdivision(eps)                # (N, k)
             if self.thermal_mode == 'single':
                 t.common = ref_var[:, 0]
             else:
@@ -504,12 +522,15 @@ class LengthBudget:
         f = pos - i0
         rows = np.arange(6)[None, :]
         factor = self._table_factor(x, bar_error_m, eps)
-        for name, tab in tables.items() if np.any(factor) else ():
+        for name, tab in tables.items():
+            k = self._subdivision_factor if name == 'subdivision' else factor
+            if not np.any(k):
+                continue
             value = tab[rows, i0] * (1.0 - f) + tab[rows, i0 + 1] * f
             if name == 'calibration_drift':
-                t.bias[name] = np.sqrt(factor) * value
+                t.bias[name] = np.sqrt(k) * value
             else:
-                t.diag[name] = factor * value
+                t.diag[name] = k * value
         if self._has_pairs and self._kept('reference_distances'):
             k = self.knots_m
             seg = np.clip(np.sum(x[:, :, None] >= k[None], axis=2) - 1, 0, k.shape[1] - 2)
@@ -568,6 +589,11 @@ class LengthBudget:
             tab['calibration_drift'] = e.T
         if self.interpolation.sigma_m > 0:
             tab['interpolation'] = self.interpolation.variance(x, k).T
+        if self.subdivision_m > 0:
+            # e(d) - (1 - u) e(x_j) - u e(x_j+1): the live count's error, and the points' that
+            # Eq. (10) carries, at phases as good as independent (points mm apart, a period of
+            # um), each of variance a^2 / 2 (a sine of amplitude a, its phase unknown)
+            tab['subdivision'] = (0.5 * self.subdivision_m ** 2 * (1.0 + (1.0 - u) ** 2 + u ** 2)).T
         self._tab = {name: np.ascontiguousarray(v) for name, v in tab.items()}
         return self._tab
 
@@ -649,6 +675,14 @@ class LengthBudget:
         s_dir = np.zeros((n, 6)) if observed is None else observed.directions
         return (-math.sqrt(kept) * self.hysteresis_m * s_dir,
                 kept * self.hysteresis_m ** 2 * (1.0 - s_dir * s_dir))
+
+    def _reference_subdivision(self, eps: FloatArray) -> FloatArray | float:
+        """The reference bars' sub-divisional error between their live reading and their thermal
+        zero, eps (Eq. 11) apart, (N, k) [m^2]: a sine of amplitude a and unknown phase differs
+        at two counts by a variance of a^2 (1 - cos(2 pi eps / period)), 0 at the zero."""
+        if not self._subdivision_ref:
+            return 0.0
+        return self._subdivision_ref ** 2 * (1.0 - np.cos((2.0 * math.pi / self.signal_period_m) * eps))
 
     def _cross(self, noise_ref_m: FloatArray, eps: FloatArray) -> FloatArray:
         """quantisation_cross_cov of each reference bar's live reading and its zero at the
@@ -739,6 +773,9 @@ class LengthBudget:
             if fast['drift'] is not None:
                 tab = fast['drift']
                 bias += np.sqrt(factor) * (tab[rows, i0] * g + tab[rows, i0 + 1] * f)
+        if fast['subdivision'] is not None and self._subdivision_factor:
+            tab = fast['subdivision']
+            diag += self._subdivision_factor * (tab[rows, i0] * g + tab[rows, i0 + 1] * f)
         if self.thermal_mode == 'single':
             bias -= (x - self.ref_distances_m[0]) * (self.scale_cte * np.asarray(temp_change_c))[:, None]
             if self.mismatch_fraction:
@@ -760,7 +797,8 @@ class LengthBudget:
         total[:, rows[0], rows[0]] += diag
         if self.thermal_mode == 'single':
             cross = self._cross(noise[-1, 6:], eps)[:, 0]
-            ref = np.maximum(fast['q12'] + noise[:, 6] ** 2 + self.zero_var_m2 - 2.0 * cross, 0.0)
+            ref = (np.maximum(fast['q12'] + noise[:, 6] ** 2 + self.zero_var_m2 - 2.0 * cross, 0.0)
+                   + self._reference_subdivision(eps[:, 0]))
             total += ref[:, None, None]
         if fit_columns_m is not None and fit_columns_m.shape[-1]:
             total += fit_columns_m @ np.swapaxes(fit_columns_m, 1, 2)
@@ -780,6 +818,7 @@ class LengthBudget:
                 'q12': self.resolution_m ** 2 / 12.0,
                 'diag': np.ascontiguousarray(sum(diag)),
                 'drift': tables.get('calibration_drift'),
+                'subdivision': tables.get('subdivision'),
             }
         return self._fast_parts
 
@@ -823,6 +862,9 @@ class LengthBudget:
             'thermal_mismatch_fraction': self.mismatch_fraction,
             'hysteresis_nm': [round(float(v) * 1e9, 2) for v in self.hysteresis_m],
             'latch_skew_us': round(self.latch_skew_s * 1e6, 3),
+            'subdivision_nm': round(self.subdivision_m * 1e9, 3),
+            'signal_period_um': round(self.signal_period_m * 1e6, 6),
+            'subdivision_compensated': self.subdivision_compensated,
             'fit': None if self.fit is None else {
                 'replaces': sorted(self.replaced), 'systematic_scale': self.systematic_scale,
                 'residual_nm': [round(float(math.sqrt(max(v, 0.0))) * 1e9, 2)

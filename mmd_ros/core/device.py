@@ -39,7 +39,7 @@ SECTION_KEYS = {
     'joints': ('use', 'upper_design_mm', 'upper_measured_mm', 'lower_design_mm', 'lower_measured_mm'),
     'reference_plate': ('use', 'cte_ppm_per_c', 'distance_uncertainty_um', 'pairs'),
     'bars': ('range_mm', 'encoder_resolution_nm', 'scale_cte_ppm_per_c', 'rod_cte_ppm_per_c',
-             'fixed_length_mm', 'thermal_mismatch_fraction'),
+             'fixed_length_mm', 'thermal_mismatch_fraction', 'subdivision_error_nm', 'signal_period_um'),
     'plates': ('position_layer_cte_ppm_per_c',),
     'limits': ('upper_tilt_deg', 'lower_tilt_deg', 'min_bar_separation_mm'),
     'terminal': ('sample_rate_hz', 'counter_bits', 'latch_skew_us', 'channels'),
@@ -105,6 +105,11 @@ class DeviceDescription:
     #: between 0 and this after the sample tick that stamps it (its datasheet) [s]; None when
     #: the description does not say
     latch_skew_s: float | None = None
+    #: the encoders' sub-divisional (cyclic) error: the datasheet's bound a on the error the
+    #: interpolation of the scale's sine signals makes within each signal period [m], and that
+    #: period (the scale's grating signal period) [m]; None when the description does not say
+    subdivision_error_m: float | None = None
+    signal_period_m: float | None = None
 
     @property
     def reference_distances_m(self) -> NDArray[np.float64]:
@@ -139,8 +144,17 @@ class DeviceDescription:
 
     def with_latch_skew(self, skew_s: float) -> DeviceDescription:
         """A copy that states the terminal's latch skew (``terminal.latch_skew_us``) [s]."""
+        return self._stating('terminal', latch_skew_us=round(float(skew_s) * 1e6, 6))
+
+    def with_subdivision_error(self, amplitude_m: float, period_m: float) -> DeviceDescription:
+        """A copy that states the encoders' sub-divisional error bound and signal period
+        (``bars.subdivision_error_nm``, ``bars.signal_period_um``) [m]."""
+        return self._stating('bars', subdivision_error_nm=round(float(amplitude_m) * 1e9, 6),
+                             signal_period_um=round(float(period_m) * 1e6, 9))
+
+    def _stating(self, section: str, **values: float) -> DeviceDescription:
         data = copy.deepcopy(self.raw)
-        data['terminal']['latch_skew_us'] = round(float(skew_s) * 1e6, 6)
+        data[section].update(values)
         return parse_device(data, self.source)
 
 
@@ -216,6 +230,7 @@ def parse_device(data: dict[str, Any], source: str = '<device>') -> DeviceDescri
     if not 0 < rng[0] < rng[1]:
         raise r.fail('bars.range_mm', f'must be {rule}, got {rng.tolist()!r}')
     bar_range = (float(rng[0]) * M_PER_MM, float(rng[1]) * M_PER_MM)
+    resolution = r.number(bars, 'encoder_resolution_nm', 'bars', positive=True) * M_PER_NM
 
     plate = r.get(data, 'reference_plate', '')
     use_pairs = r.choice(plate, 'use', 'reference_plate', ('measured', 'design'))
@@ -295,7 +310,7 @@ def parse_device(data: dict[str, Any], source: str = '<device>') -> DeviceDescri
         measured_geometry=measured,
         pairs=tuple(pairs),
         bar_range_m=bar_range,
-        encoder_resolution_m=r.number(bars, 'encoder_resolution_nm', 'bars', positive=True) * M_PER_NM,
+        encoder_resolution_m=resolution,
         scale_cte_per_c=r.number(bars, 'scale_cte_ppm_per_c', 'bars', low=-50, high=50) * PPM,
         rod_cte_per_c=r.number(bars, 'rod_cte_ppm_per_c', 'bars', low=-50, high=50) * PPM,
         plate_cte_per_c=r.number(plates, 'position_layer_cte_ppm_per_c', 'plates', low=-50, high=50) * PPM,
@@ -313,7 +328,30 @@ def parse_device(data: dict[str, Any], source: str = '<device>') -> DeviceDescri
                                    else None),
         latch_skew_s=(r.number(terminal, 'latch_skew_us', 'terminal', low=0.0, high=1000.0) * 1e-6
                       if 'latch_skew_us' in terminal else None),
+        **_subdivision(r, bars, resolution),
     )
+
+
+def _subdivision(r: _Reader, bars: dict[str, Any], resolution_m: float) -> dict[str, float | None]:
+    """The encoders' sub-divisional error bound and signal period, stated together or not at
+    all: a bound without its period cannot say how the error changes with the count."""
+    out: dict[str, float | None] = {'subdivision_error_m': None, 'signal_period_m': None}
+    if 'subdivision_error_nm' in bars:
+        out['subdivision_error_m'] = r.number(bars, 'subdivision_error_nm', 'bars', low=0.0,
+                                              high=10000.0) * M_PER_NM
+    if 'signal_period_um' in bars:
+        period = r.number(bars, 'signal_period_um', 'bars', positive=True, high=10000.0) * M_PER_UM
+        if period < 2.0 * resolution_m:
+            raise r.fail('bars.signal_period_um', f'{period / M_PER_UM:g} um is shorter than two '
+                         f'counts of {resolution_m / M_PER_NM:g} nm: is it in um?')
+        out['signal_period_m'] = period
+    missing = [k for k, v in (('subdivision_error_nm', out['subdivision_error_m']),
+                              ('signal_period_um', out['signal_period_m'])) if v is None]
+    if len(missing) == 1:
+        other = 'signal_period_um' if missing[0] == 'subdivision_error_nm' else 'subdivision_error_nm'
+        raise r.fail(f'bars.{missing[0]}', f'must be given with bars.{other} (the encoder '
+                     'datasheet states both)')
+    return out
 
 
 def find_config(name: str) -> Path:

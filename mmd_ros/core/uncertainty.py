@@ -15,13 +15,16 @@ source                     contribution to Sigma_d                              
 ``quantisation``           Delta^2 / 12                                                no
 ``read_noise``             sigma_n,i^2 (from the stream, else the calibration)         no
 ``reference_bar``          Delta^2/12 + sigma_n,ref^2 + u_zero^2 - 2 C(eps) (Eq. 13:   all bars
-                           every bar minus the same eps)
+                           every bar minus the same eps) + its cyclic error's change
+                           a^2 (1 - cos(2 pi eps / p))
 ``calibration_points``     u_p^2 ((1 - u)^2 + u^2)                                     no
 ``calibration_drift``      known error (1 - u) beta_j + u beta_j+1 (the routine's      yes
                            temperature drift, measured by the reference bar)
 ``reference_distances``    sum_j h_j(d_i) h_j(d_k) u_dr,j^2 (Table 2, CMM)              yes
 ``interpolation``          V_i(d_i): variance of e - L, e a smooth random scale       no
                            error fitted to the points, L its Eq. (10) interpolant
+``subdivision``            a^2 / 2 (1 + (1 - u)^2 + u^2): the encoders' cyclic error   no
+                           (datasheet bound a), at the live count and the two points
 ``thermal_approximation``  known error -alpha_scale (d_i - d_ref) dT (the Eq. 12       yes
                            term Eq. 13 drops)
 ``thermal_mismatch``       (f eps_i)^2 (bars' thermal behaviour, section 4.1)          no

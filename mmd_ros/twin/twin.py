@@ -200,13 +200,19 @@ class TwinDevice:
 
     @property
     def documented_device(self) -> DeviceDescription:
-        """The device description as the simulated terminal's datasheet completes it: its
-        latch skew (``terminal.latch_skew_us``) is the bound the effects give the channels'
-        delays (``sampling_skew_s``), not the channels' own delays, which stay hidden (as a
-        real terminal's datasheet states a bound). A description that states one keeps it."""
-        if self.device.latch_skew_s is not None:
-            return self.device
-        return self.device.with_latch_skew(self.effects.sampling_skew_s)
+        """The device description as the simulated hardware's datasheets complete it: the
+        terminal's latch skew (``terminal.latch_skew_us``) is the bound the effects give the
+        channels' delays (``sampling_skew_s``), not the channels' own delays, which stay hidden
+        (as a real terminal's datasheet states a bound); the encoders' sub-divisional error
+        (``bars.subdivision_error_nm``, ``bars.signal_period_um``) is the effects' cyclic
+        amplitude and period (each bar's phase stays hidden). What a description states, it
+        keeps."""
+        device = self.device
+        if device.latch_skew_s is None:
+            device = device.with_latch_skew(self.effects.sampling_skew_s)
+        if device.subdivision_error_m is None:
+            device = device.with_subdivision_error(self.effects.cyclic_error_m, self.effects.cyclic_period_m)
+        return device
 
     # -- bars on the reference plate -----------------------------------------------------------
     def _pair(self, pair: str) -> int:
