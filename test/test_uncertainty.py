@@ -177,8 +177,8 @@ def test_the_encoders_sub_division_error_is_sized_from_their_stated_bound(realis
     the error its two calibration points read, (1 - u) e(q_j) + u e(q_j+1), at phases as good
     as independent: a^2 / 2 (1 + (1 - u)^2 + u^2) per bar. The reference bar's error moves by
     a^2 (1 - cos(2 pi eps / period)) from its thermal zero, the same for every bar (Eq. 13).
-    Off on the measuring bars when the model compensates it, and when a fit's residual
-    replaced it."""
+    Off on the measuring bars when the model compensates it (a term at the signal period), and
+    when a fit's residual replaced it."""
     from mmd_ros.core.terms import CyclicErrorTerm
     twin, _, calibration, run = realistic
     stated = twin.documented_device                # the twin's datasheet: its effects' figures
@@ -222,6 +222,9 @@ def test_the_encoders_sub_division_error_is_sized_from_their_stated_bound(realis
     _, compensated = parts_of(Model(terms=[term]))
     assert 'subdivision' not in compensated
     np.testing.assert_allclose(compensated['reference_bar'], parts['reference_bar'])
+    # ... but a term at another period compensates another effect: the encoders' error stays
+    other = CyclicErrorTerm(0.7 * period, RES, DEVICE.measuring_channels, np.zeros(6), np.zeros(6), np.zeros(6))
+    np.testing.assert_allclose(parts_of(Model(terms=[other]))[1]['subdivision'], parts['subdivision'])
     # a residual of every bar measured it
     fit = FitUncertainty(residual_m2=np.eye(6) * 1e-16, replaces=('subdivision',))
     _, replaced = parts_of(Model(uncertainty=ModelUncertainty(fit=fit)))

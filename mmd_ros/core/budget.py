@@ -231,6 +231,16 @@ def segments_seen(knots_m: FloatArray, range_m: FloatArray) -> FloatArray:
     return out
 
 
+def _harmonic_of(period_m: float, signal_period_m: float) -> bool:
+    """Whether a fitted cyclic term's period is the encoders' signal period or one of its first
+    harmonics (p / 2 .. p / 4, where sub-divisional errors lie), within 2 %; any period when the
+    device states none. A term at another period compensates another effect (a ball screw's
+    lead, a foreign error), and the encoders' own stays claimed."""
+    if signal_period_m <= 0.0:
+        return True
+    return any(abs(period_m * n / signal_period_m - 1.0) < 0.02 for n in range(1, 5))
+
+
 class LengthBudget:
     """Sigma_d of N samples for one device, calibration and model (see the module docstring).
 
@@ -377,14 +387,17 @@ class LengthBudget:
 
         # -- the encoders' sub-divisional error (their datasheet): a bar reads e(q) at count q,
         # periodic in the signal period, with a phase no one knows; the calibration's points
-        # carry theirs too. Off on the measuring bars when a fitted term compensates it
+        # carry theirs too. Off on the measuring bars when a fitted term compensates it (at
+        # the signal period or a harmonic of it)
         sde = device.subdivision_error_m
         if sde is None:
             self.notes.append('sub-division error: the device description does not state the '
                               'encoders\' (bars.subdivision_error_nm, bars.signal_period_um)')
         self.subdivision_m = float(sde or 0.0)
         self.signal_period_m = float(device.signal_period_m or 0.0)
-        self.subdivision_compensated = any(t.type_name in CYCLIC_TERMS for t in model.terms)
+        self.subdivision_compensated = any(
+            t.type_name in CYCLIC_TERMS and _harmonic_of(float(getattr(t, 'period_m', 0.0)), self.signal_period_m)
+            for t in model.terms)
 
         # -- a fitted length-dependent term where the fit never saw the bar: its correction
         # there is an extrapolation that no data checked (the model's validity record)
