@@ -177,8 +177,8 @@ def test_the_encoders_sub_division_error_is_sized_from_their_stated_bound(realis
     the error its two calibration points read, (1 - u) e(q_j) + u e(q_j+1), at phases as good
     as independent: a^2 / 2 (1 + (1 - u)^2 + u^2) per bar. The reference bar's error moves by
     a^2 (1 - cos(2 pi eps / period)) from its thermal zero, the same for every bar (Eq. 13).
-    Off on the measuring bars when the model compensates it (a term at the signal period), and
-    when a fit's residual replaced it."""
+    A term at the signal period or a harmonic of it compensates its mean square (what it
+    leaves stays claimed); a fit's residual of every bar replaces it."""
     from mmd_ros.core.terms import CyclicErrorTerm
     twin, _, calibration, run = realistic
     stated = twin.documented_device                # the twin's datasheet: its effects' figures
@@ -217,13 +217,21 @@ def test_the_encoders_sub_division_error_is_sized_from_their_stated_bound(realis
                                budget._covariance_by_sources(x, th.reference_error_m, th.temp_change_c,
                                                              th.bar_error_m, None, None),
                                rtol=1e-9, atol=1e-24)
-    # a term that compensates the measuring bars' error: the reference bar's stays
-    term = CyclicErrorTerm(period, RES, DEVICE.measuring_channels, np.zeros(6), np.zeros(6), np.zeros(6))
+    # a term at the signal period compensates what it fitted: the full sine on bars 1-3, half
+    # the amplitude on bars 4-6 (three quarters of the mean square left there); the reference
+    # bar's stays
+    amp = np.r_[a, a, a, a / 2, a / 2, a / 2]
+    ph = np.linspace(0, 3, 6)
+    term = CyclicErrorTerm(period, RES, DEVICE.measuring_channels, np.zeros(6), amp * np.cos(ph), amp * np.sin(ph))
     _, compensated = parts_of(Model(terms=[term]))
-    assert 'subdivision' not in compensated
+    left = compensated['subdivision'][:, range(6), range(6)] / parts['subdivision'][:, range(6), range(6)]
+    np.testing.assert_allclose(left, np.broadcast_to([0, 0, 0, 0.75, 0.75, 0.75], left.shape), atol=1e-9)
     np.testing.assert_allclose(compensated['reference_bar'], parts['reference_bar'])
+    # ... so does one at its second harmonic (an encoder's error has both)
+    half = CyclicErrorTerm(period / 2, RES, DEVICE.measuring_channels, np.zeros(6), np.full(6, a), np.zeros(6))
+    assert 'subdivision' not in parts_of(Model(terms=[half]))[1]
     # ... but a term at another period compensates another effect: the encoders' error stays
-    other = CyclicErrorTerm(0.7 * period, RES, DEVICE.measuring_channels, np.zeros(6), np.zeros(6), np.zeros(6))
+    other = CyclicErrorTerm(0.7 * period, RES, DEVICE.measuring_channels, np.zeros(6), np.full(6, a), np.zeros(6))
     np.testing.assert_allclose(parts_of(Model(terms=[other]))[1]['subdivision'], parts['subdivision'])
     # a residual of every bar measured it
     fit = FitUncertainty(residual_m2=np.eye(6) * 1e-16, replaces=('subdivision',))

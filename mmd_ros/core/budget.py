@@ -54,8 +54,8 @@ DIRECTION_TRAVEL_M = 1e-6
 FRICTION_TERMS = ('hysteresis', 'friction')
 #: Model terms that compensate the channels' latch skew (the latch_skew source is then off).
 SKEW_TERMS = ('sampling_skew',)
-#: Model terms that compensate the encoders' sub-divisional error on the measuring bars (the
-#: subdivision source is then off for them).
+#: Model terms that compensate the encoders' sub-divisional error on the measuring bars (at
+#: the signal period or a harmonic of it: the subdivision source keeps what they leave).
 CYCLIC_TERMS = ('cyclic_error',)
 #: Fitted terms whose correction depends on a bar's length only (the unchecked_range source).
 LENGTH_TERMS = ('scale_nonlinearity', 'cdf_offsets')
@@ -233,11 +233,11 @@ def segments_seen(knots_m: FloatArray, range_m: FloatArray) -> FloatArray:
 
 def _harmonic_of(period_m: float, signal_period_m: float) -> bool:
     """Whether a fitted cyclic term's period is the encoders' signal period or one of its first
-    harmonics (p / 2 .. p / 4, where sub-divisional errors lie), within 2 %; any period when the
-    device states none. A term at another period compensates another effect (a ball screw's
-    lead, a foreign error), and the encoders' own stays claimed."""
+    harmonics (p / 2 .. p / 4, where sub-divisional errors lie), within 2 %. A term at another
+    period compensates another effect (a ball screw's lead, a foreign error), and the encoders'
+    own stays claimed."""
     if signal_period_m <= 0.0:
-        return True
+        return False
     return any(abs(period_m * n / signal_period_m - 1.0) < 0.02 for n in range(1, 5))
 
 
@@ -387,17 +387,20 @@ class LengthBudget:
 
         # -- the encoders' sub-divisional error (their datasheet): a bar reads e(q) at count q,
         # periodic in the signal period, with a phase no one knows; the calibration's points
-        # carry theirs too. Off on the measuring bars when a fitted term compensates it (at
-        # the signal period or a harmonic of it)
+        # carry theirs too. Its mean square a^2 / 2, less what fitted terms at the signal
+        # period or its harmonics compensate (the harmonics of a periodic error add up in mean
+        # square): a fit of the fundamental leaves the second harmonic claimed, and the reverse
         sde = device.subdivision_error_m
         if sde is None:
             self.notes.append('sub-division error: the device description does not state the '
                               'encoders\' (bars.subdivision_error_nm, bars.signal_period_um)')
         self.subdivision_m = float(sde or 0.0)
         self.signal_period_m = float(device.signal_period_m or 0.0)
-        self.subdivision_compensated = any(
-            t.type_name in CYCLIC_TERMS and _harmonic_of(float(getattr(t, 'period_m', 0.0)), self.signal_period_m)
-            for t in model.terms)
+        compensated = np.zeros(6)
+        for t in model.terms:
+            if t.type_name in CYCLIC_TERMS and _harmonic_of(float(t.period_m), self.signal_period_m):
+                compensated += 0.5 * (np.asarray(t.sin_m) ** 2 + np.asarray(t.cos_m) ** 2)
+        self.subdivision_left_m2 = np.maximum(0.5 * self.subdivision_m ** 2 - compensated, 0.0)
 
         # -- a fitted length-dependent term where the fit never saw the bar: its correction
         # there is an extrapolation that no data checked (the model's validity record)
@@ -422,7 +425,7 @@ class LengthBudget:
         self.residual_m2 = fit.residual_m2 if fit is not None else np.zeros((6, 6))
         self.mean_terms_m2 = fit.mean_terms_m2 if fit is not None else np.zeros((6, 6))
         self._subdivision_ref = self.subdivision_m * math.sqrt(self._kept('subdivision'))
-        self._subdivision_factor = 0.0 if self.subdivision_compensated else self._kept('subdivision')
+        self._subdivision_factor = self._kept('subdivision')
         # what the per-sample path needs, decided once
         self._has_drift = bool(np.any(self.drift_m))
         self._has_pairs = bool(np.any(self.pair_var_m2 > 0))
@@ -602,11 +605,12 @@ class LengthBudget:
             tab['calibration_drift'] = e.T
         if self.interpolation.sigma_m > 0:
             tab['interpolation'] = self.interpolation.variance(x, k).T
-        if self.subdivision_m > 0:
+        if np.any(self.subdivision_left_m2 > 0):
             # e(d) - (1 - u) e(x_j) - u e(x_j+1): the live count's error, and the points' that
             # Eq. (10) carries, at phases as good as independent (points mm apart, a period of
-            # um), each of variance a^2 / 2 (a sine of amplitude a, its phase unknown)
-            tab['subdivision'] = (0.5 * self.subdivision_m ** 2 * (1.0 + (1.0 - u) ** 2 + u ** 2)).T
+            # um), each of variance a^2 / 2 (a sine of amplitude a, its phase unknown) less
+            # what a term compensates
+            tab['subdivision'] = (self.subdivision_left_m2 * (1.0 + (1.0 - u) ** 2 + u ** 2)).T
         self._tab = {name: np.ascontiguousarray(v) for name, v in tab.items()}
         return self._tab
 
@@ -877,7 +881,7 @@ class LengthBudget:
             'latch_skew_us': round(self.latch_skew_s * 1e6, 3),
             'subdivision_nm': round(self.subdivision_m * 1e9, 3),
             'signal_period_um': round(self.signal_period_m * 1e6, 6),
-            'subdivision_compensated': self.subdivision_compensated,
+            'subdivision_left_nm': [round(math.sqrt(2.0 * v) * 1e9, 3) for v in self.subdivision_left_m2],
             'fit': None if self.fit is None else {
                 'replaces': sorted(self.replaced), 'systematic_scale': self.systematic_scale,
                 'residual_nm': [round(float(math.sqrt(max(v, 0.0))) * 1e9, 2)
