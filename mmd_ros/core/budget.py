@@ -336,8 +336,11 @@ class LengthBudget:
             order = np.argsort(d)
             devs.append((sign * q * res - d)[order])
         all_knots = np.array([np.sort(b.distances_m) for b in all_bars])
+        # (each point also read its count's sub-divisional error, its own at every point: a
+        # nugget like the capture's, not a scale error between the points)
+        sde_var = 0.5 * float(device.subdivision_error_m or 0.0) ** 2
         self.interpolation: InterpolationError = fit_interpolation_error(
-            all_knots, np.array(devs), np.full(all_knots.shape, self.point_var_m2))
+            all_knots, np.array(devs), np.full(all_knots.shape, self.point_var_m2 + sde_var))
 
         # -- thermal
         frac = unc.thermal_mismatch_fraction
