@@ -427,7 +427,6 @@ class LengthBudget:
         self.systematic_scale = fit.systematic_scale if fit is not None else 1.0
         self.residual_m2 = fit.residual_m2 if fit is not None else np.zeros((6, 6))
         self.mean_terms_m2 = fit.mean_terms_m2 if fit is not None else np.zeros((6, 6))
-        self._subdivision_ref = self.subdivision_m * math.sqrt(self._kept('subdivision'))
         self._subdivision_factor = self._kept('subdivision')
         # what the per-sample path needs, decided once
         self._has_drift = bool(np.any(self.drift_m))
@@ -700,9 +699,10 @@ class LengthBudget:
         """The reference bars' sub-divisional error between their live reading and their thermal
         zero, eps (Eq. 11) apart, (N, k) [m^2]: a sine of amplitude a and unknown phase differs
         at two counts by a variance of a^2 (1 - cos(2 pi eps / period)), 0 at the zero."""
-        if not self._subdivision_ref:
+        var = self._subdivision_factor * self.subdivision_m ** 2
+        if not var:
             return 0.0
-        return self._subdivision_ref ** 2 * (1.0 - np.cos((2.0 * math.pi / self.signal_period_m) * eps))
+        return var * (1.0 - np.cos((2.0 * math.pi / self.signal_period_m) * eps))
 
     def _cross(self, noise_ref_m: FloatArray, eps: FloatArray) -> FloatArray:
         """quantisation_cross_cov of each reference bar's live reading and its zero at the
