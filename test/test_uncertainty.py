@@ -728,8 +728,8 @@ def test_a_cyclic_error_s_period_fitted_on_a_c_axis_run_is_claimed_on_6dof_motio
     second). The period is now refined to the least error and its uncertainty claimed as one
     more direction; and as one component cannot tell whether the calibration read the error,
     the change to that form is claimed too (conservative here, where it did not): measured
-    96.4 % and 97.3 %, the periods 2.6 and 2.3 sigma from the truth (the sigma is about half
-    what it should be: msg_docs/analysis.md)."""
+    98.2 % and 98.8 %, the periods 1.2 and 0.7 of their claimed sigma from the truth (the
+    sigma scaled by the bars' Birge ratio; the test below checks it over ten twins)."""
     covered, z = [], []
     for k in range(2):
         phase = np.random.default_rng(100 + k).uniform(0, 2 * np.pi, 6)
@@ -748,6 +748,29 @@ def test_a_cyclic_error_s_period_fitted_on_a_c_axis_run_is_claimed_on_6dof_motio
     print('coverage', np.round(covered, 4), 'period error / its sigma', np.round(z, 2))
     assert np.all(np.abs(z) < 4)
     assert min(covered) >= 0.85 and np.mean(covered) >= 0.93
+
+
+def test_a_cyclic_error_s_period_is_within_its_claimed_sigma_over_ten_twins():
+    """The C-axis case above on ten twins, period only: what is claimed of it is a sigma, so
+    over ten twins the error in units of it should have an RMS near 1. From the curvature of
+    the fit alone it was 1.93 (one twin 3.7 sigma short): an error the model lacks, left at
+    the dwell targets of an ISO run, moves the period the fit finds, and the six bars' own
+    estimates of the one period disagreed (chi^2 8-55 for 5 degrees of freedom). Scaled by
+    the Birge ratio of those estimates: measured RMS 1.11, nine of ten within 2 sigma."""
+    z = []
+    for k in range(10):
+        phase = np.random.default_rng(100 + k).uniform(0, 2 * np.pi, 6)
+        result, *_ = _foreign_twin(
+            k, lambda q: 80e-9 * np.sin(2 * np.pi * q * RES / 13e-6 + phase), 'offset',
+            fit=('iso_rotary', ['axis=psi', 'n_cycles=3'], 'rotary_psi'), of_counts=True)
+        found = [f for f in result.found if f.effect == 'cyclic_error']
+        assert found and found[0].setting_shift is not None, result.conclusion
+        period = found[0].hyper[0]
+        z.append((period - 13e-6) / (found[0].setting_shift[0][0] - period))
+    z = np.array(z)
+    print('period error / its sigma', np.round(z, 2), 'RMS', np.sqrt(np.mean(z ** 2)))
+    assert np.sqrt(np.mean(z ** 2)) <= 1.5
+    assert np.sum(np.abs(z) <= 2.0) >= 8
 
 
 def test_a_cyclic_error_seen_by_one_component_is_fitted_as_the_runs_read_it():
