@@ -233,29 +233,43 @@ def test_realistic_6dof_runs_close_to_the_floor_within_run_and_on_runs_the_fit_n
         assert above_floor(r['leave_one_run_out_before'], floor, 5.0)
 
 
-def test_x_y_z_c_laser_runs_write_nothing_the_6dof_run_would_contradict(two_sided):
-    """Issue 10 cross-motion, the x, y, z and C laser runs of a two-sided calibration fitted
-    jointly. Each sees one component: the friction amplitudes and channel delays they find are
-    determined only in four combinations of six bars, so what they do to roll and pitch is not
-    determined and nothing is written by default (the report says which run to record). Written
-    anyway (--accept-unchecked), the friction and skew corrections improve x, y and z of a 6-DOF
-    run kept aside by at least half and make no component worse by more than its noise floor."""
+def test_x_y_z_c_laser_runs_improve_every_component_of_a_6dof_run(two_sided):
+    """Issue 10 cross-motion: the x, y, z and C laser runs of a two-sided calibration, fitted
+    jointly with the whole catalogue, applied to a 6-DOF run kept aside: every component
+    improves. Each reference sees one component; in the five others the MMD reads the
+    machine's motion along the run's axis, a function of the axis position, and what moves
+    with speed is the device's (analysis/axis_motion.py). Those rows determine the six channel
+    delays (measured within 0.5 µs of the twin's, 1.2-49 µs), so what they do to roll and pitch
+    is known and they are written. Measured: x 1.24 -> 0.51 µm, y 1.53 -> 0.34, z 0.41 -> 0.11,
+    roll 0.60 -> 0.26 ″, pitch 0.50 -> 0.35, yaw 0.72 -> 0.42 (the scale term those runs find
+    is not written: its effect on the unseen components is not determined)."""
     runs = [read_run(two_sided[k]) for k in ('x', 'y', 'z', 'c')]
-    effects = ['hysteresis', 'sampling_skew']
-    checked = analyze(runs, options=AnalysisOptions(leave_one_out=False, effects=effects))
+    result = analyze(runs, options=NO_LORO)
+    written = {f.effect: f for f in result.found}
+    assert {'hysteresis', 'sampling_skew'} <= set(written), result.conclusion
+    true_skew = TwinDevice(DEVICE, Effects.preset('realistic'), seed=1).physics.skew_s[list(DEVICE.measuring_channels)]
+    assert np.allclose(written['sampling_skew'].value, true_skew, atol=2e-6), (written['sampling_skew'].value, true_skew)
+    # leave-one-run-out turned off: no figure, not the "before" one given as both
+    assert all(s.loro_after is None for s in result.runs)
+    assert 'not computed' in result.validation and 'Leave-one-run-out' not in result.conclusion
+    names, before, floor = component_rms(two_sided['aside'], Model())
+    _, after, _ = component_rms(two_sided['aside'], result.model)
+    print('before', before, 'after', after)
+    for n, b, a in zip(names, before, after):
+        assert a < b, (n, b, a)
+    assert np.all(after[:3] < 0.5 * before[:3]), (before, after)
+
+
+def test_without_the_unseen_components_one_axis_runs_write_no_skew(two_sided):
+    """The same runs read only in the component each reference sees (``axis_motion`` off):
+    the friction amplitudes and channel delays are determined only in four combinations of six
+    bars, so what they do to roll and pitch is not determined and nothing is written (the
+    report says which run to record)."""
+    runs = [read_run(two_sided[k]) for k in ('x', 'y', 'z', 'c')]
+    checked = analyze(runs, options=AnalysisOptions(leave_one_out=False, effects=['hysteresis', 'sampling_skew'],
+                                                    axis_motion=False))
     assert checked.model is None and checked.unchecked
     assert all('record a run that sees' in f.reason or 'worse' in f.reason for f in checked.unchecked)
-    accepted = analyze(runs, options=AnalysisOptions(leave_one_out=False, effects=effects,
-                                                     accept_unchecked=True))
-    assert accepted.model is not None, accepted.conclusion
-    # leave-one-run-out turned off: no figure, not the "before" one given as both
-    assert all(s.loro_after is None for s in accepted.runs)
-    assert 'not computed' in accepted.validation and 'Leave-one-run-out' not in accepted.conclusion
-    names, before, floor = component_rms(two_sided['aside'], Model())
-    _, after, _ = component_rms(two_sided['aside'], accepted.model)
-    for n, b, a, f in zip(names, before, after, floor):
-        assert a <= b + f, (n, b, a, f)
-    assert np.all(after[:3] < 0.5 * before[:3]), (before, after)
 
 
 # -- selection: effects that share a signature -------------------------------------------------

@@ -493,9 +493,13 @@ def test_after_the_loop_the_fit_s_uncertainty_is_in_the_model_and_covers(tmp_pat
 
 
 # -- mmd process reports it -------------------------------------------------------------------
+#: The twin's own encoder cyclic error: 80 nm at a 13 µm signal period (the calibration reads it).
+TWIN_CYCLIC = Effects.ideal().with_assignments(('cyclic_error_m=8e-8', 'cyclic_period_m=1.3e-5'))
+
+
 def _foreign_twin(k: int, length_error, datum: str,
                   fit=('random_motion', ['duration_s=60', 'seed={seed}'], 'pose6'), of_counts=False,
-                  effects: Effects | None = None):
+                  effects: Effects | None = None, **options):
     """An ideal twin (seed k + 1) whose bars read ``length_error(d)`` [m] more than the twin
     makes them (d the true lengths of a run in time order: an effect in a shape of someone
     else's; with ``of_counts`` d is the bars' counts the twin makes; ``effects`` the twin's own,
@@ -503,7 +507,7 @@ def _foreign_twin(k: int, length_error, datum: str,
     (scenario, parameters, reference; by default 60 s of random
     motion with a full pose reference; ``datum``: 'none' absolute, 'offset' zeroed). Returns the
     analysis, the calibration, the twin and ``run_of(params, start)`` -> (run, counts) of
-    random 6-DOF motion."""
+    random 6-DOF motion. ``options``: further AnalysisOptions."""
     from mmd_ros.analysis.identify import AnalysisOptions, analyze
     from mmd_ros.twin import AmbientProfile
     meas = list(DEVICE.measuring_channels)
@@ -521,7 +525,7 @@ def _foreign_twin(k: int, length_error, datum: str,
     scenario, params, reference = fit
     run, counts = run_of([p.format(seed=100 + k) for p in params], 600.0, scenario, reference)
     log = run_log(twin, calibration, run, 600.0, counts)
-    return analyze(log, options=AnalysisOptions(datum=datum)), calibration, twin, run_of
+    return analyze(log, options=AnalysisOptions(datum=datum, **options)), calibration, twin, run_of
 
 
 def test_after_the_loop_a_scale_error_of_another_shape_is_covered_where_the_fit_did_not_look():
@@ -728,7 +732,7 @@ def test_a_cyclic_error_s_period_fitted_on_a_c_axis_run_is_claimed_on_6dof_motio
     second). The period is now refined to the least error and its uncertainty claimed as one
     more direction; and as one component cannot tell whether the calibration read the error,
     the change to that form is claimed too (conservative here, where it did not): measured
-    98.2 % and 98.8 %, the periods 1.2 and 0.7 of their claimed sigma from the truth (the
+    100 % and 99.1 %, the periods 2.2 and 0.3 of their claimed sigma from the truth (the
     sigma scaled by the bars' Birge ratio; the test below checks it over ten twins)."""
     covered, z = [], []
     for k in range(2):
@@ -756,7 +760,8 @@ def test_a_cyclic_error_s_period_is_within_its_claimed_sigma_over_ten_twins():
     the fit alone it was 1.93 (one twin 3.7 sigma short): an error the model lacks, left at
     the dwell targets of an ISO run, moves the period the fit finds, and the six bars' own
     estimates of the one period disagreed (chi^2 8-55 for 5 degrees of freedom). Scaled by
-    the Birge ratio of those estimates: measured RMS 1.11, nine of ten within 2 sigma."""
+    the Birge ratio of those estimates: measured RMS 1.11, nine of ten within 2 sigma; 1.41,
+    nine of ten, with the rows of the components the calibrator does not see (axis_motion)."""
     z = []
     for k in range(10):
         phase = np.random.default_rng(100 + k).uniform(0, 2 * np.pi, 6)
@@ -814,8 +819,7 @@ def test_a_cyclic_error_the_calibration_read_too_is_fitted_as_the_calibrated_bar
     room = ambient_profile('section_4_1')
     covered = []
     for k in (0, 2):
-        twin = TwinDevice(DEVICE, Effects.ideal().with_assignments(('cyclic_error_m=8e-8',
-                                                                    'cyclic_period_m=1.3e-5')), seed=k + 1)
+        twin = TwinDevice(DEVICE, TWIN_CYCLIC, seed=k + 1)
         calibration = twin.calibrate(-211.0 * k, room, approaches=2)
         run = twin.simulate(make_scenario('random_motion', ['duration_s=60', f'seed={100 + k}']), room,
                             start_s=600.0, reference='pose6')
@@ -847,7 +851,7 @@ def test_a_cyclic_error_the_calibration_read_seen_by_one_component_is_claimed_wi
     for k in range(2):
         result, calibration, twin, run_of = _foreign_twin(
             k, lambda d: np.zeros_like(d), 'offset', fit=('iso_linear', ['axis=x', 'n_cycles=5'], 'laser_x'),
-            effects=Effects.ideal().with_assignments(('cyclic_error_m=8e-8', 'cyclic_period_m=1.3e-5')))
+            effects=TWIN_CYCLIC)
         found = {f.effect: f for f in result.found}
         assert found['cyclic_error'].hyper[1] is False and found['cyclic_error'].alternatives, result.conclusion
         _, e, c = _new_motion(k, result.model, calibration, twin, run_of)
@@ -864,13 +868,15 @@ def test_a_cyclic_error_a_c_axis_run_does_not_show_is_claimed_from_the_encoders_
     (``bars.subdivision_error_nm`` with its signal period, which the twin states as a
     datasheet would) is now a source of its own: measured 92.3 % and 98.4 % (95.3 % pooled;
     one twin is one draw of six phases: over eight calibrations of such twins before any
-    analysis, 98.0 %, ratios 0.88-1.13, README)."""
-    cyclic = Effects.ideal().with_assignments(('cyclic_error_m=8e-8', 'cyclic_period_m=1.3e-5'))
+    analysis, 98.0 %, ratios 0.88-1.13, README). The rows of the components the calibrator
+    does not see (analysis/axis_motion.py) are left out here: with them twin 4's run shows
+    the error (the test below), twin 1's still does not."""
     covered = {'stated': [], 'unstated': []}
     for k in (0, 3):
         result, calibration, twin, run_of = _foreign_twin(
             k, lambda d: np.zeros_like(d), 'offset',
-            fit=('iso_rotary', ['axis=psi', 'n_cycles=3'], 'rotary_psi'), effects=cyclic)
+            fit=('iso_rotary', ['axis=psi', 'n_cycles=3'], 'rotary_psi'), effects=TWIN_CYCLIC,
+            axis_motion=False)
         assert not result.found, result.conclusion         # the premise: the run does not show it
         run, counts = run_of(['duration_s=8', f'seed={k}'], 700.0)
         for name, device in (('stated', twin.documented_device), ('unstated', DEVICE)):
@@ -883,6 +889,34 @@ def test_a_cyclic_error_a_c_axis_run_does_not_show_is_claimed_from_the_encoders_
     assert min(covered['stated']) >= 0.85 and np.mean(covered['stated']) >= 0.93
 
 
+def _before_after(twin, calibration, model, run, counts):
+    """RMS of each pose component's error about its mean, (2, 6), with the default model and
+    with ``model``; and the share of the samples in ``model``'s 95 % ellipsoid."""
+    rms = []
+    for m in (Model(), model):
+        res = Pipeline(twin.documented_device, calibration, m).process(run.times_s, counts, with_covariance=True)
+        e = pose_error(res.poses, run.true_poses)[res.valid]
+        rms.append(np.sqrt(np.mean((e - e.mean(axis=0)) ** 2, axis=0)))
+    return np.array(rms), float(np.mean(_d2(e, res.covariance[res.valid]) <= LIMIT))
+
+
+def test_a_cyclic_error_is_found_in_the_components_a_c_axis_calibrator_does_not_see():
+    """Twin 4 of the test above. In the rotary calibrator's component its C-axis run shows
+    no cyclic error; in the five others the MMD reads the machine's motion, a smooth function
+    of the C angle (analysis/axis_motion.py), and a 13 µm period of bar length is not one.
+    Read that way, the cyclic error and the calibration points it left are found from this
+    run alone, and new 6-DOF motion improves in every component (measured x 0.127 -> 0.052 µm,
+    yaw 0.210 -> 0.066 ″) and stays covered (97.2 %)."""
+    result, calibration, twin, run_of = _foreign_twin(
+        3, lambda d: np.zeros_like(d), 'offset',
+        fit=('iso_rotary', ['axis=psi', 'n_cycles=3'], 'rotary_psi'), effects=TWIN_CYCLIC)
+    assert [f.effect for f in result.found][:1] == ['cyclic_error'], result.conclusion
+    rms, covered = _before_after(twin, calibration, result.model, *run_of(['duration_s=8', 'seed=3'], 700.0))
+    print('rms before', rms[0], 'after', rms[1], 'coverage', covered)
+    assert np.all(rms[1] < 0.8 * rms[0]), rms
+    assert covered >= 0.93
+
+
 def test_a_term_fitted_on_a_laser_claims_what_the_laser_did_not_determine():
     """A friction of another shape than the twin's (a sech² turn-over over 6 µm, 0.2–0.45 µm per
     bar) on an ideal twin, fitted on an x-axis ISO run with a laser along x and applied to
@@ -891,7 +925,8 @@ def test_a_term_fitted_on_a_laser_claims_what_the_laser_did_not_determine():
     0.2 % of the 6-DOF samples in the 95 % ellipsoid, 1.0 µrad of roll left (1.38 before). The
     term's covariance now holds those directions at the size of the written amplitudes:
     measured 97.6 % (ratios 2.9–5.7 with the friction travel's own uncertainty claimed too:
-    conservative, the bars' amplitudes are closer to each other than to zero). The friction
+    conservative, the bars' amplitudes are closer to each other than to zero); 96.8 %, ratios
+    1.07-1.41, now that the laser's unseen components determine every amplitude. The friction
     is still found and written, and improves every
     component of the 6-DOF run."""
     g = np.random.default_rng(100)
@@ -900,17 +935,10 @@ def test_a_term_fitted_on_a_laser_claims_what_the_laser_did_not_determine():
         0, lambda d: -amp * sech_friction(d, 6e-6), 'offset',
         fit=('iso_linear', ['axis=x', 'n_cycles=5'], 'laser_x'))
     assert [f.effect for f in result.found] == ['hysteresis'], result.conclusion
-    run, counts = run_of(['duration_s=20', 'seed=0'], 900.0)
-    rms = []
-    for model in (Model(), result.model):
-        res = Pipeline(twin.documented_device, calibration, model).process(
-            run.times_s, counts, with_covariance=True)
-        e = pose_error(res.poses, run.true_poses)[res.valid]
-        rms.append(np.sqrt(np.mean((e - e.mean(axis=0)) ** 2, axis=0)))
+    rms, covered = _before_after(twin, calibration, result.model, *run_of(['duration_s=20', 'seed=0'], 900.0))
     assert np.all(rms[1] < rms[0]), rms
-    d2 = np.einsum('ni,ni->n', e, np.linalg.solve(res.covariance[res.valid], e[:, :, None])[:, :, 0])
-    print('coverage', np.mean(d2 <= LIMIT))
-    assert np.mean(d2 <= LIMIT) >= 0.93
+    print('coverage', covered)
+    assert covered >= 0.93
 
 
 def test_coverage_report_of_a_full_and_a_partial_reference():

@@ -50,6 +50,7 @@ import numpy as np
 from numpy.typing import NDArray
 from threadpoolctl import threadpool_limits
 
+from mmd_ros.analysis.axis_motion import AxisMotion, axis_motion
 from mmd_ros.analysis.data import (
     FitContext, Observation, Processed, Split, binned_r2, effective_samples, make_observation,
     make_split, noise_floor, quantisation_floor, residual_features, run_pipeline, sample_noise,
@@ -104,6 +105,8 @@ class AnalysisOptions:
     accept_unchecked: bool = False
     leave_one_out: bool = True
     under_claim: float = 1.25
+    #: a one-axis run's unseen components read as the machine's motion (analysis/axis_motion.py)
+    axis_motion: bool = True
 
 
 @dataclass
@@ -387,6 +390,8 @@ class _Run:
     #: with a zeroed reference, the budget's sigma of each observed component (k,) [m, rad]:
     #: how far the fit may move a component's mean, which the reference cannot see
     datum_sigma: FloatArray | None = None
+    #: a one-axis run's unseen pose components, read as the machine's motion along its axis
+    axis: AxisMotion | None = None
 
     def group(self, scope: str) -> str:
         return {'device': 'device', 'calibration': self.cal_key, 'run': self.ident}[scope]
@@ -437,8 +442,22 @@ def _prepare(index: int, run: RunLog, model: Model, calibration: Calibration | N
     floor = np.maximum(floor, 1e-12)
     ctx.residual, ctx.floor, ctx.train_idx = res_before, floor, split.train_idx
     datum_sigma = np.maximum(claimed_sigma(ctx, split.fit_train), 1e-12) if obs.datum else None
+    axis = None
+    if o.axis_motion and obs.kind == 'pose' and len(obs.components) == 1:
+        c = obs.components[0]
+        axis = axis_motion(before.poses, np.where(usable, obs.reference[:, 0], np.nan), c, times,
+                           usable, _pose_floor(ctx, split.train_idx))
     return _Run(index, run, str(run.path), run.content_hash(), calibration_key(calibration),
-                calibration, obs, ctx, split, floor, np.nan_to_num(raw), res_before, usable, datum_sigma)
+                calibration, obs, ctx, split, floor, np.nan_to_num(raw), res_before, usable, datum_sigma,
+                axis)
+
+
+def _pose_floor(ctx: FitContext, train_idx: IntArray) -> FloatArray:
+    """Noise floor of each of the six pose components of a log, (6,) [m, rad]: encoder
+    quantisation propagated, and the MMD's own sample-to-sample noise in that component."""
+    return ctx.cached('pose_floor', lambda: np.hypot(
+        quantisation_floor(ctx.device, ctx.base.poses[train_idx], ctx.thermal_on),
+        sample_noise(ctx.base.poses, ctx.base, train_idx)))
 
 
 # -- observation rows --------------------------------------------------------------------------
@@ -454,18 +473,29 @@ class _Rows:
     training rows: k rows more, each such a term's mean change of a component over these
     samples in units of that sigma (what the budget claims for it), target 0 (zero for the
     other terms); scaled by sqrt(m / N_eff) so that m correlated rows do not outweigh them.
+
+    With ``axis`` (a one-axis run, analysis/axis_motion.py), n u rows more after the observed
+    ones: the MMD's reading of each unseen component, weighted by its floor, with the
+    machine's motion along the axis as nuisance columns of their own.
+    Rows: the observed components (``n_data``, sample-major), the unseen ones (``n_unseen``),
+    then the held means.
     """
 
     def __init__(self, ctx: FitContext, idx: IntArray, residual: FloatArray, weights: FloatArray,
-                 block: IntArray, prior_sigma: FloatArray | None = None) -> None:
+                 block: IntArray, prior_sigma: FloatArray | None = None,
+                 axis: AxisMotion | None = None) -> None:
         self.ctx, self.idx, self.w = ctx, idx, weights
         obs = ctx.obs
         k = len(obs.components)
         self.k = k
         self.jinv = None
+        self.axis_jinv: FloatArray | None = None
         if obs.kind == 'pose':
-            jac = jacobian(ctx.device.geometry, ctx.base.poses[idx])
-            self.jinv = np.linalg.inv(jac)[:, obs.components, :]  # (n, k, 6)
+            jinv = np.linalg.inv(jacobian(ctx.device.geometry, ctx.base.poses[idx]))
+            self.jinv = jinv[:, obs.components, :]  # (n, k, 6)
+            if axis is not None:
+                self.axis_jinv = jinv[:, axis.components, :]   # (n, u, 6)
+                self.axis_w = 1.0 / axis.floor
         data = -residual[idx] * weights
         self.y = data.reshape(-1)
         self.n_data = self.y.size
@@ -476,13 +506,16 @@ class _Rows:
             self.nuisance = nuis.reshape(-1, k)
         else:
             self.nuisance = np.zeros((idx.size * k, 0))
+        self.n_unseen = 0
+        if self.axis_jinv is not None:
+            self._add_axis_rows(axis, idx, block)
         self.prior_w: FloatArray | None = None
         if prior_sigma is not None and obs.datum and idx.size:
             inflation = max(idx.size * k / max(effective_samples(data - data.mean(axis=0)), 1.0), 1.0)
             self.prior_w = math.sqrt(inflation) / (idx.size * weights * prior_sigma)
             self.y = np.concatenate([self.y, np.zeros(k)])
             self.blocks = np.concatenate([self.blocks, np.full(k, -1)])
-            self.nuisance = np.concatenate([self.nuisance, np.zeros((k, k))])
+            self.nuisance = np.concatenate([self.nuisance, np.zeros((k, self.nuisance.shape[1]))])
 
     def project(self, cols: FloatArray, hold_mean: bool = False) -> FloatArray:
         """Length-space columns (n, 6, P) to weighted observation columns (n k, P), and the
@@ -494,10 +527,36 @@ class _Rows:
             obs = cols[:, self.ctx.obs.components, :]
         obs = obs * self.w[None, :, None]
         out = obs.reshape(-1, cols.shape[2])
+        if self.axis_jinv is not None:
+            unseen = np.einsum('nkj,njp->nkp', self.axis_jinv, cols) * self.axis_w[None, :, None]
+            out = np.concatenate([out, self._off_machine(unseen).reshape(-1, cols.shape[2])])
         if self.prior_w is not None:
             held = np.sum(obs, axis=0) * self.prior_w[:, None] if hold_mean else np.zeros((self.k, out.shape[1]))
             out = np.concatenate([out, held])
         return out
+
+    def _add_axis_rows(self, axis: AxisMotion, idx: IntArray, block: IntArray) -> None:
+        # The machine's motion is a nuisance of these rows alone: it is projected out of them
+        # (and of every column, in project) instead of being fitted beside the effects, which
+        # is the same least-squares fit (Frisch-Waugh-Lovell) at a fraction of the size. In
+        # the held-out part it is fitted on those rows themselves: what is judged there is
+        # whether the effects explain what the machine's motion cannot.
+        u = len(axis.components)
+        self.axis_q = _orthonormal(axis.basis(idx))                 # (n, q)
+        self.n_unseen = idx.size * u
+        values = -axis.values[idx] * self.axis_w
+        self.y = np.concatenate([self.y, self._off_machine(values[:, :, None])[:, :, 0].reshape(-1)])
+        self.blocks = np.concatenate([self.blocks, np.repeat(block[idx], u)])
+        self.nuisance = np.concatenate([self.nuisance, np.zeros((self.n_unseen, self.nuisance.shape[1]))])
+
+    def _off_machine(self, x: FloatArray) -> FloatArray:
+        """(n, u, P) unseen-component rows with the machine's motion projected out."""
+        return x - np.einsum('nq,qup->nup', self.axis_q, np.einsum('nq,nup->qup', self.axis_q, x))
+
+    def unseen_piece(self, e: FloatArray) -> FloatArray:
+        """The unseen components' rows of this log's slice of a stacked vector, (n, u)."""
+        u = self.axis_jinv.shape[1] if self.axis_jinv is not None else 0
+        return e[self.n_data:self.n_data + self.n_unseen].reshape(-1, max(u, 1))
 
 
 class _Part:
@@ -508,7 +567,7 @@ class _Part:
         for r in runs:
             idx = r.split.fit_train if which == 'train' else r.split.fit_test
             self.rows.append(_Rows(r.ctx, idx, r.raw, 1.0 / r.floor, r.split.block + 100_000 * r.index,
-                                   r.datum_sigma if which == 'train' else None))
+                                   r.datum_sigma if which == 'train' else None, r.axis))
         self.runs = runs
         self.y = np.concatenate([x.y for x in self.rows])
         self.blocks = np.concatenate([x.blocks for x in self.rows])
@@ -526,8 +585,11 @@ class _Part:
         return [e[a:a + x.n_data].reshape(-1, x.k) for x, a in zip(self.rows, self.starts[:-1])]
 
     def n_eff(self, e: FloatArray) -> float:
-        """Effective number of independent samples of a stacked residual (per log, summed)."""
-        return float(sum(effective_samples(p) for p in self.pieces(e) if p.size))
+        """Effective number of independent samples of a stacked residual (per log, summed;
+        a one-axis run's unseen components counted too)."""
+        pieces = self.pieces(e) + [x.unseen_piece(e[a:]) for x, a in zip(self.rows, self.starts[:-1])
+                                   if x.n_unseen]
+        return float(sum(effective_samples(p) for p in pieces if p.size))
 
 
 def _orthonormal(b: FloatArray) -> FloatArray:
@@ -1022,7 +1084,8 @@ class _Selector:
         sigma from the curvature alone did not see it: a 13 µm period from a C-axis run fell
         RMS 1.9 sigma from the truth (20 twins), the bars' estimates with chi^2 8-55 for 5
         degrees of freedom; scaled by the ratio, and with the search's bracket moved on
-        (:func:`_golden_minimum`), RMS 1.11 over ten twins."""
+        (:func:`_golden_minimum`), RMS 1.11 over ten twins (1.41 with a one-axis run's unseen
+        components read as the machine's motion)."""
         moving = np.linalg.norm(slopes, axis=0)
         bars = np.flatnonzero(moving > 1e-9 * max(float(moving.max()), 1e-300))
         if bars.size < 2:
@@ -1336,9 +1399,7 @@ def _unchecked(sel: _Selector, a: _Active, theta: FloatArray, cov_beta: FloatArr
             jinv = np.linalg.inv(jacobian(ctx.device.geometry, ctx.base.poses[idx]))
             b = np.einsum('nij,njp->nip', jinv, full)                 # (n, 6, PG)
             unseen = [c for c in range(6) if c not in obs.components]
-            floor = ctx.cached('pose_floor', lambda: np.hypot(
-                quantisation_floor(ctx.device, ctx.base.poses[r.split.train_idx], ctx.thermal_on),
-                sample_noise(ctx.base.poses, ctx.base, r.split.train_idx)))
+            floor = _pose_floor(ctx, r.split.train_idx)
             names = POSE_NAMES
             to_report = np.array([1 / M_PER_UM] * 3 + [ARCSEC_PER_RAD] * 3)
             units = ['um'] * 3 + ['arcsec'] * 3
@@ -1543,8 +1604,12 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
     summaries: list[RunSummary] = []
     for k, r in enumerate(runs):
         res_after = afters[k][1] if afters else None
+        reference = r.obs.description
+        if r.axis is not None:
+            reference += (f'; {", ".join(POSE_NAMES[c] for c in r.axis.components)} read as the '
+                          f'machine\'s motion along {r.obs.names[0]}')
         summaries.append(RunSummary(
-            r.name, r.ident, r.cal_key, r.obs.description, r.obs.names, r.obs.units,
+            r.name, r.ident, r.cal_key, reference, r.obs.names, r.obs.units,
             int(r.usable.sum()), {n: float(f * s) for n, f, s in zip(r.obs.names, r.floor, r.obs.to_report)},
             component_errors(r.obs, r.res_before, r.split.test_idx),
             component_errors(r.obs, res_after, r.split.test_idx) if res_after is not None else None,
@@ -1807,8 +1872,8 @@ def _contribution(sel: _Selector, run: _Run, f: Found) -> FloatArray:
     eff = catalogue([f.effect])[0]
     k = sel.runs.index(run)
     rows = sel.test.rows[k]
-    a, b = sel.test.starts[k], sel.test.starts[k + 1]
-    cols = sel.columns(eff, f.hyper, 'test')[a:b] @ f.value
+    a = sel.test.starts[k]
+    cols = sel.columns(eff, f.hyper, 'test')[a:a + rows.n_data] @ f.value
     out[rows.idx] = -(cols.reshape(-1, rows.k) / rows.w)
     return out
 

@@ -69,7 +69,8 @@ def run_command(args: argparse.Namespace) -> int:
         effects=_names(args.effects), exclude=tuple(_names(args.exclude) or ()),
         n_blocks=args.blocks, max_samples=args.max_samples, min_gain=args.min_gain,
         max_effects=args.max_effects, datum='none' if args.absolute_reference else 'auto',
-        seed=args.seed, cyclic_periods_m=periods, accept_unchecked=args.accept_unchecked)
+        seed=args.seed, cyclic_periods_m=periods, accept_unchecked=args.accept_unchecked,
+        axis_motion=not args.no_axis_motion)
     result = analyze(runs, model, calibration, options, progress=say)
     written = {}
     if args.out:
@@ -123,6 +124,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument('--accept-unchecked', action='store_true', dest='accept_unchecked',
                    help='also write effects whose consequence on pose components no reference saw '
                    'is not determined by the data (default: reported, not written)')
+    p.add_argument('--no-axis-motion', action='store_true', dest='no_axis_motion',
+                   help='read a one-axis run (one reference component) in that component only '
+                   '(default: the MMD\'s other five components are read as the machine\'s motion '
+                   'along the axis, a function of its position and direction, which determines '
+                   'what moves with speed)')
     p.add_argument('--absolute-reference', action='store_true', dest='absolute_reference',
                    help='the reference pose is absolute in {L} (default: zeroed, an offset per '
                    'component is removed)')
