@@ -5,6 +5,7 @@ what moves with speed is kept, and determines the channel delays from one laser 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from mmd_ros.analysis.axis_motion import MACHINE_LIMIT, axis_motion
 from mmd_ros.analysis.data import run_pipeline
@@ -140,3 +141,17 @@ def test_one_laser_run_gives_the_channel_delays_under_machine_motion_of_another_
         else:
             # from the laser's component alone the delays are not determined: not written
             assert 'sampling_skew' not in found and result.unchecked, result.conclusion
+
+
+def test_a_rotary_axis_that_passes_180_degrees_is_one_travel():
+    """A rotary calibrator reads angles in (-180, 180]: a C-axis run from 170 to 190 degrees
+    jumps from +180 to -180 in the reference, but the axis travels 20 degrees on."""
+    t, s, _ = iso_moves(n_cycles=1)
+    angle = np.pi + np.radians(10.0) * s / 0.1
+    wrapped = (angle + np.pi) % (2 * np.pi) - np.pi
+    poses = np.zeros((t.size, 6))
+    poses[:, 5] = wrapped
+    poses[:, 0] = 1e-6 * np.sin(angle)          # a radial error motion: a function of the angle
+    motion = axis_motion(poses, wrapped, 5, t, np.ones(t.size, dtype=bool), np.array([4e-8] * 3 + [1e-7] * 3))
+    assert motion is not None and 0 in motion.components
+    assert np.ptp(motion.coordinate) == pytest.approx(np.radians(20.0), rel=1e-6)

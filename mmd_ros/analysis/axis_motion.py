@@ -124,9 +124,11 @@ def axis_motion(poses: FloatArray, reference: FloatArray, component: int, times:
     idx = np.flatnonzero(usable & np.isfinite(reference))
     if idx.size < 50:
         return None
-    s = np.where(np.isfinite(reference), reference, np.nanmedian(reference[idx]))
-    lo, hi = float(np.min(s[idx])), float(np.max(s[idx]))
     angular = component >= 3
+    s = np.where(np.isfinite(reference), reference, np.nanmedian(reference[idx]))
+    if angular:
+        s[idx] = np.unwrap(s[idx])      # a rotary axis that passes +-180 degrees travels on
+    lo, hi = float(np.min(s[idx])), float(np.max(s[idx]))
     if hi - lo < LEAST_TRAVEL[angular]:
         return None
     direction = _direction(s, times, STILL_SPEED[angular])

@@ -476,7 +476,7 @@ class _Rows:
 
     With ``axis`` (a one-axis run, analysis/axis_motion.py), n u rows more after the observed
     ones: the MMD's reading of each unseen component, weighted by its floor, with the
-    machine's motion along the axis as nuisance columns of their own.
+    machine's motion along the axis projected out of them and of every column.
     Rows: the observed components (``n_data``, sample-major), the unseen ones (``n_unseen``),
     then the held means.
     """
@@ -888,7 +888,7 @@ class _Selector:
                 return cache[x][0]
 
             # only a measured setting's bracket moves on: a friction travel's bounds are the
-            # grid's, and searching past them made a 10-minute run's analysis 1.5 x as long
+            # grid's, and searching past them made a 10-minute run's analysis 1.3 x as long
             x = _golden_minimum(score, lo, hi, moves=4 if effect.setting_measured else 0)
             if cache[x][0] < measure(fit):
                 ic, hyper, fit = (self.training_ic(cache[x][1]), effect.with_setting_value(tried, math.exp(x)),
