@@ -445,8 +445,8 @@ def _prepare(index: int, run: RunLog, model: Model, calibration: Calibration | N
     axis = None
     if o.axis_motion and obs.kind == 'pose' and len(obs.components) == 1:
         c = obs.components[0]
-        axis = axis_motion(before.poses, np.where(usable, obs.reference[:, 0], np.nan), c, times,
-                           usable, _pose_floor(ctx, split.train_idx))
+        axis = axis_motion(before.poses, obs.reference[:, 0], c, times, usable,
+                           _pose_floor(ctx, split.train_idx))
     return _Run(index, run, str(run.path), run.content_hash(), calibration_key(calibration),
                 calibration, obs, ctx, split, floor, np.nan_to_num(raw), res_before, usable, datum_sigma,
                 axis)
@@ -554,9 +554,9 @@ class _Rows:
         return x - np.einsum('nq,qup->nup', self.axis_q, np.einsum('nq,nup->qup', self.axis_q, x))
 
     def unseen_piece(self, e: FloatArray) -> FloatArray:
-        """The unseen components' rows of this log's slice of a stacked vector, (n, u)."""
-        u = self.axis_jinv.shape[1] if self.axis_jinv is not None else 0
-        return e[self.n_data:self.n_data + self.n_unseen].reshape(-1, max(u, 1))
+        """The unseen components' rows of this log's slice of a stacked vector, (n, u)
+        (for a log that has them: ``n_unseen`` > 0)."""
+        return e[self.n_data:self.n_data + self.n_unseen].reshape(-1, self.axis_jinv.shape[1])
 
 
 class _Part:
