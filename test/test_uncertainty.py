@@ -281,6 +281,14 @@ def test_a_fit_s_residual_stands_only_where_the_fit_saw_the_bars(realistic):
     assert unchecked_part.any() and (~unchecked_part).any()
     interp = parts['interpolation'][:, range(6), range(6)]
     assert np.all(interp[unchecked_part] > 0) and np.all(interp[~unchecked_part] == 0)
+    # ... gradually: the share 1 - rho^2 of the interpolation error's variance that its value
+    # at the bound leaves unknown a distance delta further (rho its own correlation)
+    delta = checked[None] - (x + th.bar_error_m)
+    rho = budget.interpolation.correlation(delta[unchecked_part])
+    full = budget.interpolation.variance(x, budget.knots_m)[unchecked_part]
+    np.testing.assert_allclose(interp[unchecked_part], full * (1.0 - rho ** 2), rtol=0.02,
+                               atol=1e-4 * full.max())
+    assert np.all(rho > 0.0) and np.all(rho < 1.0)
     unchecked = parts['unchecked_range'][:, range(6), range(6)]
     below = comp.cdf_lengths_m < lowest[None]
     from mmd_ros.core.model import TermContext

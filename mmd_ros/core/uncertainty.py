@@ -191,6 +191,14 @@ class InterpolationError:
     length_m: float
     dof: int = 0
 
+    def correlation(self, distance_m: FloatArray) -> FloatArray:
+        """rho: the correlation of the error at two lengths ``distance_m`` apart (0 where the
+        fit found no error)."""
+        d = np.asarray(distance_m, dtype=np.float64)
+        if self.sigma_m <= 0.0 or self.length_m <= 0.0:
+            return np.zeros_like(d)
+        return _matern52(d, self.length_m)
+
     def variance(self, lengths_m: FloatArray, knots_m: FloatArray) -> FloatArray:
         """V at ``lengths_m`` (N, B) for bars with knots ``knots_m`` (B, n), shape (N, B) [m^2].
         Beyond the end points the end segment is extrapolated, as the CDF does."""
@@ -204,7 +212,7 @@ class InterpolationError:
             seg = np.clip(np.searchsorted(kn, x[:, b], side='right') - 1, 0, kn.size - 2)
             x0, x1 = kn[seg], kn[seg + 1]
             u = (x[:, b] - x0) / (x1 - x0)
-            rho = lambda r: _matern52(r, self.length_m)  # noqa: E731
+            rho = self.correlation
             out[:, b] = (1.0 + (1 - u) ** 2 + u ** 2 - 2 * (1 - u) * rho(x[:, b] - x0)
                          - 2 * u * rho(x1 - x[:, b]) + 2 * u * (1 - u) * rho(x1 - x0))
         return np.maximum(out, 0.0) * self.sigma_m ** 2
