@@ -65,6 +65,8 @@ IntArray = NDArray[np.int64]
 MAX_DIRECTIONS = 8
 #: Share of the fitted terms' mean variance the per-sample directions must carry.
 DIRECTION_SHARE = 0.99
+#: Fewest samples of a bar in the flank of its fitted lengths to measure what is left there.
+FLANK_SAMPLES = 50
 
 
 @dataclass
@@ -187,15 +189,54 @@ def _spread(idx: IntArray, most: int = PREDICTED_SAMPLES) -> IntArray:
     return idx[::max(1, -(-idx.size // most))]
 
 
+def _trial(model: Model, fit: FitUncertainty, validity: bool = False) -> Model:
+    """``model`` with the uncertainty section ``fit`` (and its validity record, or none)."""
+    previous = model.uncertainty
+    return Model(model.thermal_mode, model.plate_expansion, None, list(model.terms),
+                 dict(model.extra) if validity else {}, model.source,
+                 ModelUncertainty(previous.thermal_mismatch_fraction, previous.read_noise_m, fit))
+
+
 def _predicted(run: ResidualRun, model: Model, fit: FitUncertainty, idx: IntArray
                ) -> tuple[FloatArray, FloatArray]:
     """The budget's sources at ``idx`` of a run under the fitted model, (n, 6, 6) each: those
     it keeps after a fit and those a measured residual may replace."""
-    previous = model.uncertainty
-    trial = Model(model.thermal_mode, model.plate_expansion, None, list(model.terms), {},
-                  model.source, ModelUncertainty(previous.thermal_mismatch_fraction,
-                                                 previous.read_noise_m, fit))
-    return _sources(run.ctx, run.after, trial, idx)
+    return _sources(run.ctx, run.after, _trial(model, fit), idx)
+
+
+def _flank_excess(parts: list[tuple[ResidualRun, IntArray, FloatArray, FloatArray]],
+                  model: Model, fit: FitUncertainty) -> FloatArray:
+    """Per bar, the mean square of the bar-length residual where the bar lay within the lengths
+    the fit saw but in a CDF segment whose middle it did not see (``LengthBudget.flank``),
+    beyond what the written model claims there (its residual included), (6,) [m^2]; 0 for a
+    bar with fewer than :data:`FLANK_SAMPLES` such samples. ``parts``: each run, its samples,
+    their bar-length residual J dp (n, 6) [m] and the reference's own variance in it (n, 6).
+
+    The end of what a bar's fit saw is where its length term is least determined (a bar there
+    always arrives from one side, and its friction state and scale error cannot be told
+    apart); a residual averaged over every length does not show what is left there."""
+    trial = _trial(model, fit, validity=True)
+    total, count = np.zeros(6), np.zeros(6)
+    for run, idx, dd, ref_var in parts:
+        budget, observed = _observing(run.ctx, run.after, trial)
+        flank = budget.flank(run.after.cdf_lengths_m[idx])
+        if not flank.any():
+            continue
+        sub = _spread(np.flatnonzero(flank.any(axis=1)))
+        a, at = run.after, idx[sub]
+        cov, bias = budget.sources(a.lengths_m[at], a.reference_error_m[at], a.temp_change_c[at],
+                                   a.bar_error_m[at], None, observed[at])
+        claim = sum(np.diagonal(c, axis1=1, axis2=2) for c in cov.values())
+        if bias:
+            claim = claim + sum(bias.values()) ** 2
+        for b in range(6):
+            if not flank[sub, b].any():
+                continue
+            n = int(np.sum(flank[:, b]))
+            seen = np.mean(dd[flank[:, b], b] ** 2 - ref_var[flank[:, b], b])
+            total[b] += n * (seen - float(np.mean(claim[flank[sub, b], b])))
+            count[b] += n
+    return np.where(count >= FLANK_SAMPLES, np.maximum(total / np.maximum(count, 1.0), 0.0), 0.0)
 
 
 def _observing(ctx: FitContext, processed: Processed, model: Model) -> tuple[LengthBudget, Observed]:
@@ -442,17 +483,21 @@ def _sized_from(fit: FitUncertainty, ctx: FitContext, found: list[FittedEffect],
             fit.systematic_scale = max(estimate, 1.0)
             fit.record['scale_estimate'] = round(estimate, 4)
         n = 0
+        parts = []
         for run, idx in full:
             obs = run.ctx.obs
             r = run.residual[idx]
+            ref_var = np.zeros((idx.size, 6))
             if obs.kind == 'pose':
                 jac = jacobian(run.ctx.device.geometry, run.after.poses[idx])
                 dd = np.einsum('nij,nj->ni', jac, r)
                 if obs.sigma is not None:    # the reference's own noise is not the MMD's error
                     observed_cov -= np.einsum('nik,k,njk->ij', jac, obs.sigma ** 2, jac)
+                    ref_var = np.einsum('nik,k,nik->ni', jac, obs.sigma ** 2, jac)
             else:
                 dd = np.zeros((idx.size, 6))
                 dd[:, obs.components] = r
+            parts.append((run, idx, dd, ref_var))
             sub = _spread(idx)
             kept, replaceable = _predicted(run, model, fit, sub)
             observed_cov += dd.T @ dd
@@ -463,6 +508,8 @@ def _sized_from(fit: FitUncertainty, ctx: FitContext, found: list[FittedEffect],
         excess[:, ~seen] = 0.0
         fit.residual_m2 = excess + fit.residual_m2     # (what another run may drift: run_own)
         fit.replaces = tuple(FIT_REPLACEABLE) if replace else ()
+        if replace:
+            fit.flank_m2 = np.where(seen, _flank_excess(parts, model, fit), 0.0)
         fit.record['samples'] = int(n)
         fit.record['residual_rms_nm'] = [round(float(math.sqrt(max(v, 0.0) / n)) * 1e9, 3)
                                          for v in np.diag(observed_cov)]

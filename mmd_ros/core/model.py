@@ -227,7 +227,7 @@ FIT_REPLACEABLE = ('calibration_points', 'calibration_drift', 'reference_distanc
                    'subdivision', 'hysteresis')
 #: Keys of a model file's ``uncertainty.fit`` section.
 FIT_KEYS = ('residual_nm2', 'replaces', 'systematic_scale', 'mean_terms_nm2', 'directions', 'from',
-            'read_noise_nm')
+            'read_noise_nm', 'flank_nm2')
 
 
 def _matrix6(value: Any, source: str, key: str) -> FloatArray:
@@ -262,6 +262,9 @@ class FitUncertainty:
         reference bars) measured where the analysed logs' bars stood still [m], or None: what a
         stream claims until it has stood still long enough to show its own (the larger of this
         and the calibration's figure)
+    flank_m2 : (6,) — per bar, what the residual held beyond the model's claim where the bar
+        lay within the lengths the fit saw but in a CDF segment whose middle it did not see
+        (:meth:`~mmd_ros.core.budget.LengthBudget.flank`) [m^2]; added there
     """
 
     residual_m2: FloatArray = field(default_factory=lambda: np.zeros((6, 6)))
@@ -271,6 +274,7 @@ class FitUncertainty:
     mean_terms_m2: FloatArray = field(default_factory=lambda: np.zeros((6, 6)))
     record: dict[str, Any] = field(default_factory=dict)
     read_noise_m: FloatArray | None = None
+    flank_m2: FloatArray = field(default_factory=lambda: np.zeros(6))
 
     def reset(self) -> None:
         for group in self.directions:
@@ -289,6 +293,8 @@ class FitUncertainty:
             'from': self.record,
             **({} if self.read_noise_m is None else
                {'read_noise_nm': [round(float(v) * 1e9, 4) for v in self.read_noise_m]}),
+            **({} if not np.any(self.flank_m2) else
+               {'flank_nm2': [round(float(v) * 1e18, 3) for v in self.flank_m2]}),
         }
 
     @classmethod
@@ -319,8 +325,15 @@ class FitUncertainty:
             if not 6 <= noise.size <= 8 or np.any((noise < 0) | (noise >= 1e4)):
                 raise ConfigError(source, f'{path}.read_noise_nm', f'must be {what}, got {noise.tolist()}')
             noise = noise * 1e-9
+        flank = np.zeros(6)
+        if data.get('flank_nm2') is not None:
+            what = '6 variances in nm^2, one per measuring bar, each 0 … 1e8'
+            flank = f.floats(data, 'flank_nm2', path, (-1,), what=what)
+            if flank.size != 6 or np.any((flank < 0) | (flank > 1e8)):
+                raise ConfigError(source, f'{path}.flank_nm2', f'must be {what}, got {flank.tolist()}')
+            flank = flank * 1e-18
         return cls(residual, tuple(replaces), scale, directions, mean_terms,
-                   dict(record) if isinstance(record, dict) else {}, noise)
+                   dict(record) if isinstance(record, dict) else {}, noise, flank)
 
 
 @dataclass
