@@ -546,7 +546,7 @@ def _foreign_twin(k: int, length_error, datum: str,
     return analyze(log, options=AnalysisOptions(datum=datum, **options)), calibration, twin, run_of
 
 
-def test_what_a_fit_left_where_it_saw_only_a_segment_s_flank_is_measured_and_claimed_there():
+def test_what_a_fit_left_where_it_saw_only_a_segment_s_flank_is_measured_and_claimed_there(tmp_path):
     """Where a bar's fitted lengths end inside a CDF segment, its length term is least
     determined (the bar always arrives there from one side): on this realistic twin (the
     eighth of bench_uncertainty.py's 24) the fitted model leaves bar 5 about 0.29 µm off
@@ -563,10 +563,14 @@ def test_what_a_fit_left_where_it_saw_only_a_segment_s_flank_is_measured_and_cla
     calibration = twin.calibrate(-211.0 * k, room, approaches=2)
     fitted = twin.simulate(make_scenario('random_motion', ['duration_s=60', f'seed={100 + k}']),
                            room, start_s=600.0, reference='pose6')
-    model = analyze(run_log(twin, calibration, fitted, 600.0),
-                    options=AnalysisOptions(datum='none')).model
+    result = analyze(run_log(twin, calibration, fitted, 600.0), options=AnalysisOptions(datum='none'))
+    model = result.model
     flank = model.uncertainty.fit.flank_m2
     assert math.sqrt(flank[bar]) > 150e-9 and np.all(np.delete(flank, bar) < flank[bar] / 4), flank
+    from mmd_ros.analysis.report import write_report
+    report = write_report(result, tmp_path, figures=False)['report'].read_text()
+    assert f'| bar5 | {math.sqrt(model.uncertainty.fit.residual_m2[bar, bar]) * 1e9:.1f} | ' \
+        f'{math.sqrt(flank[bar]) * 1e9:.1f} |' in report
     new = twin.simulate(make_scenario('random_motion', ['duration_s=60', f'seed={200 + k}']), room,
                         start_s=700.0, reference='pose6')
     without = Model.from_dict(model.to_dict())

@@ -86,6 +86,26 @@ def write_report(a: Analysis, out_dir: str | Path, *, figures: bool = True) -> d
     return written
 
 
+def _uncertainty_section(a: Analysis) -> list[str]:
+    """What the written model claims of its own uncertainty (``uncertainty.fit``), per bar."""
+    fit = None if a.model is None else a.model.uncertainty.fit
+    if fit is None:
+        return []
+    L = ['## 5. What the model claims of its own uncertainty', '',
+         f'Residual measured on {fit.record.get("residual_from", "the analysed logs")}'
+         + (f'; it stands for {", ".join(fit.replaces)} where the fit saw the bars'
+            if fit.replaces else '; the calibration-derived sources stay'
+            + (f', scaled by {fit.systematic_scale:.3g}' if fit.systematic_scale != 1.0 else ''))
+         + '. The pose covariance adds these per bar (`msg_docs/frames.md`).', '',
+         '| bar | residual σ [nm] | where its fitted lengths end inside a CDF segment, σ [nm] |',
+         '|---|---|---|']
+    for i in range(6):
+        flank = math.sqrt(max(float(fit.flank_m2[i]), 0.0)) * 1e9
+        L.append(f'| bar{i + 1} | {math.sqrt(max(float(fit.residual_m2[i, i]), 0.0)) * 1e9:.1f} | '
+                 + (f'{flank:.1f} |' if flank > 0 else '– |'))
+    return L + ['']
+
+
 def _markdown(a: Analysis, figs: dict[str, str], model_path: Path | None) -> str:
     o = a.obs
     L: list[str] = ['# Closing the loop: residual, effect, error before and after', '']
@@ -177,6 +197,7 @@ def _markdown(a: Analysis, figs: dict[str, str], model_path: Path | None) -> str
     else:
         L += ['What remains is above the noise floor; it follows:', '']
         L += [f'- {name}: R² {r2:.2f}' for name, r2 in a.structure_after[:6]] + ['']
+    L += _uncertainty_section(a)
     if figs:
         L += ['## Figures', '']
         for caption, name in figs.items():
