@@ -13,7 +13,8 @@ Usage: ``python bench/bench_uncertainty.py [--cases ideal,noeffect,realistic,rea
 [--approaches 2]``. ``--after`` first runs ``mmd analyze`` (full pose reference, absolute, or
 zeroed with ``--datum offset``) on a 60 s random run of each twin and judges that twin's
 extended model on a new run of it, also apart where every bar lies inside the lengths the fit
-saw and where one does not.
+saw and where one does not, and apart those inside with a bar where its fitted lengths end
+inside a CDF segment (``LengthBudget.flank``).
 """
 
 from __future__ import annotations
@@ -69,7 +70,7 @@ def run_case(device, name: str, scenario: str, runs: int, seconds: float, after:
     preset, effect_params, ambient = CASES[name]
     kind, params, rate = SCENARIOS[scenario]
     room = ambient_profile(ambient)
-    errors, covs, notes, inside = [], [], [], []
+    errors, covs, notes, inside, flank = [], [], [], [], []
     model = Model()
     for k in range(runs):
         twin = TwinDevice(device, Effects.preset(preset).with_assignments(effect_params), seed=k + 1)
@@ -82,8 +83,8 @@ def run_case(device, name: str, scenario: str, runs: int, seconds: float, after:
         p = [v.format(seconds=seconds, k=k) for v in params]
         run = twin.simulate(make_scenario(kind, p), room, start_s=start, reference='pose6',
                             sample_rate_hz=rate)
-        res = Pipeline(twin.documented_device, calibration, model).process(
-            run.times_s, run.counts, with_covariance=True)
+        pipeline = Pipeline(twin.documented_device, calibration, model)
+        res = pipeline.process(run.times_s, run.counts, with_covariance=True)
         ok = res.valid & np.all(np.isfinite(run.true_poses), axis=1)
         errors.append(pose_error(res.poses, run.true_poses)[ok])
         covs.append(res.covariance[ok])
@@ -91,14 +92,18 @@ def run_case(device, name: str, scenario: str, runs: int, seconds: float, after:
         cdf = res.compensated.cdf_lengths_m[ok]
         inside.append(np.ones(cdf.shape[0], dtype=bool) if validity is None else np.all(
             (cdf >= validity.bar_range_m[:, 0]) & (cdf <= validity.bar_range_m[:, 1]), axis=1))
+        flank.append(inside[-1] & np.any(pipeline.budget.flank(cdf), axis=1))
     out = {'case': name, 'scenario': scenario, 'runs': runs, 'after_analysis': after,
            'calibration_approaches': approaches, **judge(errors, covs)}
     if notes:
         out['analysis'] = '; '.join(notes)
         out['datum'] = datum
-        # every bar inside the lengths its model's fit saw, and the rest (judged apart)
-        for key, want in (('inside_fit_range', True), ('outside_fit_range', False)):
-            parts = [(e[m == want], c[m == want]) for e, c, m in zip(errors, covs, inside)]
+        # every bar inside the lengths its model's fit saw, and the rest (judged apart); and of
+        # the first, those with a bar where its fitted lengths end inside a CDF segment
+        groups = (('inside_fit_range', inside, True), ('outside_fit_range', inside, False),
+                  ('in_a_segment_s_flank', flank, True))
+        for key, masks, want in groups:
+            parts = [(e[m == want], c[m == want]) for e, c, m in zip(errors, covs, masks)]
             parts = [p for p in parts if p[0].shape[0]]
             if parts:
                 r = judge([p[0] for p in parts], [p[1] for p in parts])
@@ -143,7 +148,7 @@ def main() -> None:
               + f'   ellipsoid {100 * r["coverage"]:.1f} % (runs '
               + ' '.join(f'{100 * v:.0f}' for v in r['coverage_per_run']) + ')'
               + (f'   [{r["analysis"]}]' if 'analysis' in r else ''), flush=True)
-        for key in ('inside_fit_range', 'outside_fit_range'):
+        for key in ('inside_fit_range', 'outside_fit_range', 'in_a_segment_s_flank'):
             if key in r:
                 print(f'  {key:17s} ratio ' + ' '.join(f'{v:.2f}' for v in r[key]['ratio'])
                       + f'   ellipsoid {100 * r[key]["coverage"]:.1f} % ({r[key]["samples"]} samples)')
