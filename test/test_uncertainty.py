@@ -550,8 +550,8 @@ def test_what_a_fit_left_where_it_saw_only_a_segment_s_flank_is_measured_and_cla
     """Where a bar's fitted lengths end inside a CDF segment, its length term is least
     determined (the bar always arrives there from one side): on this realistic twin (the
     eighth of bench_uncertainty.py's 24) the fitted model leaves bar 5 about 0.29 µm off
-    there, on new motion as on the fitted run, where the residual averaged over every length
-    claims 0.13 µm. The fit measures what its held-out residual held there beyond the
+    there, on new motion as on the fitted run, where the budget with the residual averaged
+    over every length claims 0.13 µm. The fit measures what its held-out residual held there beyond the
     model's claim (``flank_nm2``), and the budget adds it there: predicted / observed within
     0.7-1.5 and 95 % of those samples within 1.96 sigma (measured 0.92, 100 %; without the
     claim 0.44, 46 %); the other bars' flanks showed nothing beyond the claim."""
