@@ -224,11 +224,9 @@ def _flank_excess(parts: list[tuple[ResidualRun, IntArray, FloatArray, FloatArra
             continue
         sub = _spread(np.flatnonzero(flank.any(axis=1)))
         a, at = run.after, idx[sub]
-        cov, bias = budget.sources(a.lengths_m[at], a.reference_error_m[at], a.temp_change_c[at],
-                                   a.bar_error_m[at], None, observed[at])
-        claim = sum(np.diagonal(c, axis1=1, axis2=2) for c in cov.values())
-        if bias:
-            claim = claim + sum(bias.values()) ** 2
+        claim = np.diagonal(budget.covariance(a.lengths_m[at], a.reference_error_m[at],
+                                              a.temp_change_c[at], a.bar_error_m[at], None,
+                                              observed[at]), axis1=1, axis2=2)
         for b in range(6):
             if not flank[sub, b].any():
                 continue

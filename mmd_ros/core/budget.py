@@ -418,8 +418,7 @@ class LengthBudget:
                                 else None)
         self._seen_var_m2 = (self._length_spread(self._fitted_range_m)
                              if self._fitted_range_m is not None else np.zeros(6))
-        self.flank_m2 = (fit.flank_m2 if fit is not None and self._fitted_range_m is not None
-                         and self._fit_range_m is not None else np.zeros(6))
+        self.flank_m2 = fit.flank_m2 if fit is not None else np.zeros(6)   # (where flank() says)
         if self._length_terms and validity is None:
             self.notes.append('unchecked range: the model does not record the lengths its terms '
                               'were fitted on (validity.bar_range_mm)')
