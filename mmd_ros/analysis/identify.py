@@ -979,8 +979,11 @@ class _Selector:
         """How much of the structure along the effect's own coordinate is left when it is in
         the model, relative to when it is not: V_with / V_without on the held-out fit samples
         of every log, V the variance explained by bin means of the feature (the effect's
-        diagnostic feature that carries most structure without it). ``partners``: effects
-        taken out with it (those that follow the same coordinate share what they explain)."""
+        diagnostic feature that carries most structure without it). With an absolute reference
+        the bins' means are counted from zero, not from the log's mean: there an offset is
+        structure the data see (a bar's sag under gravity moves a pose by nearly the same
+        amount everywhere in a small workspace). ``partners``: effects taken out with it
+        (those that follow the same coordinate share what they explain)."""
         contrib = self.columns(active.effect, active.hyper, 'test') @ theta
         for b, t in partners:
             contrib = contrib + self.columns(b.effect, b.hyper, 'test') @ t
@@ -991,10 +994,13 @@ class _Selector:
         for rows, r, w_e, wo in zip(self.test.rows, self.test.runs, with_all, without_all):
             tot_with = float(np.sum((w_e - w_e.mean(axis=0)) ** 2))
             tot_without = float(np.sum((wo - wo.mean(axis=0)) ** 2))
+            # the offset the data see: none after a datum is removed
+            off_with = 0.0 if r.obs.datum else float(len(w_e) * np.sum(w_e.mean(axis=0) ** 2))
+            off_without = 0.0 if r.obs.datum else float(len(wo) * np.sum(wo.mean(axis=0) ** 2))
             for name, values in active.effect.diagnostics(r.ctx, active.hyper).items():
                 f = values[rows.idx]
-                v_without[name] = v_without.get(name, 0.0) + binned_r2(wo, f) * tot_without
-                v_with[name] = v_with.get(name, 0.0) + binned_r2(w_e, f) * tot_with
+                v_without[name] = v_without.get(name, 0.0) + binned_r2(wo, f) * tot_without + off_without
+                v_with[name] = v_with.get(name, 0.0) + binned_r2(w_e, f) * tot_with + off_with
         if not v_without:
             return 0.0, ''
         name = max(v_without, key=lambda n: v_without[n])
