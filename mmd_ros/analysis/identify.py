@@ -980,9 +980,11 @@ class _Selector:
         the model, relative to when it is not: V_with / V_without on the held-out fit samples
         of every log, V the variance explained by bin means of the feature (the effect's
         diagnostic feature that carries most structure without it). With an absolute reference
-        the bins' means are counted from zero, not from the log's mean: there an offset is
-        structure the data see (a bar's sag under gravity moves a pose by nearly the same
-        amount everywhere in a small workspace). ``partners``: effects taken out with it
+        the bins' means are counted from zero, not from the log's mean, for a term whose law
+        gives its mean: there an offset is structure the data see (a bar's sag under gravity
+        moves a pose by nearly the same amount everywhere in a small workspace). A term of free
+        constants (``Effect.free_mean``: a drift's offsets, CDF points) fits any offset, so
+        that it does says nothing of its own coordinate. ``partners``: effects taken out with it
         (those that follow the same coordinate share what they explain)."""
         contrib = self.columns(active.effect, active.hyper, 'test') @ theta
         for b, t in partners:
@@ -994,9 +996,11 @@ class _Selector:
         for rows, r, w_e, wo in zip(self.test.rows, self.test.runs, with_all, without_all):
             tot_with = float(np.sum((w_e - w_e.mean(axis=0)) ** 2))
             tot_without = float(np.sum((wo - wo.mean(axis=0)) ** 2))
-            # the offset the data see: none after a datum is removed
-            off_with = 0.0 if r.obs.datum else float(len(w_e) * np.sum(w_e.mean(axis=0) ** 2))
-            off_without = 0.0 if r.obs.datum else float(len(wo) * np.sum(wo.mean(axis=0) ** 2))
+            # the offset the data see (none after a datum is removed), for a term whose law
+            # gives its mean: free constants carry any mean, which says nothing of their law
+            counted = not r.obs.datum and not active.effect.free_mean
+            off_with = float(len(w_e) * np.sum(w_e.mean(axis=0) ** 2)) if counted else 0.0
+            off_without = float(len(wo) * np.sum(wo.mean(axis=0) ** 2)) if counted else 0.0
             for name, values in active.effect.diagnostics(r.ctx, active.hyper).items():
                 f = values[rows.idx]
                 v_without[name] = v_without.get(name, 0.0) + binned_r2(wo, f) * tot_without + off_without
@@ -1529,6 +1533,11 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
             f.claimed, f.reason = False, worst_txt
             not_claimed[:] = [g for g in not_claimed if g.effect != f.effect] + [f]
             set_aside.append(sel.active.pop(worst_k))
+            # what it took from the residual may be another effect's, which the selection
+            # passed over for it (a drift's free offsets took a gravity sag's constant): the
+            # selection goes on without it
+            aside = {a.effect.name for a in set_aside}
+            steps += _select(sel, [e for e in effects if e.name not in aside], o, say)
             continue
         # an effect set aside while a partner that followed the same coordinate was in the
         # model (a scale error judged with the CDF points in place) is tried once more now

@@ -241,9 +241,15 @@ class MmdClient:
         r = res.results[0]
         return bool(r.successful), str(r.reason)
 
-    def close(self) -> None:
+    def close(self, timeout: float = 30.0) -> None:
+        """Stop the spinning thread, then destroy the node and the context. Destroying them
+        while the thread is still inside the executor can crash the process (on a loaded
+        machine the thread can take seconds to come back): if it does not end within
+        ``timeout`` [s], they are left to the process's exit."""
         self._running = False
-        self._thread.join(2.0)
+        self._thread.join(timeout)
+        if self._thread.is_alive():
+            return
         try:
             self.executor.shutdown()
         except Exception:  # noqa: BLE001
