@@ -10,6 +10,7 @@ over along a sech² curve, a cyclic error at 13 µm.
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from pathlib import Path
@@ -273,6 +274,18 @@ def test_without_the_unseen_components_one_axis_runs_write_no_skew(two_sided):
 
 
 # -- selection: effects that share a signature -------------------------------------------------
+@functools.lru_cache(maxsize=2)
+def bench_twin_analysis(k: int):
+    """``mmd analyze`` (absolute reference) of the k-th realistic twin of ``bench_uncertainty.py
+    --after``: 60 s of random 6-DOF motion after its two-sided calibration."""
+    twin = TwinDevice(DEVICE, Effects.realistic(), seed=k + 1)
+    room = ambient_profile('section_4_1')
+    calibration = twin.calibrate(-211.0 * k, room, approaches=2)
+    run = twin.simulate(make_scenario('random_motion', ['duration_s=60', f'seed={100 + k}']), room,
+                        start_s=600.0, reference='pose6')
+    return analyze(run_log(twin, calibration, run, 600.0), options=AnalysisOptions(datum='none'))
+
+
 @pytest.mark.parametrize('k', [5, 7])
 def test_effects_that_follow_the_same_coordinate_are_found_together(k):
     """Two realistic twins of the 24 of ``bench_uncertainty.py --after`` on which the loop used
@@ -286,12 +299,7 @@ def test_effects_that_follow_the_same_coordinate_are_found_together(k):
       µm). What is set aside is now tried again once the rest is claimed.
 
     Every component within 2.5 x its floor on held-out blocks (measured 1.0-2.1 x)."""
-    twin = TwinDevice(DEVICE, Effects.realistic(), seed=k + 1)
-    room = ambient_profile('section_4_1')
-    calibration = twin.calibrate(-211.0 * k, room, approaches=2)
-    run = twin.simulate(make_scenario('random_motion', ['duration_s=60', f'seed={100 + k}']), room,
-                        start_s=600.0, reference='pose6')
-    result = analyze(run_log(twin, calibration, run, 600.0), options=AnalysisOptions(datum='none'))
+    result = bench_twin_analysis(k)
     found = [f.effect for f in result.found]
     assert {'sampling_skew', 'hysteresis', 'scale_nonlinearity'} <= set(found), result.conclusion
     if k == 5:
@@ -308,13 +316,7 @@ def test_an_effect_set_aside_lets_the_selection_go_on_without_it():
     of a run 100 s later (35 nm seen). A term of free constants fits any offset, so an offset
     is not structure along its own coordinate (time): the drift removes 16 % of that, is set
     aside, and the selection goes on without it and finds the sag."""
-    k = 5
-    twin = TwinDevice(DEVICE, Effects.realistic(), seed=k + 1)
-    room = ambient_profile('section_4_1')
-    calibration = twin.calibrate(-211.0 * k, room, approaches=2)
-    run = twin.simulate(make_scenario('random_motion', ['duration_s=60', f'seed={100 + k}']), room,
-                        start_s=600.0, reference='pose6')
-    result = analyze(run_log(twin, calibration, run, 600.0), options=AnalysisOptions(datum='none'))
+    result = bench_twin_analysis(5)
     found = [f.effect for f in result.found]
     assert 'gravity_sag' in found and 'drift' not in found, result.conclusion
     aside = {f.effect: f.reason for f in result.not_claimed}
