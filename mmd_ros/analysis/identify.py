@@ -1238,12 +1238,14 @@ def analyze(runs: RunLog | list[RunLog], model: Model | None = None,
 
 
 def _select(sel: _Selector, effects: list[Effect], o: AnalysisOptions,
-            say: Callable[[str], None]) -> list[list[Candidate]]:
-    """Stepwise selection (module docstring, 2)."""
+            say: Callable[[str], None], before: list[list[Candidate]] = ()) -> list[list[Candidate]]:
+    """Stepwise selection (module docstring, 2); ``before``: the steps of an earlier selection
+    this one goes on from (their numbering and first baseline)."""
     steps: list[list[Candidate]] = []
 
     def activate(cand: Candidate, eff: Effect) -> None:
-        initial = steps[0][0].mse0 if steps[0] else math.nan
+        first = (list(before) + steps)[0]
+        initial = first[0].mse0 if first else math.nan
         sel.active.append(_Active(eff, cand.hyper, cand.basis, cand.gain,
                                   (cand.mse0 - cand.mse1) / initial if initial > 0 else math.nan,
                                   cand.norms, weak=cand.weak))
@@ -1258,7 +1260,7 @@ def _select(sel: _Selector, effects: list[Effect], o: AnalysisOptions,
         ratio = max(float(np.sqrt(np.mean(p ** 2, axis=0)).max()) for p in pieces if p.size)
         if ratio <= o.floor_factor:
             break
-        say(f'step {len(steps) + 1}: testing {len(remaining)} effects')
+        say(f'step {len(before) + len(steps) + 1}: testing {len(remaining)} effects')
         cands = [sel.evaluate(e, e0) for e in remaining]
         cands.sort(key=lambda c: (c.verdict != 'significant', c.delta_ic if math.isfinite(c.delta_ic) else math.inf))
         steps.append(cands)
@@ -1537,7 +1539,7 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
             # passed over for it (a drift's free offsets took a gravity sag's constant): the
             # selection goes on without it
             aside = {a.effect.name for a in set_aside}
-            steps += _select(sel, [e for e in effects if e.name not in aside], o, say)
+            steps += _select(sel, [e for e in effects if e.name not in aside], o, say, steps)
             continue
         # an effect set aside while a partner that followed the same coordinate was in the
         # model (a scale error judged with the CDF points in place) is tried once more now
