@@ -667,9 +667,11 @@ class LengthBudget:
                    temp_change_c: FloatArray) -> FloatArray:
         """The unchecked_range source, (N, 6) [m^2]. Within the lengths the fit saw, where a
         bar lies in a CDF segment whose middle the fit did not see (:meth:`flank`): what the
-        fit's residual held there beyond the model's claim (``FitUncertainty.flank_m2``; over
-        8 realistic twins a bar's error there was about the same on the fitted run and on new
-        motion, up to 0.29 µm, where the residual over all lengths was 0.03-0.10 µm). For a
+        fit's residual held there beyond the model's claim (``FitUncertainty.flank_m2``: a bar's
+        error there is about the same on the fitted run and on new motion, and a residual
+        averaged over every length does not show it; a 0.4 µm bump there of a shape no term
+        has was measured at 96 nm, a lower bound, the fitted run's samples there lying nearer
+        the bound than new motion's). For a
         bar whose CDF length lies outside the lengths the fit saw: the square of how far the
         length-dependent terms' correction has moved from its value at the nearest length the
         fit saw (the residual checked the correction there; what it does beyond, no data
