@@ -425,9 +425,10 @@ def test_realistic_twin_is_covered():
     assert cover >= 0.93, cover
 
 
-def _after_the_loop(tmp_path, seed: int, fit_s: float = 60.0):
+def _after_the_loop(tmp_path, seed: int, fit_s: float = 60.0, datum: str = 'none'):
     """mmd analyze on a log of a realistic twin with its full pose (the log's own reference
-    noise stated), then that twin's model judged against its true pose on three new runs."""
+    noise stated; ``datum`` 'none' absolute, 'offset' zeroed), then that twin's model judged
+    against its true pose on three new runs."""
     from mmd_ros.analysis.identify import AnalysisOptions, analyze
     from mmd_ros.logs.layout import read_run
     from mmd_ros.twin.recording import SimulationSpec, simulate_to_log
@@ -436,7 +437,7 @@ def _after_the_loop(tmp_path, seed: int, fit_s: float = 60.0):
                                                                      f'seed={99 + seed}'),
                           effects='realistic', reference='pose6', seed=seed, calibration_approaches=2)
     simulate_to_log(spec, log, progress=False)
-    result = analyze(read_run(log), options=AnalysisOptions(datum='none'))
+    result = analyze(read_run(log), options=AnalysisOptions(datum=datum))
     model = Model.from_yaml(result.model.to_yaml()) if result.model is not None else Model()
     twin = TwinDevice(DEVICE, Effects.realistic(), seed=seed)
     room = ambient_profile('section_4_1')
@@ -489,11 +490,15 @@ def test_after_the_loop_the_fit_s_uncertainty_is_in_the_model_and_covers(tmp_pat
         errors += e
         covs += c
         inside += m
-    # a residual with an offset removed per component lacks the constant error: no replacing
+    # a residual with an offset removed per component lacks the constant error: it replaces
+    # the same sources and claims what the run leaves unknown of a constant per bar, whose
+    # common mode (all six bars alike: temperature, gravity) the pose's variation cannot show
     from mmd_ros.analysis.identify import AnalysisOptions, analyze
     from mmd_ros.logs.layout import read_run
     zeroed = analyze(read_run(log), options=AnalysisOptions(datum='offset')).model
-    assert zeroed is not None and zeroed.uncertainty.fit.replaces == ()
+    assert zeroed is not None and zeroed.uncertainty.fit.replaces == tuple(FIT_REPLACEABLE)
+    unseen = np.array(zeroed.uncertainty.fit.record['unseen_constant_nm'])
+    assert np.all(unseen > 0)
     e, c = np.concatenate(errors), np.concatenate(covs)
     ratio = np.sqrt(np.mean(np.diagonal(c, axis1=1, axis2=2), axis=0)) / np.sqrt(np.mean(e * e, axis=0))
     d2 = np.einsum('ni,ni->n', e, np.linalg.solve(c, e[:, :, None])[:, :, 0])
@@ -544,6 +549,42 @@ def _foreign_twin(k: int, length_error, datum: str,
     run, counts = run_of([p.format(seed=100 + k) for p in params], 600.0, scenario, reference)
     log = run_log(twin, calibration, run, 600.0, counts)
     return analyze(log, options=AnalysisOptions(datum=datum, **options)), calibration, twin, run_of
+
+
+def test_after_a_zeroed_fit_the_constant_it_could_not_see_is_claimed_from_the_pose_s_variation(tmp_path):
+    """With ``mmd analyze``'s default zeroed reference (an offset per pose component removed)
+    the calibration-derived sources used to stay whole after the fit: 5-7 times the error in
+    x, y and the rotations (6 twins in bench_uncertainty.py --after --datum offset), although
+    the fit's length terms had corrected what they stand for. A constant error of the bars
+    moves the pose by J^-1 c, and 6-DOF motion varies J^-1: the residual determines every
+    constant but the common mode, which keeps the calibration's claim. Four twins, each
+    judged with its own model on new motion: 99.0 % in the 95 % ellipsoid, ratios 1.31 1.67
+    1.55 2.51 2.83 1.57 (x y z roll pitch yaw). Conservative: the fitted run's residual
+    follows the pose slowly (the sag a zeroed fit leaves; 1 % of its samples independent),
+    and the claim holds the constants that residual suggests, 54-65 nm between bars where new
+    runs' were 7-21 nm apart (without them 98.0 %, ratios 1.17-2.21, but a bow across the bars
+    was covered 89 % where the fit saw them)."""
+    from mmd_ros.core.model import FIT_REPLACEABLE
+    errors, covs = [], []
+    for seed in (1, 2, 3, 4):
+        result, model, (e, c, _), _ = _after_the_loop(tmp_path, seed, datum='offset')
+        fit = model.uncertainty.fit
+        assert fit.replaces == tuple(FIT_REPLACEABLE)
+        common, differential = fit.record['unseen_common_mode_nm'], fit.record['unseen_differential_nm']
+        print(seed, [f.effect for f in result.found], 'unseen: common', common, 'differential', differential)
+        assert common > 2.0 * differential > 0.0
+        if seed == 1:       # the report says what the zeroed reference left unknown
+            from mmd_ros.analysis.report import write_report
+            report = write_report(result, tmp_path, figures=False)['report'].read_text()
+            assert f'{common} nm along the common mode of the six bars' in report
+        errors += e
+        covs += c
+    e, c = np.concatenate(errors), np.concatenate(covs)
+    ratio = np.sqrt(np.mean(np.diagonal(c, axis1=1, axis2=2), axis=0) / np.mean(e * e, axis=0))
+    cover = float(np.mean(_d2(e, c) <= LIMIT))
+    print('zeroed, after the loop: ratio', np.round(ratio, 2), 'coverage', cover)
+    assert 0.93 <= cover <= 0.995, cover
+    assert np.all((ratio >= 0.8) & (ratio <= 3.5)), ratio
 
 
 def test_what_a_fit_left_where_it_saw_only_a_segment_s_flank_is_measured_and_claimed_there(tmp_path):
@@ -615,7 +656,7 @@ def test_what_a_fit_left_where_it_saw_only_a_segment_s_flank_is_measured_and_cla
     assert sigma > 1.1 * sigma_without and covered > covered_without + 0.05
     from mmd_ros.analysis.report import write_report
     report = write_report(result, tmp_path, figures=False)['report'].read_text()
-    assert f'| bar5 | {math.sqrt(model.uncertainty.fit.residual_m2[bar, bar]) * 1e9:.1f} | ' \
+    assert f'| bar5 | {math.sqrt(model.uncertainty.fit.residual_m2[bar, bar]) * 1e9:.1f} | – | ' \
         f'{math.sqrt(flank[bar]) * 1e9:.1f} |' in report
 
 
@@ -662,7 +703,7 @@ def test_a_zeroed_fit_of_a_localised_length_error_moves_no_mean_it_cannot_see():
     ellipsoid. The fit may now move a component's mean only as far as the budget claims for
     it, and the budget's calibration-derived sources are scaled to claim as much as the terms
     of free constants corrected: measured mean changes of at most 2.6 and 2.0 times the
-    claimed sigma (pitch 1.4 and 0.7), 98.8 % in the ellipsoid on the new motion of both
+    claimed sigma (pitch 1.4 and 0.7), 99.8 % in the ellipsoid on the new motion of both
     twins."""
     errors, covs = [], []
     for k in (0, 1):
@@ -723,7 +764,8 @@ def test_an_interference_no_term_follows_is_carried_as_an_uncertainty(datum):
     still, which random motion never does: nothing was found, no model was written, and new
     motion had 22.7 % of its samples in the 95 % ellipsoid (4 twins, zeroed reference). The
     residual, about twice what the budget claims, is now written as an uncertainty only (the
-    model's terms unchanged): measured 98.6 % zeroed, 98.3 % absolute, ratios 0.98-1.04."""
+    model's terms unchanged): measured 99.4 % zeroed (ratios 1.01-1.12), 98.3 % absolute
+    (0.98-1.02)."""
     errors, covs, without = [], [], []
     for k in range(4):
         result, calibration, twin, run_of = _foreign_twin(k, _interference(k), datum)
@@ -739,7 +781,9 @@ def test_an_interference_no_term_follows_is_carried_as_an_uncertainty(datum):
     ratio = np.sqrt(np.mean(np.diagonal(c, axis1=1, axis2=2), axis=0) / np.mean(e ** 2, axis=0))
     print('coverage', np.mean(d2 <= LIMIT), 'without the model', np.round(without, 3), 'ratio', np.round(ratio, 2))
     assert max(without) < 0.5            # the interference is there, and the default budget misses it
-    assert 0.93 <= np.mean(d2 <= LIMIT) <= 0.99
+    # (an error of a sine's bounded spread, claimed at its variance, is inside the 95 %
+    # ellipsoid more often than a Gaussian one: the ratios say the claim is right)
+    assert 0.93 <= np.mean(d2 <= LIMIT) <= 0.995
     assert np.all((ratio >= 0.8) & (ratio <= 1.25))
 
 
@@ -796,7 +840,7 @@ def test_a_drift_fitted_on_one_run_is_claimed_on_another(datum):
     new motion had 7.7 % (zeroed reference) and 89.2 % (absolute) of its samples in the 95 %
     ellipsoid. Each bar's drift correction is now claimed as uncertain as it is large, and as
     much again as it varied over the fitted run (another run may drift of its own): measured
-    99.3 % and 100 % (conservative: 0.8-2.8 x the error; the fit cannot tell a drift that goes
+    99.9 % and 100 % (conservative: 0.8-2.7 x the error; the fit cannot tell a drift that goes
     on from one that starts again with each run)."""
     errors, covs = [], []
     for k in range(4):
@@ -903,9 +947,9 @@ def test_a_cyclic_error_the_calibration_read_too_is_fitted_as_the_calibrated_bar
     points give a pose, and new motion of twins 1 and 3 had 77.3 % and 76.9 % of its samples
     in the 95 % ellipsoid (86.4 % over four twins; a constant 44 nm in z against 27 nm
     claimed). The term now carries the error through the calibration's points when the data
-    say so (both are tried): one effect, whose law fixes the mean. Measured 100 % and 99.9 %
-    (99.1 % over four twins, ratios 1.05-1.43, with the twin's encoder bound stated: the zeroed
-    reference leaves the calibration's sources claimed in full)."""
+    say so (both are tried): one effect, whose law fixes the mean. Measured 99.9 % and 99.7 %
+    (99.0 % over four twins, ratios 1.05-1.55, with the twin's encoder bound stated: the zeroed
+    reference's claim holds what the runs leave unknown of a constant per bar)."""
     from mmd_ros.analysis.identify import analyze
     room = ambient_profile('section_4_1')
     covered = []

@@ -96,12 +96,21 @@ def _uncertainty_section(a: Analysis) -> list[str]:
          + (f'; it stands for {", ".join(fit.replaces)} where the fit saw the bars'
             if fit.replaces else '; the calibration-derived sources stay'
             + (f', scaled by {fit.systematic_scale:.3g}' if fit.systematic_scale != 1.0 else ''))
-         + '. The pose covariance adds these per bar (`msg_docs/frames.md`).', '',
-         '| bar | residual σ [nm] | where its fitted lengths end inside a CDF segment, σ [nm] |',
-         '|---|---|---|']
+         + '. The pose covariance adds these per bar (`msg_docs/frames.md`).', '']
+    unseen = fit.record.get('unseen_constant_nm')
+    if unseen is not None:
+        L += ['The reference was zeroed: the residual holds, per bar, what the runs left unknown of '
+              'a constant error (a zeroed reference reads its mean as an offset), '
+              f'{fit.record.get("unseen_common_mode_nm", "?")} nm along the common mode of the six '
+              'bars (which the pose\'s variation cannot show: temperature, gravity, the reference '
+              f'bar\'s zero) and {fit.record.get("unseen_differential_nm", "?")} nm RMS in the '
+              'directions between them.', '']
+    L += ['| bar | residual σ [nm] | of it, an unknown constant σ [nm] '
+          '| where its fitted lengths end inside a CDF segment, σ [nm] |', '|---|---|---|---|']
     for i in range(6):
         flank = math.sqrt(max(float(fit.flank_m2[i]), 0.0)) * 1e9
         L.append(f'| bar{i + 1} | {math.sqrt(max(float(fit.residual_m2[i, i]), 0.0)) * 1e9:.1f} | '
+                 + (f'{float(unseen[i]):.1f} | ' if unseen is not None else '– | ')
                  + (f'{flank:.1f} |' if flank > 0 else '– |'))
     return L + ['']
 

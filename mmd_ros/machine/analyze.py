@@ -80,12 +80,17 @@ def _model_text(options: SessionOptions, log_model: Model | None) -> str:
     else:
         what = f'a device model of {len(model.terms)} term(s) ({", ".join(t.type_name for t in model.terms)})'
         fit = model.uncertainty.fit
-        if fit is not None and fit.replaces:
+        if fit is not None and fit.replaces and 'unseen_constant_nm' in fit.record:
+            what += ('; its measured residual in place of the calibration-derived sources, fitted '
+                     'with an offset per component removed, so the constant error its runs could '
+                     'not see stays in the pose covariance (the common mode of the bars at the '
+                     'calibration\'s claim; characterise with an absolute reference, `mmd analyze '
+                     '--absolute-reference`, for it to shrink)')
+        elif fit is not None and fit.replaces:
             what += '; its measured residual in place of the calibration-derived sources'
         elif fit is not None:
-            what += ('; fitted with an offset per component removed, so the calibration-derived '
-                     'sources stay in the pose covariance (characterise with an absolute reference, '
-                     '`mmd analyze --absolute-reference`, for it to shrink)')
+            what += ('; fitted against a reference that did not see every bar, so the '
+                     'calibration-derived sources stay in the pose covariance')
     where = options.model_path or ('the given model' if options.model is not None else "the log's model")
     return f'{where}: {what}' if model is not None else what
 
