@@ -513,10 +513,10 @@ def _sized_from(fit: FitUncertainty, ctx: FitContext, found: list[FittedEffect],
             fit.record['unseen_constant_nm'] = [round(math.sqrt(v) * 1e9, 1) for v in np.diag(unseen)]
             fit.record['constant_estimate_nm'] = [round(float(v) * 1e9, 1) for v in estimate]
             common = np.full(6, 1.0 / math.sqrt(6.0))
-            rest = unseen - np.outer(unseen @ common, common)
-            rest = rest - np.outer(common, common @ rest)
-            fit.record['unseen_common_mode_nm'] = round(math.sqrt(max(common @ unseen @ common, 0.0)) * 1e9, 1)
-            fit.record['unseen_differential_nm'] = round(math.sqrt(max(np.trace(rest), 0.0) / 5.0) * 1e9, 1)
+            along = float(common @ unseen @ common)
+            between = float(np.trace(unseen)) - along          # the five other directions
+            fit.record['unseen_common_mode_nm'] = round(math.sqrt(max(along, 0.0)) * 1e9, 1)
+            fit.record['unseen_differential_nm'] = round(math.sqrt(max(between, 0.0) / 5.0) * 1e9, 1)
         excess[~seen, :] = 0.0
         excess[:, ~seen] = 0.0
         fit.residual_m2 = excess + fit.residual_m2     # (what another run may drift: run_own)

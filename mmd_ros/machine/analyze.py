@@ -89,8 +89,9 @@ def _model_text(options: SessionOptions, log_model: Model | None) -> str:
         elif fit is not None and fit.replaces:
             what += '; its measured residual in place of the calibration-derived sources'
         elif fit is not None:
-            what += ('; fitted against a reference that did not see every bar, so the '
-                     'calibration-derived sources stay in the pose covariance')
+            what += ('; the calibration-derived sources stay in the pose covariance (its fit\'s '
+                     'reference did not see every bar, or, in a model from before 2026-11-27, '
+                     'removed an offset per component)')
     where = options.model_path or ('the given model' if options.model is not None else "the log's model")
     return f'{where}: {what}' if model is not None else what
 
