@@ -116,8 +116,8 @@ def test_a_session_with_a_6dof_run_improves_every_component_of_another(session):
     """x, y, z, C and one 6-DOF run fitted jointly (the 6-DOF run's reference zeroed, the
     default); applied to a second 6-DOF run of the same device (other motion, not in the fit):
     every component improves, and the pose covariance covers that run's error against its
-    absolute reference. It covered 55.3 % when the zeroed residual stood beside the
-    calibration's sources and claimed nothing of the constant error it could not see; now
+    absolute reference. It covered 55.3 % when the calibration's sources stayed whole beside
+    the zeroed residual, before the claim of the constant error the runs leave unknown; now
     99.0 % (ratios 0.72-1.64)."""
     result = analyze([read_run(session[k]) for k in ('x', 'y', 'z', 'c', 'pose_a')], options=NO_LORO)
     assert result.model is not None, result.conclusion
