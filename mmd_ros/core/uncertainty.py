@@ -217,9 +217,36 @@ class InterpolationError:
                          - 2 * u * rho(x1 - x[:, b]) + 2 * u * (1 - u) * rho(x1 - x0))
         return np.maximum(out, 0.0) * self.sigma_m ** 2
 
+    def covariance(self, a_m: FloatArray, b_m: FloatArray, knots_m: FloatArray) -> FloatArray:
+        """Of one bar with knots ``knots_m`` (n,): the covariance of what is left at the
+        lengths ``a_m`` (p,) with what is left at ``b_m`` (q,), (p, q) [m^2] (the error less
+        its linear interpolation through the points; :meth:`variance` is its diagonal)."""
+        a, b = np.asarray(a_m, dtype=np.float64), np.asarray(b_m, dtype=np.float64)
+        if self.sigma_m <= 0.0:
+            return np.zeros((a.size, b.size))
+        kn = np.asarray(knots_m, dtype=np.float64)
+        wa, wb = _hat(a, kn), _hat(b, kn)
+        rho = self.correlation
+        out = (rho(a[:, None] - b[None, :]) - rho(a[:, None] - kn[None, :]) @ wb.T
+               - wa @ rho(kn[:, None] - b[None, :]) + wa @ rho(kn[:, None] - kn[None, :]) @ wb.T)
+        return out * self.sigma_m ** 2
+
     def as_dict(self) -> dict[str, Any]:
         return {'sigma_um': round(self.sigma_m * 1e6, 6), 'length_mm': round(self.length_m * 1e3, 3),
                 'dof': self.dof}
+
+
+def _hat(x_m: FloatArray, knots_m: FloatArray) -> FloatArray:
+    """The weights of a bar's points ``knots_m`` (n,) in the piecewise-linear interpolation at
+    ``x_m`` (p,), (p, n); the end segments extrapolated, as Eq. (10) does."""
+    n = knots_m.size
+    seg = np.clip(np.searchsorted(knots_m, x_m, side='right') - 1, 0, n - 2)
+    u = (x_m - knots_m[seg]) / (knots_m[seg + 1] - knots_m[seg])
+    out = np.zeros((x_m.size, n))
+    rows = np.arange(x_m.size)
+    out[rows, seg] = 1.0 - u
+    out[rows, seg + 1] = u
+    return out
 
 
 def fit_interpolation_error(knots_m: FloatArray, deviations_m: FloatArray,
