@@ -104,7 +104,8 @@ def _uncertainty_section(a: Analysis) -> list[str]:
               f'{fit.record.get("unseen_common_mode_nm", "?")} nm along the common mode of the six '
               'bars (which the pose\'s variation cannot show: temperature, gravity, the reference '
               f'bar\'s zero) and {fit.record.get("unseen_differential_nm", "?")} nm RMS in the '
-              'directions between them.', '']
+              'directions between them.'
+              + _shape_text(fit.record.get('shape_constant_nm')), '']
     L += ['| bar | residual σ [nm] | of it, an unknown constant σ [nm] '
           '| where its fitted lengths end inside a CDF segment, σ [nm] |', '|---|---|---|---|']
     for i in range(6):
@@ -113,6 +114,16 @@ def _uncertainty_section(a: Analysis) -> list[str]:
                  + (f'{float(unseen[i]):.1f} | ' if unseen is not None else '– | ')
                  + (f'{flank:.1f} |' if flank > 0 else '– |'))
     return L + ['']
+
+
+def _shape_text(shape_nm: list[float] | None) -> str:
+    """What the section says of the calibration's length-shaped errors between the bars."""
+    if not shape_nm:
+        return ''
+    rms = math.sqrt(sum(v * v for v in shape_nm) / len(shape_nm))
+    return (' Between the bars, the calibration\'s length-shaped errors (its points\', the '
+            'interpolation between them) were read from how each bar\'s residual varied with its '
+            f'length: {rms:.1f} nm RMS per bar left unknown of their mean.')
 
 
 def _markdown(a: Analysis, figs: dict[str, str], model_path: Path | None) -> str:

@@ -29,9 +29,12 @@ claim in two ways (``msg_docs/frames.md``):
   a posterior whose prior is those sources (scaled by k, ``systematic_scale``, never below 1,
   so that they claim per observed component as much as the terms with free constants,
   ``Effect.free_mean``, corrected over the log: an error the calibration may not know of,
-  whose mean over a log the reference does not see) and whose information is how the
-  constant moves the pose as J^-1 varies over the runs, none for the common mode of the six
-  bars (:func:`_unseen_constants`). A reference that sees only some pose components cannot
+  whose mean over a log the reference does not see), between the bars with their
+  length-shaped part (the points' errors, the interpolation between them: functions of a
+  bar's length) conditioned on how each bar's residual varied with its length
+  (:func:`_shape_constants`), and whose information is how the constant moves the pose as
+  J^-1 varies over the runs, none for the common mode of the six bars
+  (:func:`_unseen_constants`). A reference that sees only some pose components cannot
   tell the bars apart: the calibration-derived sources stay, scaled by the factor k that
   makes the observed components' predicted variance match what was observed, never below 1
   (what the reference did not see is not claimed better than before).
@@ -45,13 +48,15 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.linalg import block_diag
+from scipy.optimize import minimize_scalar
 from scipy.stats import chi2
 
 from mmd_ros.analysis.data import FitContext, Observation, Processed
 from mmd_ros.core.budget import LengthBudget, Observed
 from mmd_ros.core.kinematics import jacobian
 from mmd_ros.core.model import FIT_REPLACEABLE, FitUncertainty, Model, ModelTerm, ModelUncertainty
-from mmd_ros.core.terms import limited_to_seen
+from mmd_ros.core.terms import CdfOffsetsTerm, limited_to_seen
 from mmd_ros.core.uncertainty import pose_covariance
 from mmd_ros.core.validity import Validity
 
@@ -68,6 +73,13 @@ MAX_DIRECTIONS = 8
 DIRECTION_SHARE = 0.99
 #: Fewest samples of a bar in the flank of its fitted lengths to measure what is left there.
 FLANK_SAMPLES = 50
+#: The calibration's length-shaped sources: functions of each bar's length, zero-mean between
+#: its points (the points' own errors, the interpolation between them).
+LENGTH_SHAPED = ('calibration_points', 'interpolation')
+#: Lengths per bar and run at which the shaped sources' mean is conditioned on its variation.
+SHAPE_POINTS = 200
+#: Consecutive blocks of a run whose means of the residual show how a run's mean moves.
+DWELL_BLOCKS = 8
 
 
 @dataclass
@@ -435,7 +447,7 @@ def fit_uncertainty(ctx: FitContext, found: list[FittedEffect], runs: list[Resid
                          {'residual_from': ('logs the fit did not see (leave-one-run-out)' if unseen
                                             else 'held-out blocks of the fitted logs')},
                          measured_read_noise([run.ctx for run in runs]))
-    _sized_from(fit, ctx, found, runs, model)
+    _sized_from(fit, ctx, found, runs, model, unseen)
     # a form of an effect the logs could not rule out (a cyclic error the calibration read,
     # fitted from one component): the change to it is claimed too, after the residual and the
     # scale were measured (it is not in these logs' residual: counted there, it lowered the
@@ -449,9 +461,10 @@ def fit_uncertainty(ctx: FitContext, found: list[FittedEffect], runs: list[Resid
 
 
 def _sized_from(fit: FitUncertainty, ctx: FitContext, found: list[FittedEffect],
-                runs: list[ResidualRun], model: Model) -> None:
+                runs: list[ResidualRun], model: Model, unseen: bool = False) -> None:
     """The residual, the sources it replaces and the scale of the kept ones, measured on
-    ``runs`` with the claims ``fit`` makes so far (:func:`fit_uncertainty`)."""
+    ``runs`` with the claims ``fit`` makes so far (:func:`fit_uncertainty`; ``unseen``: the
+    runs' residuals are from models fitted without them)."""
     full, partial = [], []
     for run in runs:
         obs: Observation = run.ctx.obs
@@ -484,7 +497,7 @@ def _sized_from(fit: FitUncertainty, ctx: FitContext, found: list[FittedEffect],
             fit.record['scale_estimate'] = round(estimate, 4)
         n = 0
         parts = []
-        prior = np.zeros((6, 6))
+        prior, shaped = np.zeros((6, 6)), np.zeros((6, 6))
         for run, idx in full:
             obs = run.ctx.obs
             r = run.residual[idx]
@@ -503,13 +516,40 @@ def _sized_from(fit: FitUncertainty, ctx: FitContext, found: list[FittedEffect],
             kept, replaceable = _predicted(run, model, fit, sub)
             observed_cov += dd.T @ dd
             prior += np.mean(replaceable, axis=0) * idx.size
+            if replace and zeroed:      # (a mean over the samples: fewer of them do)
+                few = _spread(idx, 2000)
+                shaped += np.mean(_sources(run.ctx, run.after, _trial(model, fit), few,
+                                           LENGTH_SHAPED)[1], axis=0) * idx.size
             predicted += np.sum(kept if replace else kept + replaceable, axis=0) * (idx.size / sub.size)
             n += idx.size
         excess = _psd(observed_cov / n - predicted / n)
         if replace and zeroed:
-            # (the replaceable sources were predicted with the scale k already on them)
-            unseen, estimate = _unseen_constants(parts, prior / n)
+            # (the replaceable sources were predicted with the scale k already on them). The
+            # common mode keeps what they claim of it; between the bars, their length-shaped
+            # part is what the variation each bar showed leaves unknown of its mean
+            budget = _observing(full[0][0].ctx, full[0][0].after, _trial(model, fit))[0]
+            # (a fitted run's residual lacks the variation its terms of free constants took, and
+            # their mean is held: the shape is read with their correction taken back out)
+            free = [] if unseen else [f for f in found if f.effect.free_mean
+                                      and f.effect.scope != 'run' and f.theta is not None]
+            applied = []
+            for run, idx, _dd, _ref in parts:
+                at = idx[_shape_points(idx.size)]
+                applied.append(sum((f.effect.signature(run.ctx, f.hyper, at) @ f.theta
+                                    for f in free), np.zeros((at.size, 6))))
+            shape_var, shape_mean, moves = _shape_constants(parts, budget, fit.systematic_scale,
+                                                            applied)
+            common = np.full((6, 6), 1.0 / 6.0)
+            between = np.eye(6) - common
+            start = (common @ prior @ common
+                     + between @ (prior - shaped + np.diag(shape_var * n)) @ between) / n
+            unseen, estimate = _unseen_constants(parts, start, between @ shape_mean)
+            dwell = np.maximum(_dwell_means(parts), moves)
+            unseen = unseen + np.diag(dwell)
             excess = excess + unseen
+            fit.record['run_mean_nm'] = [round(math.sqrt(v) * 1e9, 1) for v in dwell]
+            fit.record['shape_constant_nm'] = [round(math.sqrt(v) * 1e9, 1) for v in shape_var]
+            fit.record['shape_estimate_nm'] = [round(float(v) * 1e9, 1) for v in shape_mean]
             fit.record['unseen_constant_nm'] = [round(math.sqrt(v) * 1e9, 1) for v in np.diag(unseen)]
             fit.record['constant_estimate_nm'] = [round(float(v) * 1e9, 1) for v in estimate]
             common = np.full(6, 1.0 / math.sqrt(6.0))
@@ -543,7 +583,8 @@ def _sized_from(fit: FitUncertainty, ctx: FitContext, found: list[FittedEffect],
 
 
 def _unseen_constants(parts: list[tuple[ResidualRun, IntArray, FloatArray, FloatArray]],
-                      prior: FloatArray) -> tuple[FloatArray, FloatArray]:
+                      prior: FloatArray, prior_mean: FloatArray | None = None
+                      ) -> tuple[FloatArray, FloatArray]:
     """What the runs leave unknown of a constant error of each bar when a reference removed an
     offset per component, (6, 6) [m^2], and the runs' estimate of that error (in the sign of
     their residual), (6,) [m].
@@ -551,19 +592,19 @@ def _unseen_constants(parts: list[tuple[ResidualRun, IntArray, FloatArray, Float
     A constant bar error c moves the pose by J^-1(t) c; a zeroed reference sees only the part
     of it that varies over a log, A(t) c with A = J^-1 minus its mean over the log (for an
     absolute reference A = J^-1; bar lengths: their rows of the identity, nothing when zeroed).
-    Prior: ``prior``, the calibration-derived sources' mean covariance over the fitted samples,
-    which stand for that error. Information: sum_t A^T W A, W the inverse of each component's
-    residual variance over its effective samples (a smooth residual is fewer independent
-    samples than it has). Claimed: the second moment of c given the data, the posterior
-    (P^-1 + I)^-1 and the estimate's square (an error the fit held back from a mean it could
-    not see, or one whose shape its terms lack, is left in the runs as a constant: without
-    it a bow across the bars, fitted zeroed on 4 twins, was covered 89 % where the fit saw the
-    bars). An error common to all six bars (temperature, gravity, the reference bar's zero,
-    the plates' scale) changes with the pose as the bars' directions do, and a zeroed
-    reference reads it as offsets: the common mode is given no information and keeps its
-    prior (on the twin, a gravity sag the calibration read flat left -37 to -120 nm on every
-    bar of new runs, while the constants the pose variation determined differed between bars
-    by 7 to 21 nm)."""
+    Prior: ``prior`` (mean ``prior_mean``, else zero), what the calibration-derived sources
+    claim of that error (:func:`_sized_from`). Information: sum_t A^T W A, W the inverse of
+    each component's residual variance over its effective samples (a smooth residual is
+    fewer independent samples than it has). Claimed: the second moment of c given the data,
+    the posterior (P^-1 + I)^-1 and the estimate's square (an error the fit held back from a
+    mean it could not see, or one whose shape its terms lack, is left in the runs as a
+    constant: without it a bow across the bars, fitted zeroed on 4 twins, was covered 89 %
+    where the fit saw the bars). An error common to all six bars (temperature, gravity, the
+    reference bar's zero, the plates' scale) changes with the pose as the bars' directions
+    do, and a zeroed reference reads it as offsets: the common mode is given no information
+    and keeps its prior (on the twin, a gravity sag the calibration read flat left -37 to
+    -120 nm on every bar of new runs, while the constants the pose variation determined
+    differed between bars by 7 to 21 nm)."""
     info, score = np.zeros((6, 6)), np.zeros(6)
     for run, idx, _dd, _ref in parts:
         obs = run.ctx.obs
@@ -588,8 +629,135 @@ def _unseen_constants(parts: list[tuple[ResidualRun, IntArray, FloatArray, Float
     ev, v = np.linalg.eigh(0.5 * (prior + prior.T))
     half = v * np.sqrt(np.maximum(ev, 0.0))           # P = H H^T, P may be singular
     posterior = half @ np.linalg.solve(np.eye(6) + half.T @ info @ half, half.T)
-    estimate = posterior @ score
+    start = np.zeros(6) if prior_mean is None else prior_mean
+    estimate = start + posterior @ (score - info @ start)
     return _psd(posterior) + np.outer(estimate, estimate), estimate
+
+
+def _shape_constants(parts: list[tuple[ResidualRun, IntArray, FloatArray, FloatArray]],
+                     budget: LengthBudget, scale: float, applied: list[FloatArray]
+                     ) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Per bar, what the runs leave unknown of the mean over their samples of the calibration's
+    length-shaped errors (:data:`LENGTH_SHAPED`) after the model, (6,) [m^2], and its estimate
+    from how the bar's error varied with its length, (6,) [m]. ``applied``: per part, the
+    change (m, 6) [m] the model's terms of free constants made to the lengths at its
+    :func:`_shape_points`, where they were fitted on that run (zero where the residual comes
+    from a model fitted without it): the error before them is the residual less it, and what
+    is left of the mean is the estimate from that error plus their mean change (a fit that
+    took a shape's variation and held back its mean left a residual that no longer shows it).
+
+    Those errors are functions of the bar's length (Gaussian, the covariance the budget claims:
+    each point's own error carried linearly between the points, and a smooth error between
+    them that is zero at the points; times ``scale``), and the runs see each bar's residual at
+    the lengths it passed through, less its mean over a zeroed run. A function known where it
+    varies is known in its mean as far as its covariance ties the two: an error zero at the
+    points is pinned by a run that passed through them. The Gaussian conditional of the mean
+    on the variation (each run's residual less its own mean at SHAPE_POINTS of its samples)
+    gives both. What the function does not explain is noise: per point, a variance s^2 times
+    the run's points over its residual's effective samples (a slow residual is fewer
+    independent points), s^2 the one that makes the residual most likely (the marginal
+    likelihood), not below the quantisation's; its own mean over a run, which no variation
+    shows, is claimed too (:func:`_unexplained_mean`).
+
+    Third, per bar, how far the mean of what the model leaves of that shape moves with where
+    a run dwells, (6,) [m^2]: its spread over the lengths the runs passed (the conditional
+    mean, plus the model's change), for a run may dwell anywhere among them. A term that
+    corrected the shape leaves little to move; a model that corrects none (its length terms
+    not written) leaves the whole shape, and a new run's mean of it is where it dwelt."""
+    var, mean, moves = np.zeros(6), np.zeros(6), np.zeros(6)
+    ie, knots = budget.interpolation, budget.knots_m
+    total = sum(idx.size for _run, idx, _dd, _ref in parts)
+    change = sum(np.mean(took, axis=0) * part[1].size for part, took in zip(parts, applied)) / total
+    for b in range(6):
+        x, d, w, blocks, spread, change_at = [], [], [], [], [], []
+        for (run, idx, dd, _ref), took in zip(parts, applied):
+            pick = _shape_points(idx.size)
+            change_at.append(took[:, b])
+            x.append(run.after.cdf_lengths_m[idx[pick], b])
+            d.append(dd[pick, b] - took[:, b])
+            w.append(np.full(pick.size, idx.size / (total * pick.size)))
+            independent = max(_independent_samples(dd[:, b]), 1.0)
+            spread.append(np.full(pick.size, max(pick.size / independent, 1.0)))
+            centre = np.eye(pick.size)
+            if run.ctx.obs.datum:
+                centre -= 1.0 / pick.size
+            blocks.append(centre)
+        xs, ws = np.concatenate(x), np.concatenate(w)
+        hat = -CdfOffsetsTerm.basis(np.repeat(xs[:, None], 6, axis=1), knots)[:, b, :]
+        cov = scale * (ie.covariance(xs, xs, knots[b]) + budget.point_var_m2 * (hat @ hat.T))
+        c = block_diag(*blocks)
+        g = 1.0 / np.sqrt(np.concatenate(spread))          # noise whitened: s^2 I
+        lam, u = np.linalg.eigh(g[:, None] * (c @ cov @ c.T) * g[None, :])
+        lam = np.maximum(lam, 0.0)
+        seen = c @ np.concatenate(d)
+        z = u.T @ (g * seen)
+        tied = u.T @ (g * (c @ cov @ ws))
+        floor = budget.resolution_m ** 2 / 12.0 * float(np.min(g * g))
+        a, s2 = _most_likely(lam, z, floor, max(float(np.mean(z * z)), floor * 10.0))
+        t = a * lam + s2
+        shape = a * (cov @ c.T @ (g * (u @ (z / t))))      # the function's conditional mean
+        rest = np.split(seen - c @ shape, np.cumsum([v.size for v in x])[:-1])
+        var[b] = (max(a * float(ws @ cov @ ws) - a * a * float(np.sum(tied * tied / t)), 0.0)
+                  + _unexplained_mean(rest, x, w))
+        mean[b] = a * float(np.sum(tied * z / t)) + change[b]
+        left = shape + np.concatenate(change_at)
+        moves[b] = float(ws @ (left - ws @ left) ** 2)
+    return var, mean, moves
+
+
+def _shape_points(n: int) -> IntArray:
+    """The SHAPE_POINTS evenly spread samples (positions among a run's n) at which the
+    length-shaped errors are read (:func:`_shape_constants`)."""
+    return _spread(np.arange(n), SHAPE_POINTS)
+
+
+def _most_likely(lam: FloatArray, z: FloatArray, floor: float, top: float) -> tuple[float, float]:
+    """The factor a >= 1 on a Gaussian function's covariance and the noise variance s^2 in
+    [floor, top] that make the data most likely, data and covariance in the covariance's
+    eigenbasis (``z``, eigenvalues ``lam``): a residual with more of the function's shape
+    than its prior allows (an error the calibration did not describe) widens it."""
+    def minus_log_likelihood(log_s2: float, a: float) -> float:
+        t = a * lam + math.exp(log_s2)
+        return float(np.sum(np.log(t)) + np.sum(z * z / t))
+
+    best = (math.inf, 1.0, floor)
+    for a in np.geomspace(1.0, 1e4, 25):
+        got = minimize_scalar(minus_log_likelihood, args=(float(a),), method='bounded',
+                              bounds=(math.log(floor), math.log(top)), options={'xatol': 1e-3})
+        if float(got.fun) < best[0]:
+            best = (float(got.fun), float(a), math.exp(float(got.x)))
+    return best[1], best[2]
+
+
+def _dwell_means(parts: list[tuple[ResidualRun, IntArray, FloatArray, FloatArray]]) -> FloatArray:
+    """Per bar, how far the mean of its error over a run moves with where the run dwelt,
+    (6,) [m^2]: the variance of the bar-length residual's means over DWELL_BLOCKS consecutive
+    blocks of each run, averaged over the runs by their samples. A constant error is the same
+    in every block; an error of the lengths a run passed (a bump one run crossed often and
+    another seldom) is not, and no variation within a run shows how much of it the next run's
+    mean holds: claimed for a run as long as a block."""
+    total, count = np.zeros(6), 0
+    for _run, idx, dd, _ref in parts:
+        if idx.size < 10 * DWELL_BLOCKS:
+            continue
+        means = np.array([b.mean(axis=0) for b in np.array_split(dd, DWELL_BLOCKS)])
+        total += np.var(means, axis=0, ddof=1) * idx.size
+        count += idx.size
+    return total / count if count else np.zeros(6)
+
+
+def _unexplained_mean(rest: list[FloatArray], lengths: list[FloatArray], weights: list[FloatArray]
+                      ) -> float:
+    """The variance of the mean over the runs of what a length-shaped function did not explain
+    of a bar's residual, ``rest`` per run at the ``lengths`` with the ``weights`` of the mean:
+    no variation shows it. Each run's mean square over its effective samples taken in the
+    order of length (a residual of another shape, a bump, is one draw however often the bar
+    passed it), its weight squared."""
+    out = 0.0
+    for r, x, wr in zip(rest, lengths, weights):
+        order = np.argsort(x)
+        out += float(np.sum(wr)) ** 2 * float(np.mean(r * r)) / max(_independent_samples(r[order]), 1.0)
+    return out
 
 
 def fitted_effects(sel: Any, chosen: list[tuple[Any, FloatArray]], found: list[Any],
