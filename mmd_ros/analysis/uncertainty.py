@@ -76,8 +76,10 @@ FLANK_SAMPLES = 50
 #: The calibration's length-shaped sources: functions of each bar's length, zero-mean between
 #: its points (the points' own errors, the interpolation between them).
 LENGTH_SHAPED = ('calibration_points', 'interpolation')
-#: Lengths per bar and run at which the shaped sources' mean is conditioned on its variation.
+#: Lengths per bar and run at which the shaped sources' mean is conditioned on its variation,
+#: and at most over all runs (the conditional costs the cube of their sum).
 SHAPE_POINTS = 200
+SHAPE_POINTS_TOTAL = 1200
 #: Consecutive blocks of a run whose means of the residual show how a run's mean moves.
 DWELL_BLOCKS = 8
 
@@ -534,7 +536,7 @@ def _sized_from(fit: FitUncertainty, ctx: FitContext, found: list[FittedEffect],
                                       and f.effect.scope != 'run' and f.theta is not None]
             applied = []
             for run, idx, _dd, _ref in parts:
-                at = idx[_shape_points(idx.size)]
+                at = idx[_shape_points(idx.size, len(parts))]
                 applied.append(sum((f.effect.signature(run.ctx, f.hyper, at) @ f.theta
                                     for f in free), np.zeros((at.size, 6))))
             shape_var, shape_mean, moves = _shape_constants(parts, budget, fit.systematic_scale,
@@ -671,7 +673,7 @@ def _shape_constants(parts: list[tuple[ResidualRun, IntArray, FloatArray, FloatA
     for b in range(6):
         x, d, w, blocks, spread, change_at = [], [], [], [], [], []
         for (run, idx, dd, _ref), took in zip(parts, applied):
-            pick = _shape_points(idx.size)
+            pick = _shape_points(idx.size, len(parts))
             change_at.append(took[:, b])
             x.append(run.after.cdf_lengths_m[idx[pick], b])
             d.append(dd[pick, b] - took[:, b])
@@ -705,10 +707,11 @@ def _shape_constants(parts: list[tuple[ResidualRun, IntArray, FloatArray, FloatA
     return var, mean, moves
 
 
-def _shape_points(n: int) -> IntArray:
-    """The SHAPE_POINTS evenly spread samples (positions among a run's n) at which the
-    length-shaped errors are read (:func:`_shape_constants`)."""
-    return _spread(np.arange(n), SHAPE_POINTS)
+def _shape_points(n: int, runs: int = 1) -> IntArray:
+    """The evenly spread samples (positions among a run's n, one of ``runs``) at which the
+    length-shaped errors are read (:func:`_shape_constants`): SHAPE_POINTS, fewer when many
+    runs would pass SHAPE_POINTS_TOTAL."""
+    return _spread(np.arange(n), max(min(SHAPE_POINTS, SHAPE_POINTS_TOTAL // max(runs, 1)), 20))
 
 
 def _most_likely(lam: FloatArray, z: FloatArray, floor: float, top: float) -> tuple[float, float]:
