@@ -577,6 +577,7 @@ def test_after_a_zeroed_fit_the_constant_it_could_not_see_is_claimed_from_the_po
             from mmd_ros.analysis.report import write_report
             report = write_report(result, tmp_path, figures=False)['report'].read_text()
             assert f'{common} nm along the common mode of the six bars' in report
+            assert "length-shaped errors (its points', the interpolation between them) were read" in report
         errors += e
         covs += c
     e, c = np.concatenate(errors), np.concatenate(covs)
