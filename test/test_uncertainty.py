@@ -648,7 +648,8 @@ def test_the_mean_of_a_length_shaped_error_is_read_from_how_it_varied_where_a_ru
     rng = np.random.default_rng(3)
     knots = np.tile(np.linspace(0.20, 0.50, 7), (6, 1))
     budget = SimpleNamespace(interpolation=InterpolationError(0.3e-6, 0.04), knots_m=knots,
-                             point_var_m2=(5e-9) ** 2, resolution_m=50e-9)
+                             point_var_m2=(5e-9) ** 2, resolution_m=50e-9,
+                             subdivision_left_m2=np.zeros(6))
     grid = np.linspace(0.19, 0.51, 600)
     hat = -CdfOffsetsTerm.basis(np.repeat(grid[:, None], 6, axis=1), knots)[:, 0, :]
     cov = budget.interpolation.covariance(grid, grid, knots[0]) + budget.point_var_m2 * hat @ hat.T

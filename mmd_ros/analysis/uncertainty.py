@@ -74,8 +74,10 @@ DIRECTION_SHARE = 0.99
 #: Fewest samples of a bar in the flank of its fitted lengths to measure what is left there.
 FLANK_SAMPLES = 50
 #: The calibration's length-shaped sources: functions of each bar's length, zero-mean between
-#: its points (the points' own errors, the interpolation between them).
-LENGTH_SHAPED = ('calibration_points', 'interpolation')
+#: its points (the points' own errors, the interpolation between them, and the sub-divisional
+#: error: the points' own, carried between them, and the live count's, whose period of
+#: micrometres no run's mean keeps).
+LENGTH_SHAPED = ('calibration_points', 'interpolation', 'subdivision')
 #: Lengths per bar and run at which the shaped sources' mean is conditioned on its variation,
 #: and at most over all runs (the conditional costs the cube of their sum).
 SHAPE_POINTS = 200
@@ -649,8 +651,8 @@ def _shape_constants(parts: list[tuple[ResidualRun, IntArray, FloatArray, FloatA
     took a shape's variation and held back its mean left a residual that no longer shows it).
 
     Those errors are functions of the bar's length (Gaussian, the covariance the budget claims:
-    each point's own error carried linearly between the points, and a smooth error between
-    them that is zero at the points; times ``scale``), and the runs see each bar's residual at
+    each point's own error and sub-divisional error carried linearly between the points, and a
+    smooth error between them that is zero at the points; times ``scale``), and the runs see each bar's residual at
     the lengths it passed through, less its mean over a zeroed run. A function known where it
     varies is known in its mean as far as its covariance ties the two: an error zero at the
     points is pinned by a run that passed through them. The Gaussian conditional of the mean
@@ -686,7 +688,8 @@ def _shape_constants(parts: list[tuple[ResidualRun, IntArray, FloatArray, FloatA
             blocks.append(centre)
         xs, ws = np.concatenate(x), np.concatenate(w)
         hat = -CdfOffsetsTerm.basis(np.repeat(xs[:, None], 6, axis=1), knots)[:, b, :]
-        cov = scale * (ie.covariance(xs, xs, knots[b]) + budget.point_var_m2 * (hat @ hat.T))
+        points = budget.point_var_m2 + float(budget.subdivision_left_m2[b])   # per point
+        cov = scale * (ie.covariance(xs, xs, knots[b]) + points * (hat @ hat.T))
         c = block_diag(*blocks)
         g = 1.0 / np.sqrt(np.concatenate(spread))          # noise whitened: s^2 I
         lam, u = np.linalg.eigh(g[:, None] * (c @ cov @ c.T) * g[None, :])
