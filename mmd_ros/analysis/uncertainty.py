@@ -543,11 +543,12 @@ def _sized_from(fit: FitUncertainty, ctx: FitContext, found: list[FittedEffect],
                                     for f in free), np.zeros((at.size, 6))))
             shape_var, shape_mean, moves = _shape_constants(parts, budget, fit.systematic_scale,
                                                             applied)
-            common = np.full((6, 6), 1.0 / 6.0)
-            between = np.eye(6) - common
-            start = (common @ prior @ common
-                     + between @ (prior - shaped + np.diag(shape_var * n)) @ between) / n
-            unseen, estimate = _unseen_constants(parts, start, between @ shape_mean)
+            on_all = np.full((6, 6), 1.0 / 6.0)          # projectors: the common mode, the rest
+            apart = np.eye(6) - on_all
+            start = (on_all @ prior @ on_all
+                     + apart @ (prior - shaped + np.diag(shape_var * n)) @ apart) / n
+            unseen, estimate = _unseen_constants(parts, start, apart @ shape_mean)
+            # and how far a run's mean moves with where it dwells, per bar
             dwell = np.maximum(_dwell_means(parts), moves)
             unseen = unseen + np.diag(dwell)
             excess = excess + unseen
