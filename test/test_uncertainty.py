@@ -642,7 +642,7 @@ def test_the_mean_of_a_length_shaped_error_is_read_from_how_it_varied_where_a_ru
     shape five times what the budget expects widens the covariance (the marginal
     likelihood's factor) and the estimate still holds."""
     from types import SimpleNamespace
-    from mmd_ros.analysis.uncertainty import _shape_constants, _shape_points
+    from mmd_ros.analysis.uncertainty import _shape_constants
     from mmd_ros.core.terms import CdfOffsetsTerm
     from mmd_ros.core.uncertainty import InterpolationError
     rng = np.random.default_rng(3)
@@ -670,8 +670,7 @@ def test_the_mean_of_a_length_shaped_error_is_read_from_how_it_varied_where_a_ru
         draws *= size
         part, truth = zeroed_run(lo, hi)
         draws /= size
-        nothing = np.zeros((_shape_points(part[1].size).size, 6))     # no term applied
-        var, mean, _ = _shape_constants([part], budget, 1.0, [nothing])
+        var, mean, _ = _shape_constants([part], budget, 1.0, [])     # no term fitted
         lengths = part[0].after.cdf_lengths_m
         sigma = np.sqrt(var)
         k = np.array([_mean_sd(cov, grid, lengths[::10, b]) for b in range(6)])

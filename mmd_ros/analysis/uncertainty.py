@@ -56,8 +56,8 @@ from mmd_ros.analysis.data import FitContext, Observation, Processed
 from mmd_ros.core.budget import LengthBudget, Observed
 from mmd_ros.core.kinematics import jacobian
 from mmd_ros.core.model import FIT_REPLACEABLE, FitUncertainty, Model, ModelTerm, ModelUncertainty
-from mmd_ros.core.terms import CdfOffsetsTerm, limited_to_seen
-from mmd_ros.core.uncertainty import pose_covariance
+from mmd_ros.core.terms import limited_to_seen
+from mmd_ros.core.uncertainty import hat_weights, pose_covariance
 from mmd_ros.core.validity import Validity
 
 __all__ = ['CLAIM_LEVEL', 'FittedEffect', 'MAX_DIRECTIONS', 'ResidualRun', 'beyond_claim',
@@ -536,13 +536,8 @@ def _sized_from(fit: FitUncertainty, ctx: FitContext, found: list[FittedEffect],
             # their mean is held: the shape is read with their correction taken back out)
             free = [] if unseen else [f for f in found if f.effect.free_mean
                                       and f.effect.scope != 'run' and f.theta is not None]
-            applied = []
-            for run, idx, _dd, _ref in parts:
-                at = idx[_shape_points(idx.size, len(parts))]
-                applied.append(sum((f.effect.signature(run.ctx, f.hyper, at) @ f.theta
-                                    for f in free), np.zeros((at.size, 6))))
             shape_var, shape_mean, moves = _shape_constants(parts, budget, fit.systematic_scale,
-                                                            applied)
+                                                            free)
             on_all = np.full((6, 6), 1.0 / 6.0)          # projectors: the common mode, the rest
             apart = np.eye(6) - on_all
             start = (on_all @ prior @ on_all
@@ -640,16 +635,16 @@ def _unseen_constants(parts: list[tuple[ResidualRun, IntArray, FloatArray, Float
 
 
 def _shape_constants(parts: list[tuple[ResidualRun, IntArray, FloatArray, FloatArray]],
-                     budget: LengthBudget, scale: float, applied: list[FloatArray]
+                     budget: LengthBudget, scale: float, free: list[FittedEffect]
                      ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Per bar, what the runs leave unknown of the mean over their samples of the calibration's
     length-shaped errors (:data:`LENGTH_SHAPED`) after the model, (6,) [m^2], and its estimate
-    from how the bar's error varied with its length, (6,) [m]. ``applied``: per part, the
-    change (m, 6) [m] the model's terms of free constants made to the lengths at its
-    :func:`_shape_points`, where they were fitted on that run (zero where the residual comes
-    from a model fitted without it): the error before them is the residual less it, and what
-    is left of the mean is the estimate from that error plus their mean change (a fit that
-    took a shape's variation and held back its mean left a residual that no longer shows it).
+    from how the bar's error varied with its length, (6,) [m]. ``free``: the model's terms of
+    free constants fitted on these runs (none where the residuals come from models fitted
+    without them): the error before them is the residual less the change they made to the
+    lengths, and what is left of the mean is the estimate from that error plus their mean
+    change (a fit that took a shape's variation and held back its mean left a residual that no
+    longer shows it).
 
     Those errors are functions of the bar's length (Gaussian, the covariance the budget claims:
     each point's own error and sub-divisional error carried linearly between the points, and a
@@ -672,11 +667,14 @@ def _shape_constants(parts: list[tuple[ResidualRun, IntArray, FloatArray, FloatA
     var, mean, moves = np.zeros(6), np.zeros(6), np.zeros(6)
     ie, knots = budget.interpolation, budget.knots_m
     total = sum(idx.size for _run, idx, _dd, _ref in parts)
+    most = max(min(SHAPE_POINTS, SHAPE_POINTS_TOTAL // len(parts)), 20)    # per run
+    picks = [_spread(np.arange(idx.size), most) for _run, idx, _dd, _ref in parts]
+    applied = [sum((f.effect.signature(part[0].ctx, f.hyper, part[1][pick]) @ f.theta
+                    for f in free), np.zeros((pick.size, 6))) for part, pick in zip(parts, picks)]
     change = sum(np.mean(took, axis=0) * part[1].size for part, took in zip(parts, applied)) / total
     for b in range(6):
         x, d, w, blocks, spread, change_at = [], [], [], [], [], []
-        for (run, idx, dd, _ref), took in zip(parts, applied):
-            pick = _shape_points(idx.size, len(parts))
+        for (run, idx, dd, _ref), took, pick in zip(parts, applied, picks):
             change_at.append(took[:, b])
             x.append(run.after.cdf_lengths_m[idx[pick], b])
             d.append(dd[pick, b] - took[:, b])
@@ -688,7 +686,7 @@ def _shape_constants(parts: list[tuple[ResidualRun, IntArray, FloatArray, FloatA
                 centre -= 1.0 / pick.size
             blocks.append(centre)
         xs, ws = np.concatenate(x), np.concatenate(w)
-        hat = -CdfOffsetsTerm.basis(np.repeat(xs[:, None], 6, axis=1), knots)[:, b, :]
+        hat = hat_weights(xs, knots[b])
         points = budget.point_var_m2 + float(budget.subdivision_left_m2[b])   # per point
         cov = scale * (ie.covariance(xs, xs, knots[b]) + points * (hat @ hat.T))
         c = block_diag(*blocks)
@@ -709,13 +707,6 @@ def _shape_constants(parts: list[tuple[ResidualRun, IntArray, FloatArray, FloatA
         left = shape + np.concatenate(change_at)
         moves[b] = float(ws @ (left - ws @ left) ** 2)
     return var, mean, moves
-
-
-def _shape_points(n: int, runs: int = 1) -> IntArray:
-    """The evenly spread samples (positions among a run's n, one of ``runs``) at which the
-    length-shaped errors are read (:func:`_shape_constants`): SHAPE_POINTS, fewer when many
-    runs would pass SHAPE_POINTS_TOTAL."""
-    return _spread(np.arange(n), max(min(SHAPE_POINTS, SHAPE_POINTS_TOTAL // max(runs, 1)), 20))
 
 
 def _most_likely(lam: FloatArray, z: FloatArray, floor: float, top: float) -> tuple[float, float]:

@@ -67,7 +67,8 @@ from mmd_ros.core.kinematics import propagate_covariance
 
 __all__ = [
     'CalibrationUncertainty', 'InterpolationError', 'capture_var', 'NoiseEstimator', 'averaged_quantisation_var',
-    'dither_var', 'fit_interpolation_error', 'pose_covariance', 'quantisation_cross_cov',
+    'dither_var', 'fit_interpolation_error', 'hat_weights', 'pose_covariance',
+    'quantisation_cross_cov',
     'quantisation_cross_weights',
     'read_noise_from_dither', 'two_sided_figures',
 ]
@@ -225,7 +226,7 @@ class InterpolationError:
         if self.sigma_m <= 0.0:
             return np.zeros((a.size, b.size))
         kn = np.asarray(knots_m, dtype=np.float64)
-        wa, wb = _hat(a, kn), _hat(b, kn)
+        wa, wb = hat_weights(a, kn), hat_weights(b, kn)
         rho = self.correlation
         out = (rho(a[:, None] - b[None, :]) - rho(a[:, None] - kn[None, :]) @ wb.T
                - wa @ rho(kn[:, None] - b[None, :]) + wa @ rho(kn[:, None] - kn[None, :]) @ wb.T)
@@ -236,7 +237,7 @@ class InterpolationError:
                 'dof': self.dof}
 
 
-def _hat(x_m: FloatArray, knots_m: FloatArray) -> FloatArray:
+def hat_weights(x_m: FloatArray, knots_m: FloatArray) -> FloatArray:
     """The weights of a bar's points ``knots_m`` (n,) in the piecewise-linear interpolation at
     ``x_m`` (p,), (p, n); the end segments extrapolated, as Eq. (10) does."""
     n = knots_m.size
