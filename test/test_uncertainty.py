@@ -561,9 +561,11 @@ def test_after_a_zeroed_fit_the_constant_it_could_not_see_is_claimed_from_the_po
     calibration's length-shaped errors are read from how each bar's error varied with its
     length (their prior alone, the mean of their pointwise variance, claimed roll and pitch
     2.5-2.8 times the error on these twins: ratios 1.31 1.67 1.55 2.51 2.83 1.57). Four twins,
-    each judged with its own model on new motion: ratios 1.34 1.72 1.56 1.59 1.55 1.60 (x y z
-    roll pitch yaw), 99.7 % in the 95 % ellipsoid: conservative, for the claim holds how far
-    a run's mean moves with where it dwells as if a run could dwell anywhere the fit saw."""
+    each judged with its own model on new motion: ratios 1.27 1.65 1.56 1.47 1.44 1.52 (x y z
+    roll pitch yaw), 98.5 % in the 95 % ellipsoid, conservative beyond the lengths the fit saw
+    (bench_uncertainty.py); 99.7 % (ratios 1.34-1.72) while the claim held how far a run's
+    mean moves with where it dwells as if a run could dwell anywhere the fit saw, also where
+    the calibration described the shape the model leaves."""
     from mmd_ros.core.model import FIT_REPLACEABLE
     errors, covs = [], []
     for seed in (1, 2, 3, 4):
@@ -584,8 +586,16 @@ def test_after_a_zeroed_fit_the_constant_it_could_not_see_is_claimed_from_the_po
     ratio = np.sqrt(np.mean(np.diagonal(c, axis1=1, axis2=2), axis=0) / np.mean(e * e, axis=0))
     cover = float(np.mean(_d2(e, c) <= LIMIT))
     print('zeroed, after the loop: ratio', np.round(ratio, 2), 'coverage', cover)
-    assert 0.93 <= cover <= 0.999, cover
+    assert 0.93 <= cover <= 0.995, cover
     assert np.all((ratio >= 0.8) & (ratio <= 2.0)), ratio
+
+
+def test_the_report_names_the_bars_whose_length_error_the_calibration_does_not_describe():
+    from mmd_ros.analysis.report import _shape_text
+    described = _shape_text([12.0] * 6, [1.0] * 6)
+    assert '12.0 nm RMS per bar' in described and 'held more' not in described
+    wide = _shape_text([12.0] * 6, [1.0, 1.0, 4.0, 1.0, 100.0, 1.0])
+    assert 'bar3 (2.0 ×), bar5 (10.0 ×) held more of that shape than the calibration describes' in wide
 
 
 def test_a_constant_between_the_bars_is_read_from_the_pose_s_variation_and_the_common_mode_is_not():
@@ -640,7 +650,11 @@ def test_the_mean_of_a_length_shaped_error_is_read_from_how_it_varied_where_a_ru
     of the true mean over the run; sigma is a tenth of the mean's prior where the bars swept
     several points (3 nm of 32 nm), several times more where they stayed mid-segment. A
     shape five times what the budget expects widens the covariance (the marginal
-    likelihood's factor) and the estimate still holds."""
+    likelihood's factor) and the estimate still holds. How far a new run's mean of the shape
+    moves with where it dwells is claimed for the part of the shape beyond the description
+    (the factor's share 1 - 1/a of its spread): nearly all of the spread for the shape five
+    times the description, nothing for a shape it describes where the bars swept the points
+    (the whole spread made the claim 1.2-1.3 times the error of new runs on the twin)."""
     from types import SimpleNamespace
     from mmd_ros.analysis.uncertainty import _shape_constants
     from mmd_ros.core.terms import CdfOffsetsTerm
@@ -670,12 +684,16 @@ def test_the_mean_of_a_length_shaped_error_is_read_from_how_it_varied_where_a_ru
         draws *= size
         part, truth = zeroed_run(lo, hi)
         draws /= size
-        var, mean, _ = _shape_constants([part], budget, 1.0, [])     # no term fitted
+        var, mean, moves, factor = _shape_constants([part], budget, 1.0, [])    # no term fitted
+        error = np.column_stack([np.interp(lengths_b, grid, draws[:, b] * size) for b, lengths_b
+                                 in enumerate(part[0].after.cdf_lengths_m.T)])
+        spread = np.var(error, axis=0)
         lengths = part[0].after.cdf_lengths_m
         sigma = np.sqrt(var)
         k = np.array([_mean_sd(cov, grid, lengths[::10, b]) for b in range(6)])
         print(f'{lo * 1e3:.0f}-{hi * 1e3:.0f} mm: estimate - truth [nm]', np.round((mean - truth) * 1e9, 1),
-              'sigma', np.round(sigma * 1e9, 1), 'prior', np.round(k * 1e9, 1))
+              'sigma', np.round(sigma * 1e9, 1), 'prior', np.round(k * 1e9, 1), 'factor', factor,
+              'moves / spread', np.round(moves / spread, 2))
         assert np.all(np.abs(mean - truth) <= 3 * sigma + 2e-9)
         if swept is None:
             assert np.all(sigma < 0.2 * k)
@@ -684,6 +702,10 @@ def test_the_mean_of_a_length_shaped_error_is_read_from_how_it_varied_where_a_ru
             assert np.all(sigma > 3 * swept)
         else:     # five times the shape the budget expects: the covariance widened to it
             assert np.all(sigma > 2 * swept)
+        if size == 5.0:
+            assert np.all(factor >= 10.0) and np.all(moves >= 0.8 * spread)
+        elif hi - lo > 0.1:     # (mid-segment, 30 mm of a shape is too little to tell a)
+            assert np.all(moves <= 0.35 * spread)     # a = 1, or the grid's next step 1.47
 
 
 def _mean_sd(cov: np.ndarray, grid: np.ndarray, lengths: np.ndarray) -> float:

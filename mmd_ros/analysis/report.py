@@ -105,7 +105,8 @@ def _uncertainty_section(a: Analysis) -> list[str]:
               'bars (which the pose\'s variation cannot show: temperature, gravity, the reference '
               f'bar\'s zero) and {fit.record.get("unseen_differential_nm", "?")} nm RMS in the '
               'directions between them.'
-              + _shape_text(fit.record.get('shape_constant_nm')), '']
+              + _shape_text(fit.record.get('shape_constant_nm'), fit.record.get('shape_factor')),
+              '']
     L += ['| bar | residual σ [nm] | of it, an unknown constant σ [nm] '
           '| where its fitted lengths end inside a CDF segment, σ [nm] |', '|---|---|---|---|']
     for i in range(6):
@@ -116,14 +117,23 @@ def _uncertainty_section(a: Analysis) -> list[str]:
     return L + ['']
 
 
-def _shape_text(shape_nm: list[float] | None) -> str:
-    """What the section says of the calibration's length-shaped errors between the bars."""
+def _shape_text(shape_nm: list[float] | None, factor: list[float] | None = None) -> str:
+    """What the section says of the calibration's length-shaped errors between the bars, and
+    of the bars whose error held more of that shape than the calibration describes."""
     if not shape_nm:
         return ''
     rms = math.sqrt(sum(v * v for v in shape_nm) / len(shape_nm))
-    return (' Between the bars, the calibration\'s length-shaped errors (its points\', the '
+    text = (' Between the bars, the calibration\'s length-shaped errors (its points\', the '
             'interpolation between them) were read from how each bar\'s residual varied with its '
             f'length: {rms:.1f} nm RMS per bar left unknown of their mean.')
+    wide = [(i, a) for i, a in enumerate(factor or []) if a > 1.0]
+    if wide:
+        text += (' ' + ', '.join(f'bar{i + 1} ({math.sqrt(a):.1f} ×)' for i, a in wide)
+                 + ' held more of that shape than the calibration describes (σ times the factor '
+                 'given): no description ties its mean to its variation, and the claim adds that '
+                 'share of its spread for where a new run dwells (a length term or a new '
+                 'calibration would remove it).')
+    return text
 
 
 def _markdown(a: Analysis, figs: dict[str, str], model_path: Path | None) -> str:
