@@ -34,6 +34,7 @@ from mmd_ros.core.compiled import fast, use_compiled
 from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.errors import CalibrationError
 from mmd_ros.core.model import Model, TermContext
+from mmd_ros.core.piecewise import bar_segments
 from mmd_ros.core.terms import MAX_GAP_S, SamplingSkewTerm, lengths_within
 from mmd_ros.core.uncertainty import (
     InterpolationError, NoiseEstimator, capture_var, fit_interpolation_error,
@@ -551,9 +552,7 @@ class LengthBudget:
             else:
                 t.diag[name] = k * value
         if self._has_pairs and self._kept('reference_distances'):
-            k = self.knots_m
-            seg = np.clip(np.sum(x[:, :, None] >= k[None], axis=2) - 1, 0, k.shape[1] - 2)
-            u = (x - k[rows, seg]) / (k[rows, seg + 1] - k[rows, seg])
+            seg, u = bar_segments(x, self.knots_m)
             h = np.zeros((n, 6, self.pair_var_m2.size))
             pj0, pj1 = self.pair_index[rows, seg], self.pair_index[rows, seg + 1]
             nn = np.arange(n)[:, None]
@@ -599,8 +598,7 @@ class LengthBudget:
         grid = np.linspace(lo, hi, self._grid_n)
         x = np.repeat(grid[:, None], 6, axis=1)
         rows = np.arange(6)[None, :]
-        seg = np.clip(np.sum(x[:, :, None] >= k[None], axis=2) - 1, 0, k.shape[1] - 2)
-        u = (x - k[rows, seg]) / (k[rows, seg + 1] - k[rows, seg])
+        seg, u = bar_segments(x, k)
         tab: dict[str, FloatArray] = {}
         tab['calibration_points'] = (self.point_var_m2 * ((1.0 - u) ** 2 + u ** 2)).T
         if self._has_drift:

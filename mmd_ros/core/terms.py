@@ -43,6 +43,7 @@ from mmd_ros.core.errors import ConfigError
 from mmd_ros.core.model import (
     HysteresisTerm, ModelTerm, TermContext, play_operator, register_term, six_values,
 )
+from mmd_ros.core.piecewise import segment
 from mmd_ros.core.rotation import rotation_matrix
 from mmd_ros.core.units import M_PER_MM, M_PER_NM, M_PER_UM, PPM
 
@@ -638,8 +639,7 @@ class ScaleNonlinearityTerm(ModelTerm):
             span = kn[-1] - kn[0]
             xi = (x_m[:, i] - kn[0]) / span
             xk = (kn - kn[0]) / span
-            seg = np.clip(np.searchsorted(kn, x_m[:, i], side='right') - 1, 0, kn.size - 2)
-            w = (x_m[:, i] - kn[seg]) / (kn[seg + 1] - kn[seg])
+            seg, w = segment(x_m[:, i], kn)
             for k in range(1, harmonics + 1):
                 for j, fn in enumerate((np.sin, np.cos)):
                     at_knots = fn(2 * np.pi * k * xk)
@@ -706,8 +706,7 @@ class CdfOffsetsTerm(ModelTerm):
         rows = np.arange(x_m.shape[0])
         for i in range(x_m.shape[1]):
             kn = knots_m[i]
-            seg = np.clip(np.searchsorted(kn, x_m[:, i], side='right') - 1, 0, n_k - 2)
-            w = (x_m[:, i] - kn[seg]) / (kn[seg + 1] - kn[seg])
+            seg, w = segment(x_m[:, i], kn)
             out[rows, i, seg] = -(1.0 - w)
             out[rows, i, seg + 1] = -w
         return out
@@ -808,9 +807,8 @@ class CyclicErrorTerm(ModelTerm):
 
 def _through_points(x: FloatArray, knots: FloatArray, values: FloatArray) -> FloatArray:
     """The line through (knots, values) at x, the end segments extended (as the CDF is)."""
-    i = np.clip(np.searchsorted(knots, x, side='right') - 1, 0, knots.size - 2)
-    slope = (values[i + 1] - values[i]) / (knots[i + 1] - knots[i])
-    return values[i] + slope * (x - knots[i])
+    i, u = segment(x, knots)
+    return values[i] + u * (values[i + 1] - values[i])
 
 
 # -- timing ------------------------------------------------------------------------------------

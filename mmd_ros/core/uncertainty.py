@@ -64,6 +64,7 @@ from scipy.optimize import brentq, minimize
 
 from mmd_ros.core import validate
 from mmd_ros.core.kinematics import propagate_covariance
+from mmd_ros.core.piecewise import segment
 
 __all__ = [
     'CalibrationUncertainty', 'InterpolationError', 'capture_var', 'NoiseEstimator', 'averaged_quantisation_var',
@@ -210,9 +211,8 @@ class InterpolationError:
             return out
         for b in range(x.shape[1]):
             kn = knots_m[b]
-            seg = np.clip(np.searchsorted(kn, x[:, b], side='right') - 1, 0, kn.size - 2)
+            seg, u = segment(x[:, b], kn)
             x0, x1 = kn[seg], kn[seg + 1]
-            u = (x[:, b] - x0) / (x1 - x0)
             rho = self.correlation
             out[:, b] = (1.0 + (1 - u) ** 2 + u ** 2 - 2 * (1 - u) * rho(x[:, b] - x0)
                          - 2 * u * rho(x1 - x[:, b]) + 2 * u * (1 - u) * rho(x1 - x0))
@@ -241,8 +241,7 @@ def hat_weights(x_m: FloatArray, knots_m: FloatArray) -> FloatArray:
     """The weights of a bar's points ``knots_m`` (n,) in the piecewise-linear interpolation at
     ``x_m`` (p,), (p, n); the end segments extrapolated, as Eq. (10) does."""
     n = knots_m.size
-    seg = np.clip(np.searchsorted(knots_m, x_m, side='right') - 1, 0, n - 2)
-    u = (x_m - knots_m[seg]) / (knots_m[seg + 1] - knots_m[seg])
+    seg, u = segment(x_m, knots_m)
     out = np.zeros((x_m.size, n))
     rows = np.arange(x_m.size)
     out[rows, seg] = 1.0 - u
