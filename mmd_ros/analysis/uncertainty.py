@@ -694,7 +694,8 @@ def _shape_constants(parts: list[tuple[ResidualRun, IntArray, FloatArray, FloatA
             blocks.append(centre)
         xs, ws = np.concatenate(x), np.concatenate(w)
         hat = hat_weights(xs, knots[b])
-        points = budget.point_var_m2 + float(budget.subdivision_left_m2[b])   # per point
+        points = (budget.point_var_m2 + float(budget.point_friction_m2[b])      # per point
+                  + float(budget.subdivision_left_m2[b]))
         cov = scale * (ie.covariance(xs, xs, knots[b]) + points * (hat @ hat.T))
         c = block_diag(*blocks)
         g = 1.0 / np.sqrt(np.concatenate(spread))          # noise whitened: s^2 I

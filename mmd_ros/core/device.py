@@ -39,7 +39,8 @@ SECTION_KEYS = {
     'joints': ('use', 'upper_design_mm', 'upper_measured_mm', 'lower_design_mm', 'lower_measured_mm'),
     'reference_plate': ('use', 'cte_ppm_per_c', 'distance_uncertainty_um', 'pairs'),
     'bars': ('range_mm', 'encoder_resolution_nm', 'scale_cte_ppm_per_c', 'rod_cte_ppm_per_c',
-             'fixed_length_mm', 'thermal_mismatch_fraction', 'subdivision_error_nm', 'signal_period_um'),
+             'fixed_length_mm', 'thermal_mismatch_fraction', 'subdivision_error_nm', 'signal_period_um',
+             'friction_hysteresis_nm'),
     'plates': ('position_layer_cte_ppm_per_c',),
     'limits': ('upper_tilt_deg', 'lower_tilt_deg', 'min_bar_separation_mm'),
     'terminal': ('sample_rate_hz', 'counter_bits', 'latch_skew_us', 'channels'),
@@ -110,6 +111,11 @@ class DeviceDescription:
     #: period (the scale's grating signal period) [m]; None when the description does not say
     subdivision_error_m: float | None = None
     signal_period_m: float | None = None
+    #: the bars' friction hysteresis, as the bars' characterisation states it: the amplitude h
+    #: by which a bar that last lengthened reads short (half its reversal difference), RMS over
+    #: bars of the type [m]; None when the description does not say (a two-sided calibration
+    #: measures each bar's own)
+    friction_hysteresis_m: float | None = None
 
     @property
     def reference_distances_m(self) -> NDArray[np.float64]:
@@ -151,6 +157,10 @@ class DeviceDescription:
         (``bars.subdivision_error_nm``, ``bars.signal_period_um``) [m]."""
         return self._stating('bars', subdivision_error_nm=round(float(amplitude_m) * 1e9, 6),
                              signal_period_um=round(float(period_m) * 1e6, 9))
+
+    def with_friction_hysteresis(self, amplitude_m: float) -> DeviceDescription:
+        """A copy that states the bars' friction hysteresis (``bars.friction_hysteresis_nm``) [m]."""
+        return self._stating('bars', friction_hysteresis_nm=round(float(amplitude_m) * 1e9, 6))
 
     def _stating(self, section: str, **values: float) -> DeviceDescription:
         data = copy.deepcopy(self.raw)
@@ -328,6 +338,8 @@ def parse_device(data: dict[str, Any], source: str = '<device>') -> DeviceDescri
                                    else None),
         latch_skew_s=(r.number(terminal, 'latch_skew_us', 'terminal', low=0.0, high=1000.0) * 1e-6
                       if 'latch_skew_us' in terminal else None),
+        friction_hysteresis_m=(r.number(bars, 'friction_hysteresis_nm', 'bars', low=0.0, high=100000.0)
+                               * M_PER_NM if 'friction_hysteresis_nm' in bars else None),
         **_subdivision(r, bars, resolution),
     )
 

@@ -63,6 +63,8 @@ STILL_M = 1e-12
 #: Further seatings of a bar on a pair with their own seating offsets (seat 0 is the bar's
 #: resting placement, ``seating_m``).
 RESEATS = 4
+#: Each bar's friction amplitude is this range times ``Effects.hysteresis_m`` (uniform).
+HYSTERESIS_SPREAD = (0.5, 1.5)
 
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 _M1 = np.uint64(0xBF58476D1CE4E5B9)
@@ -228,7 +230,7 @@ class BarPhysics:
         put('nonlinearity_phase_rad', phases)
 
         g = rng(STREAM_HYSTERESIS)
-        put('hysteresis_m', eff.hysteresis_m * g.uniform(0.5, 1.5, n))
+        put('hysteresis_m', eff.hysteresis_m * g.uniform(*HYSTERESIS_SPREAD, n))
         put('start_state', g.uniform(-1.0, 1.0, n))
         put('pair_state', g.choice([-1.0, 1.0], (n, n_pairs)))
 

@@ -33,7 +33,7 @@ from mmd_ros.twin.effects import Effects
 from mmd_ros.twin.errors import TwinError
 from mmd_ros.twin.machine import MachineTrajectory
 from mmd_ros.twin.mechanism import bar_legs, check_workspace, rotation_matrices
-from mmd_ros.twin.physics import RESEATS, BarPhysics, DahlState, dahl
+from mmd_ros.twin.physics import HYSTERESIS_SPREAD, RESEATS, BarPhysics, DahlState, dahl
 from mmd_ros.twin.reference import POSE_NOISE, reference_names, reference_values
 from mmd_ros.twin.scenarios import MAX_DURATION_S, RestingBars, Scenario
 from mmd_ros.twin.thermal import REFERENCE_TEMP_C, AmbientProfile
@@ -205,13 +205,19 @@ class TwinDevice:
         channels' delays (``sampling_skew_s``), not the channels' own delays, which stay hidden
         (as a real terminal's datasheet states a bound); the encoders' sub-divisional error
         (``bars.subdivision_error_nm``, ``bars.signal_period_um``) is the effects' cyclic
-        amplitude and period (each bar's phase stays hidden). What a description states, it
-        keeps."""
+        amplitude and period (each bar's phase stays hidden); the bars' friction hysteresis
+        (``bars.friction_hysteresis_nm``) is the RMS of the amplitudes the effects give the bars
+        (each bar's own stays hidden, as a characterisation of the bar type states it). What a
+        description states, it keeps."""
         device = self.device
         if device.latch_skew_s is None:
             device = device.with_latch_skew(self.effects.sampling_skew_s)
         if device.subdivision_error_m is None:
             device = device.with_subdivision_error(self.effects.cyclic_error_m, self.effects.cyclic_period_m)
+        if device.friction_hysteresis_m is None:
+            lo, hi = HYSTERESIS_SPREAD      # the RMS of a uniform share in [lo, hi]
+            device = device.with_friction_hysteresis(
+                self.effects.hysteresis_m * math.sqrt((hi ** 3 - lo ** 3) / (3.0 * (hi - lo))))
         return device
 
     # -- bars on the reference plate -----------------------------------------------------------
