@@ -462,7 +462,8 @@ def test_the_paper_s_one_sided_routine_is_covered_with_the_bars_stated_friction(
     x = budget.knots_m[:, 2][None, :]
     refs = np.zeros((1, len(DEVICE.reference_channels)))
     points = budget.variances(x, refs, np.zeros(1))['calibration_points']
-    np.testing.assert_allclose(np.diagonal(points[0]), budget.point_var_m2 + h * h, rtol=2e-3)  # (its table)
+    np.testing.assert_allclose(np.diagonal(points[0]), budget.point_var_m2 + h * h,
+                               rtol=2e-3)      # (read from its table)
     blind = LengthBudget(unstated, calibration, Model())
     assert not np.any(blind.point_friction_m2)
     assert any('friction state each point was captured in' in n for n in blind.notes)
@@ -642,7 +643,8 @@ def test_the_report_names_the_bars_whose_length_error_the_calibration_does_not_d
     described = _shape_text([12.0] * 6, [1.0] * 6)
     assert '12.0 nm RMS per bar' in described and 'held more' not in described
     wide = _shape_text([12.0] * 6, [1.0, 1.0, 4.0, 1.0, 100.0, 1.0])
-    assert 'bar3 (2.0 ×), bar5 (10.0 ×) held more of that shape than the calibration describes' in wide
+    assert ('bar3 (2.0 ×), bar5 (10.0 ×) held more of that shape than the calibration '
+            'describes') in wide
 
 
 def test_a_constant_between_the_bars_is_read_from_the_pose_s_variation_and_the_common_mode_is_not():
@@ -709,8 +711,8 @@ def test_the_mean_of_a_length_shaped_error_is_read_from_how_it_varied_where_a_ru
     rng = np.random.default_rng(3)
     knots = np.tile(np.linspace(0.20, 0.50, 7), (6, 1))
     budget = SimpleNamespace(interpolation=InterpolationError(0.3e-6, 0.04), knots_m=knots,
-                             point_var_m2=(5e-9) ** 2, point_friction_m2=np.zeros(6), resolution_m=50e-9,
-                             subdivision_left_m2=np.zeros(6))
+                             point_var_m2=(5e-9) ** 2, point_friction_m2=np.zeros(6),
+                             resolution_m=50e-9, subdivision_left_m2=np.zeros(6))
     grid = np.linspace(0.19, 0.51, 600)
     hat = -CdfOffsetsTerm.basis(np.repeat(grid[:, None], 6, axis=1), knots)[:, 0, :]
     cov = budget.interpolation.covariance(grid, grid, knots[0]) + budget.point_var_m2 * hat @ hat.T

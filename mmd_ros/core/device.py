@@ -39,8 +39,8 @@ SECTION_KEYS = {
     'joints': ('use', 'upper_design_mm', 'upper_measured_mm', 'lower_design_mm', 'lower_measured_mm'),
     'reference_plate': ('use', 'cte_ppm_per_c', 'distance_uncertainty_um', 'pairs'),
     'bars': ('range_mm', 'encoder_resolution_nm', 'scale_cte_ppm_per_c', 'rod_cte_ppm_per_c',
-             'fixed_length_mm', 'thermal_mismatch_fraction', 'subdivision_error_nm', 'signal_period_um',
-             'friction_hysteresis_nm'),
+             'fixed_length_mm', 'thermal_mismatch_fraction', 'subdivision_error_nm',
+             'signal_period_um', 'friction_hysteresis_nm'),
     'plates': ('position_layer_cte_ppm_per_c',),
     'limits': ('upper_tilt_deg', 'lower_tilt_deg', 'min_bar_separation_mm'),
     'terminal': ('sample_rate_hz', 'counter_bits', 'latch_skew_us', 'channels'),
@@ -159,7 +159,8 @@ class DeviceDescription:
                              signal_period_um=round(float(period_m) * 1e6, 9))
 
     def with_friction_hysteresis(self, amplitude_m: float) -> DeviceDescription:
-        """A copy that states the bars' friction hysteresis (``bars.friction_hysteresis_nm``) [m]."""
+        """A copy that states the bars' friction hysteresis (``bars.friction_hysteresis_nm``)
+        [m]."""
         return self._stating('bars', friction_hysteresis_nm=round(float(amplitude_m) * 1e9, 6))
 
     def _stating(self, section: str, **values: float) -> DeviceDescription:
@@ -338,8 +339,9 @@ def parse_device(data: dict[str, Any], source: str = '<device>') -> DeviceDescri
                                    else None),
         latch_skew_s=(r.number(terminal, 'latch_skew_us', 'terminal', low=0.0, high=1000.0) * 1e-6
                       if 'latch_skew_us' in terminal else None),
-        friction_hysteresis_m=(r.number(bars, 'friction_hysteresis_nm', 'bars', low=0.0, high=100000.0)
-                               * M_PER_NM if 'friction_hysteresis_nm' in bars else None),
+        friction_hysteresis_m=(r.number(bars, 'friction_hysteresis_nm', 'bars', low=0.0,
+                                        high=100000.0) * M_PER_NM
+                               if 'friction_hysteresis_nm' in bars else None),
         **_subdivision(r, bars, resolution),
     )
 
