@@ -668,9 +668,10 @@ def _shape_constants(parts: list[tuple[ResidualRun, IntArray, FloatArray, FloatA
     run dwells: claimed as that share of its spread over the lengths the runs passed (the
     conditional mean, plus the model's change). On 24 realistic twins a = 1 (142 of 144 bars),
     and the whole spread claimed besides the bars' constants made roll and pitch 1.31 and
-    1.26 times the error; a session whose length terms were not written leaves the twin's
-    0.4 µm shape, 7-12 times the description in sigma, and its new run was covered 89 %
-    without this. Fourth, the factor a per bar."""
+    1.26 times the error; a session whose length terms were not written left its one-sided
+    calibration's points' friction states, 7-12 times the description in sigma while the
+    budget did not claim them, and its new run was covered 89 % without this. Fourth, the
+    factor a per bar."""
     var, mean, moves, factor = np.zeros(6), np.zeros(6), np.zeros(6), np.ones(6)
     ie, knots = budget.interpolation, budget.knots_m
     total = sum(idx.size for _run, idx, _dd, _ref in parts)

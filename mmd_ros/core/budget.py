@@ -305,7 +305,7 @@ class LengthBudget:
         # point is the mean of both states)
         self._one_sided = figures.approaches < 2
         self.point_friction_m2 = h * h if self._one_sided else np.zeros(6)
-        if figures.approaches < 2 and not np.any(h > 0):
+        if self._one_sided and not np.any(h > 0):
             self.notes.append('calibration points: the friction state each point was captured in '
                               'is not claimed: the device description states no friction '
                               '(bars.friction_hysteresis_nm) and no term compensates it')
@@ -365,7 +365,7 @@ class LengthBudget:
         # nugget like the capture's, not a scale error between the points)
         sde_var = 0.5 * float(device.subdivision_error_m or 0.0) ** 2
         nugget = np.full(all_knots.shape, self.point_var_m2 + sde_var)
-        if figures.approaches < 2:      # (and the friction state it was placed in)
+        if self._one_sided:      # (and the friction state it was placed in)
             nugget += stated ** 2
             nugget[:len(bars)] += self.point_friction_m2[:, None] - stated ** 2
         self.interpolation: InterpolationError = fit_interpolation_error(
