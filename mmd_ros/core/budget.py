@@ -340,10 +340,11 @@ class LengthBudget:
         if figures.read_noise_m is None:
             self.notes.append('calibration points: the calibration does not give its read noise; '
                               'each point taken as quantised without dither (Delta^2/12)')
-        if figures.approaches < 2:
-            self.notes.append('calibration points: one placement per pair; the friction state '
-                              'and seating of each placement are not measured (a two-sided '
-                              'calibration measures them)')
+        if self._one_sided:
+            self.notes.append('calibration points: one placement per pair; the seating of each '
+                              'placement is not measured, and its friction state is claimed from '
+                              'the bars\' stated friction only (a two-sided calibration measures '
+                              'both)')
         pair_sigma = np.array([p.sigma_m for p in device.pairs])
         self.pair_var_m2 = pair_sigma ** 2
         if not np.any(pair_sigma > 0):
