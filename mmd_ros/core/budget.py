@@ -456,6 +456,7 @@ class LengthBudget:
         self._has_residual = bool(np.any(self.residual_m2))
         self._cross_key: tuple[float, ...] | None = None
         self._tab: dict[str, FloatArray] | None = None
+        self._unchecked_points: NDArray[np.bool_] | None = None
         self._fast_parts: dict[str, Any] | None = None
         self._resolved: tuple[FloatArray, FloatArray] | None = None
         self._cross_w: FloatArray = np.zeros((0, 0))
@@ -670,15 +671,21 @@ class LengthBudget:
         if self._fit_range_m is None or kept >= 1.0:
             return factor
         cdf = x + (self.bar_error(x, eps) if bar_error_m is None else bar_error_m)
-        k = self.knots_m
-        lo, hi = self._fit_range_m[:, :1], self._fit_range_m[:, 1:]
+        lo, hi = self._fit_range_m[:, 0], self._fit_range_m[:, 1]
         with np.errstate(invalid='ignore'):
-            first = np.max(np.where(k <= lo, k, -np.inf), axis=1, keepdims=True)
-            last = np.min(np.where(k >= hi, k, np.inf), axis=1, keepdims=True)
-            first = np.where(np.isfinite(first), first, k[:, :1])    # (a range past an end)
-            last = np.where(np.isfinite(last), last, k[:, -1:])
-            unchecked = (k < first) | (k > last) | ~(lo <= hi)          # (none seen: all)
-        seg, u = bar_segments(np.nan_to_num(cdf), k)
+            if not np.any((cdf < lo) | (cdf > hi) | np.isnan(cdf)):
+                return kept                   # (every bar within the segments the fit saw)
+        if self._unchecked_points is None:
+            k = self.knots_m
+            lo, hi = lo[:, None], hi[:, None]
+            with np.errstate(invalid='ignore'):
+                first = np.max(np.where(k <= lo, k, -np.inf), axis=1, keepdims=True)
+                last = np.min(np.where(k >= hi, k, np.inf), axis=1, keepdims=True)
+                first = np.where(np.isfinite(first), first, k[:, :1])    # (a range past an end)
+                last = np.where(np.isfinite(last), last, k[:, -1:])
+                self._unchecked_points = (k < first) | (k > last) | ~(lo <= hi)  # (none seen: all)
+        unchecked = self._unchecked_points
+        seg, u = bar_segments(np.nan_to_num(cdf), self.knots_m)
         rows = np.arange(6)[None, :]
         w0, w1 = (1.0 - u) ** 2, u * u
         share = (w0 * unchecked[rows, seg] + w1 * unchecked[rows, seg + 1]) / (w0 + w1)
