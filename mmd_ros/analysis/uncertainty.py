@@ -648,9 +648,10 @@ def _shape_constants(parts: list[tuple[ResidualRun, IntArray, FloatArray, FloatA
     longer shows it).
 
     Those errors are functions of the bar's length (Gaussian, the covariance the budget claims:
-    each point's own error and sub-divisional error carried linearly between the points, and a
-    smooth error between them that is zero at the points; times ``scale``), and the runs see each bar's residual at
-    the lengths it passed through, less its mean over a zeroed run. A function known where it
+    each point's own error, friction state and sub-divisional error carried linearly between
+    the points, and a smooth error between them that is zero at the points; times ``scale``),
+    and the runs see each bar's residual at the lengths it passed through, less its mean over
+    a zeroed run. A function known where it
     varies is known in its mean as far as its covariance ties the two: an error zero at the
     points is pinned by a run that passed through them. The Gaussian conditional of the mean
     on the variation (each run's residual less its own mean at SHAPE_POINTS of its samples)

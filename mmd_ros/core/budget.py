@@ -367,8 +367,8 @@ class LengthBudget:
         sde_var = 0.5 * float(device.subdivision_error_m or 0.0) ** 2
         nugget = np.full(all_knots.shape, self.point_var_m2 + sde_var)
         if self._one_sided:      # (and the friction state it was placed in)
-            nugget += stated ** 2
-            nugget[:len(bars)] += self.point_friction_m2[:, None] - stated ** 2
+            nugget[:len(bars)] += self.point_friction_m2[:, None]
+            nugget[len(bars):] += stated ** 2           # (the reference bars: the stated)
         self.interpolation: InterpolationError = fit_interpolation_error(
             all_knots, np.array(devs), nugget)
 
@@ -560,8 +560,7 @@ class LengthBudget:
         i0 = np.clip(pos.astype(np.intp), 0, self._grid_n - 2)
         f = pos - i0
         rows = np.arange(6)[None, :]
-        factor = self._table_factor(x, bar_error_m, eps)
-        points = self._points_factor(x, bar_error_m, eps, factor)
+        factor, points = self._table_factors(x, bar_error_m, eps)
         for name, tab in tables.items():
             k = (self._subdivision_factor if name == 'subdivision'
                  else points if name == 'calibration_points' else factor)
@@ -608,7 +607,7 @@ class LengthBudget:
     def _tables(self) -> dict[str, FloatArray]:
         """Per bar, on a grid of lengths (G,) over the calibrated span and 10 mm beyond: the
         calibration points' and the interpolation's variance and the routine drift's error,
-        (6, G) each, before a fit's factor (:meth:`_table_factor`)."""
+        (6, G) each, before a fit's factors (:meth:`_table_factors`)."""
         if self._tab is not None:
             return self._tab
         k = self.knots_m
@@ -637,44 +636,41 @@ class LengthBudget:
         self._tab = {name: np.ascontiguousarray(v) for name, v in tab.items()}
         return self._tab
 
-    def _table_factor(self, x: FloatArray, bar_error_m: FloatArray | None, eps: FloatArray
-                      ) -> float | FloatArray:
-        """The factor on the tabulated calibration-derived sources (points, drift,
-        interpolation): what a fit kept of them (:meth:`_kept`, 0 when its residual replaced
-        them) where the fit saw the bar, rising to 1 beyond: its residual measured nothing
-        there. A smooth scale error known at the bound of what the fit saw (``_fit_range_m``)
-        is, a distance delta further, unknown by the share 1 - rho(delta)^2 of its variance (a
-        Gaussian process conditioned on its value there, rho its correlation, the one
-        :class:`InterpolationError` fitted to the calibration's points); the factor is
-        kept + (1 - kept) (1 - rho^2). A step to 1 at the bound claimed, over 24 twins, 2-3
-        times the error of the bars just beyond it. A scalar, or (N, 6)."""
+    def _table_factors(self, x: FloatArray, bar_error_m: FloatArray | None, eps: FloatArray
+                       ) -> tuple[float | FloatArray, float | FloatArray]:
+        """The factors on the tabulated calibration-derived sources: on the drift and the
+        interpolation, and on the points' own errors. Each is what a fit kept of them
+        (:meth:`_kept`, 0 when its residual replaced them) where the fit saw the bar, rising to
+        1 beyond: its residual measured nothing there. A smooth scale error known at the bound
+        of what the fit saw (``_fit_range_m``) is, a distance delta further, unknown by the
+        share 1 - rho(delta)^2 of its variance (a Gaussian process conditioned on its value
+        there, rho its correlation, the one :class:`InterpolationError` fitted to the
+        calibration's points); the factor is kept + (1 - kept) (1 - rho^2). A step to 1 at the
+        bound claimed, over 24 twins, 2-3 times the error of the bars just beyond it. The
+        points' own errors are not smooth (a one-sided routine's points carry a friction state
+        each, independent between points): their factor is kept + (1 - kept) times the share
+        of their variance from points no data checked (:meth:`_unchecked_share`). Scalars, or
+        (N, 6) each."""
         kept = self._kept('interpolation')
         if self._fit_range_m is None or kept >= 1.0:
-            return kept
+            return kept, kept
         cdf = x + (self.bar_error(x, eps) if bar_error_m is None else bar_error_m)
         # (a bar that saw no segment's middle has the bounds [inf, -inf]: beyond everywhere)
         rho = self._correlation_beyond(cdf, self._fit_range_m)
-        return kept + (1.0 - kept) * (1.0 - rho * rho)
+        return (kept + (1.0 - kept) * (1.0 - rho * rho),
+                kept + (1.0 - kept) * self._unchecked_share(cdf))
 
-    def _points_factor(self, x: FloatArray, bar_error_m: FloatArray | None, eps: FloatArray,
-                       factor: float | FloatArray) -> float | FloatArray:
-        """The factor on the calibration points' own errors: what a fit kept of them where
-        the points around a bar's length are ones the fit checked, rising to 1 as the weight
-        of points beyond them grows. A point is checked when a segment ending at it holds
-        lengths the fit saw (``_fit_range_m``): the error along a segment is a straight line,
-        which the lengths seen in it determine. A bar beyond the next point depends on a
-        point's error no data saw, by its hat weight: the share u^2 / ((1 - u)^2 + u^2) of the
-        points' variance (a one-sided routine's points carry a friction state each, independent
-        between points: the smooth error's correlation, :meth:`_table_factor`, does not hold
-        them). A scalar, or (N, 6)."""
-        kept = self._kept('calibration_points')
-        if self._fit_range_m is None or kept >= 1.0:
-            return factor
-        cdf = x + (self.bar_error(x, eps) if bar_error_m is None else bar_error_m)
+    def _unchecked_share(self, cdf: FloatArray) -> float | FloatArray:
+        """The share of the points' variance at CDF lengths ``cdf`` (N, 6) from points no data
+        checked. A point is checked when a segment ending at it holds lengths the fit saw
+        (``_fit_range_m``): the error along a segment is a straight line, which the lengths
+        seen in it determine. A bar beyond the next point depends on a point's error no data
+        saw, by its hat weight: u^2 / ((1 - u)^2 + u^2) of the points' variance. 0 when every
+        bar lies within the segments the fit saw, else (N, 6)."""
         lo, hi = self._fit_range_m[:, 0], self._fit_range_m[:, 1]
         with np.errstate(invalid='ignore'):
             if not np.any((cdf < lo) | (cdf > hi) | np.isnan(cdf)):
-                return kept                   # (every bar within the segments the fit saw)
+                return 0.0
         if self._unchecked_points is None:
             k = self.knots_m
             lo, hi = lo[:, None], hi[:, None]
@@ -683,13 +679,13 @@ class LengthBudget:
                 last = np.min(np.where(k >= hi, k, np.inf), axis=1, keepdims=True)
                 first = np.where(np.isfinite(first), first, k[:, :1])    # (a range past an end)
                 last = np.where(np.isfinite(last), last, k[:, -1:])
-                self._unchecked_points = (k < first) | (k > last) | ~(lo <= hi)  # (none seen: all)
+                # (a bar that saw no segment's middle: every point unchecked)
+                self._unchecked_points = (k < first) | (k > last) | ~(lo <= hi)
         unchecked = self._unchecked_points
         seg, u = bar_segments(np.nan_to_num(cdf), self.knots_m)
         rows = np.arange(6)[None, :]
         w0, w1 = (1.0 - u) ** 2, u * u
-        share = (w0 * unchecked[rows, seg] + w1 * unchecked[rows, seg + 1]) / (w0 + w1)
-        return kept + (1.0 - kept) * share
+        return (w0 * unchecked[rows, seg] + w1 * unchecked[rows, seg + 1]) / (w0 + w1)
 
     def _correlation_beyond(self, cdf_m: FloatArray, range_m: FloatArray) -> FloatArray:
         """Per sample and bar, the correlation rho(delta) of a smooth scale error (the one
@@ -744,7 +740,7 @@ class LengthBudget:
         shape than the twin's, 61 % of the samples beyond were covered without this). That
         error is continuous: at the bound the residual checked it, and a distance delta
         further it is unknown by the share 1 - rho(delta)^2 of its size, rho the correlation
-        the calibration's sources return with (:meth:`_table_factor`). Claimed whole from the
+        the calibration's sources return with (:meth:`_table_factors`). Claimed whole from the
         bound on, it was 196 nm RMS within 1 mm beyond, where the bars' error was 93 nm (24
         realistic twins, zeroed fits: 32 nm less each run's constant). After a one-sided
         routine what the terms corrected holds the points' friction steps, which no smooth
@@ -887,8 +883,7 @@ class LengthBudget:
         g = 1.0 - f
         rows = fast['rows']
         diag = fast['q12'] + noise[:, :6] ** 2
-        factor = self._table_factor(x, bar_error_m, eps)
-        points = self._points_factor(x, bar_error_m, eps, factor)
+        factor, points = self._table_factors(x, bar_error_m, eps)
         bias = np.zeros((n, 6))
         if np.any(points):
             tab = fast['points']
