@@ -336,15 +336,22 @@ class LengthBudget:
         if figures.routine_temp_change_c is None:
             self.notes.append('calibration drift: the routine did not measure the temperature '
                               'change over its course (a reference bar on its resting pair first)')
-        self.point_var_m2 = figures.point_var(res)
+        # (a point's seating: what the routine measured, else the plate's stated figure)
+        self.seating_m = (figures.seating_m if figures.seating_m is not None
+                          else device.seating_repeatability_m)
+        self.point_var_m2 = figures.point_var(res, device.seating_repeatability_m)
+        if self.seating_m is None:
+            self.notes.append('calibration points: the seating of each placement is not claimed: '
+                              'the routine did not measure it and the device description does not '
+                              'state it (reference_plate.seating_repeatability_nm)')
         if figures.read_noise_m is None:
             self.notes.append('calibration points: the calibration does not give its read noise; '
                               'each point taken as quantised without dither (Delta^2/12)')
         if self._one_sided:
-            self.notes.append('calibration points: one placement per pair; the seating of each '
-                              'placement is not measured, and its friction state is claimed from '
-                              'the bars\' stated friction only (a two-sided calibration measures '
-                              'both)')
+            self.notes.append('calibration points: one placement per pair; the seating and the '
+                              'friction state of each placement are not measured, and are claimed '
+                              'from the device description\'s statements only (a two-sided '
+                              'calibration measures both)')
         pair_sigma = np.array([p.sigma_m for p in device.pairs])
         self.pair_var_m2 = pair_sigma ** 2
         if not np.any(pair_sigma > 0):
@@ -977,6 +984,9 @@ class LengthBudget:
                                  'analysis' if f > (self.calibration_noise_m or 0.0) else 'calibration'
                                  for w, f in zip(self.noise.windows, self.fallback_noise_m)]),
             'calibration_point_nm': round(math.sqrt(self.point_var_m2) * 1e9, 3),
+            'seating_nm': None if self.seating_m is None else round(self.seating_m * 1e9, 3),
+            'seating_from': ('calibration' if self.figures.seating_m is not None else
+                             None if self.seating_m is None else 'device description'),
             'calibration_point_friction_nm': [round(float(v) * 1e9, 2)
                                               for v in np.sqrt(self.point_friction_m2)],
             'routine_temp_change_c': self.figures.routine_temp_change_c,

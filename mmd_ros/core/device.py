@@ -37,7 +37,8 @@ DEVICE_KEYS = ('format_version', 'name', 'joints', 'reference_plate', 'bars', 'p
                'terminal')
 SECTION_KEYS = {
     'joints': ('use', 'upper_design_mm', 'upper_measured_mm', 'lower_design_mm', 'lower_measured_mm'),
-    'reference_plate': ('use', 'cte_ppm_per_c', 'distance_uncertainty_um', 'pairs'),
+    'reference_plate': ('use', 'cte_ppm_per_c', 'distance_uncertainty_um',
+                        'seating_repeatability_nm', 'pairs'),
     'bars': ('range_mm', 'encoder_resolution_nm', 'scale_cte_ppm_per_c', 'rod_cte_ppm_per_c',
              'fixed_length_mm', 'thermal_mismatch_fraction', 'subdivision_error_nm',
              'signal_period_um', 'friction_hysteresis_nm'),
@@ -116,6 +117,10 @@ class DeviceDescription:
     #: bars of the type [m]; None when the description does not say (a two-sided calibration
     #: measures each bar's own)
     friction_hysteresis_m: float | None = None
+    #: how repeatably a bar seats in a socket pair of the reference plate, as the plate's
+    #: characterisation states it: the standard deviation of a placement's centre distance [m];
+    #: None when the description does not say (a two-sided calibration measures it)
+    seating_repeatability_m: float | None = None
 
     @property
     def reference_distances_m(self) -> NDArray[np.float64]:
@@ -162,6 +167,12 @@ class DeviceDescription:
         """A copy that states the bars' friction hysteresis (``bars.friction_hysteresis_nm``)
         [m]."""
         return self._stating('bars', friction_hysteresis_nm=round(float(amplitude_m) * 1e9, 6))
+
+    def with_seating_repeatability(self, sigma_m: float) -> DeviceDescription:
+        """A copy that states the reference plate's seating repeatability
+        (``reference_plate.seating_repeatability_nm``) [m]."""
+        return self._stating('reference_plate',
+                             seating_repeatability_nm=round(float(sigma_m) * 1e9, 6))
 
     def _stating(self, section: str, **values: float) -> DeviceDescription:
         data = copy.deepcopy(self.raw)
@@ -342,6 +353,9 @@ def parse_device(data: dict[str, Any], source: str = '<device>') -> DeviceDescri
         friction_hysteresis_m=(r.number(bars, 'friction_hysteresis_nm', 'bars', low=0.0,
                                         high=100000.0) * M_PER_NM
                                if 'friction_hysteresis_nm' in bars else None),
+        seating_repeatability_m=(r.number(plate, 'seating_repeatability_nm', 'reference_plate',
+                                          low=0.0, high=100000.0) * M_PER_NM
+                                 if 'seating_repeatability_nm' in plate else None),
         **_subdivision(r, bars, resolution),
     )
 

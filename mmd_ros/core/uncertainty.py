@@ -438,13 +438,14 @@ class CalibrationUncertainty:
     drift_m: dict[str, list[float]] = field(default_factory=dict)
     routine_temp_sigma_c: float | None = None
 
-    def point_var(self, resolution_m: float) -> float:
+    def point_var(self, resolution_m: float, stated_seating_m: float | None = None) -> float:
         """Variance of one calibration point [m^2]: the averaged quantisation b^2 and the
-        averaging's standard error of the capture(s), and the seating repeatability; a
-        two-sided point is the mean of two captures."""
+        averaging's standard error of the capture(s), and the seating repeatability (the
+        routine's, else ``stated_seating_m``); a two-sided point is the mean of two captures."""
         s = self.read_noise_m or 0.0
         n = max(int(self.capture_samples or 1), 1)
-        one = capture_var(resolution_m, s, n) + (self.seating_m or 0.0) ** 2
+        seating = self.seating_m if self.seating_m is not None else stated_seating_m
+        one = capture_var(resolution_m, s, n) + (seating or 0.0) ** 2
         return one / max(self.approaches, 1)
 
     def to_dict(self) -> dict[str, Any]:

@@ -207,7 +207,9 @@ class TwinDevice:
         (``bars.subdivision_error_nm``, ``bars.signal_period_um``) is the effects' cyclic
         amplitude and period (each bar's phase stays hidden); the bars' friction hysteresis
         (``bars.friction_hysteresis_nm``) is the RMS of the amplitudes the effects give the bars
-        (each bar's own stays hidden, as a characterisation of the bar type states it). What a
+        (each bar's own stays hidden, as a characterisation of the bar type states it); the
+        reference plate's seating repeatability (``reference_plate.seating_repeatability_nm``) is
+        the effects' placement repeatability (each placement's own offset stays hidden). What a
         description states, it keeps."""
         device = self.device
         if device.latch_skew_s is None:
@@ -218,6 +220,8 @@ class TwinDevice:
             lo, hi = HYSTERESIS_SPREAD      # the RMS of a uniform share in [lo, hi]
             device = device.with_friction_hysteresis(
                 self.effects.hysteresis_m * math.sqrt((hi ** 3 - lo ** 3) / (3.0 * (hi - lo))))
+        if device.seating_repeatability_m is None:
+            device = device.with_seating_repeatability(self.effects.placement_repeatability_m)
         return device
 
     # -- bars on the reference plate -----------------------------------------------------------
