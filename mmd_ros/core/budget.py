@@ -37,7 +37,7 @@ from mmd_ros.core.model import Model, TermContext
 from mmd_ros.core.piecewise import bar_segments
 from mmd_ros.core.terms import MAX_GAP_S, SamplingSkewTerm, lengths_within
 from mmd_ros.core.uncertainty import (
-    InterpolationError, NoiseEstimator, capture_var, fit_interpolation_error,
+    InterpolationError, NoiseEstimator, capture_var, fit_interpolation_error, hysteresis_claim,
     quantisation_cross_weights,
 )
 from mmd_ros.core.validity import Validity
@@ -290,11 +290,18 @@ class LengthBudget:
         # reads short by h (the sign from its motion, a play operator). A term that compensates
         # it knows the state only once the bar has moved: until then the state is unknown, +-h
         # (h the larger of the calibration's and the term's amplitude). Not measured, the
-        # device description's figure for its bars stands for each bar's
+        # device description's figure for its bars stands for each bar's. A measured h carries
+        # the scatter of the placements it is the mean of: the budget claims what the bars'
+        # estimates together say of each (:func:`hysteresis_claim`), not the scatter itself
         friction = [t for t in model.terms if t.type_name in FRICTION_TERMS]
         self.friction_compensated = bool(friction)
         stated = device.friction_hysteresis_m or 0.0
-        h = np.abs([figures.hysteresis_m.get(m, stated) for m in measuring])
+        h = np.full(6, stated)
+        on = [i for i, m in enumerate(measuring) if m in figures.hysteresis_m]
+        if on:
+            pairs = np.array([len(calibration.bars[measuring[i]].distances_m) for i in on])
+            h[on] = hysteresis_claim(np.array([figures.hysteresis_m[measuring[i]] for i in on]),
+                                     figures.point_var(res) / np.maximum(pairs, 1))
         for term in friction:
             amplitude = np.abs(np.asarray(getattr(term, 'amplitude_m', np.zeros(6)), dtype=np.float64))
             h = np.maximum(h, amplitude if amplitude.shape == (6,) else 0.0)

@@ -68,7 +68,8 @@ from mmd_ros.core.piecewise import segment
 
 __all__ = [
     'CalibrationUncertainty', 'InterpolationError', 'capture_var', 'NoiseEstimator', 'averaged_quantisation_var',
-    'dither_var', 'fit_interpolation_error', 'hat_weights', 'pose_covariance',
+    'dither_var', 'fit_interpolation_error', 'hat_weights', 'hysteresis_claim',
+    'pose_covariance',
     'quantisation_cross_cov',
     'quantisation_cross_weights',
     'read_noise_from_dither', 'two_sided_figures',
@@ -168,6 +169,27 @@ def two_sided_figures(short_m: list[FloatArray], long_m: list[FloatArray], point
         return h, math.nan, 0
     pooled = float(sum(np.sum((v - v.mean()) ** 2) for v in halves if v.size) / dof)
     return h, math.sqrt(max(2.0 * pooled - point_bias_var_m2, 0.0)), dof
+
+
+def hysteresis_claim(estimates_m: FloatArray, estimate_var_m2: FloatArray | float) -> FloatArray:
+    """Each bar's friction hysteresis as the budget claims it, from a two-sided calibration's
+    estimates (:func:`two_sided_figures`), (B,) [m].
+
+    An estimate is the bar's h plus the mean of its pairs' seating differences, of variance
+    v = (one placement's variance) / (2 pairs) per bar (``estimate_var_m2``, scalar or (B,)): a
+    bar without friction still reads a few tens of nanometres of it where its placements seat
+    loosely, and claiming that as live friction over-states every pose. The bars' h are taken as
+    drawn from one spread tau^2 = max(mean(estimate^2 - v), 0) (the bars of one type); each
+    bar's posterior, its estimate shrunk by tau^2 / (tau^2 + v) with the variance
+    tau^2 v / (tau^2 + v), gives the root of its expected square, claimed as h."""
+    est = np.asarray(estimates_m, dtype=np.float64)
+    v = np.broadcast_to(np.asarray(estimate_var_m2, dtype=np.float64), est.shape)
+    if not est.size:
+        return est.copy()
+    tau2 = max(float(np.mean(est * est - v)), 0.0)
+    with np.errstate(invalid='ignore', divide='ignore'):
+        w = np.where(tau2 + v > 0.0, tau2 / (tau2 + v), 1.0)
+    return np.sqrt((w * est) ** 2 + w * v)
 
 
 # -- interpolation between calibration points -----------------------------------------------------
