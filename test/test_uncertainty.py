@@ -92,6 +92,12 @@ def test_interpolation_error_is_zero_at_the_points_and_fitted_to_their_curvature
     assert 0.4e-6 < fit.sigma_m < 3e-6
     line = fit_interpolation_error(knots, 3e-6 * xi + 1e-6, np.full(knots.shape, (10e-9) ** 2))
     assert line.sigma_m < 0.05e-6
+    # the same calibration is fitted once (every budget of it asks); another is fitted anew
+    again = fit_interpolation_error(knots.copy(), wavy.copy(), np.full(knots.shape, (10e-9) ** 2))
+    assert again is fit
+    other = wavy.copy()
+    other[0, 3] += 0.5e-6
+    assert fit_interpolation_error(knots, other, np.full(knots.shape, (10e-9) ** 2)) != fit
 
 
 def test_two_sided_figures_from_synthetic_placements():

@@ -55,6 +55,7 @@ for sigma (:func:`read_noise_from_dither`).
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -281,10 +282,33 @@ def fit_interpolation_error(knots_m: FloatArray, deviations_m: FloatArray,
     deviations_m : ndarray, shape (B, n) — what each bar's encoder read at its points minus the
         reference distance, at the nominal resolution [m] (any line in it is irrelevant)
     point_var_m2 : ndarray, shape (B, n) — the points' own variance (the nugget) [m^2]
+
+    The fit is kept for the last few calibrations it was made for (every pipeline and every
+    trial of an analysis builds a budget of the same calibration; the fit takes 0.25 s).
     """
-    knots = np.asarray(knots_m, dtype=np.float64)
-    dev = np.asarray(deviations_m, dtype=np.float64)
-    nug = np.asarray(point_var_m2, dtype=np.float64)
+    knots = np.ascontiguousarray(knots_m, dtype=np.float64)
+    dev = np.ascontiguousarray(deviations_m, dtype=np.float64)
+    nug = np.ascontiguousarray(np.broadcast_to(point_var_m2, knots.shape), dtype=np.float64)
+    key = (knots.shape, knots.tobytes(), dev.tobytes(), nug.tobytes())
+    with _INTERPOLATION_LOCK:
+        found = _INTERPOLATION_FITS.get(key)
+    if found is None:
+        found = _fit_interpolation_error(knots, dev, nug)
+        with _INTERPOLATION_LOCK:      # (nodes build budgets from several threads)
+            _INTERPOLATION_FITS[key] = found
+            while len(_INTERPOLATION_FITS) > INTERPOLATION_FITS_KEPT:
+                del _INTERPOLATION_FITS[next(iter(_INTERPOLATION_FITS))]
+    return found
+
+
+#: How many interpolation fits :func:`fit_interpolation_error` keeps (oldest dropped first).
+INTERPOLATION_FITS_KEPT = 16
+_INTERPOLATION_FITS: dict[tuple[Any, ...], InterpolationError] = {}
+_INTERPOLATION_LOCK = threading.Lock()
+
+
+def _fit_interpolation_error(knots: FloatArray, dev: FloatArray, nug: FloatArray
+                             ) -> InterpolationError:
     bars = [b for b in range(knots.shape[0]) if knots.shape[1] >= 4]
     if not bars:
         return InterpolationError(0.0, 1.0, 0)
