@@ -461,6 +461,7 @@ class LengthBudget:
         self.systematic_scale = fit.systematic_scale if fit is not None else 1.0
         self.residual_m2 = fit.residual_m2 if fit is not None else np.zeros((6, 6))
         self.mean_terms_m2 = fit.mean_terms_m2 if fit is not None else np.zeros((6, 6))
+        self.rest_terms_m2 = fit.rest_terms_m2 if fit is not None else np.zeros((6, 6))
         self._subdivision_factor = self._kept('subdivision')
         # what the per-sample path needs, decided once
         self._has_drift = bool(np.any(self.drift_m))
@@ -611,7 +612,7 @@ class LengthBudget:
             t.bias['latch_skew'] = 0.5 * self.latch_skew_s * v
             t.diag['latch_skew'] = (self.latch_skew_s ** 2 / 12.0) * v * v
         if fit_columns_m is not None and fit_columns_m.shape[-1]:
-            t.full['fitted_terms'] = fit_columns_m @ np.swapaxes(fit_columns_m, 1, 2)
+            t.full['fitted_terms'] = fit_columns_m @ np.swapaxes(fit_columns_m, 1, 2) + self.rest_terms_m2
         elif self._has_mean_terms:
             t.constant['fitted_terms'] = self.mean_terms_m2
         if self._has_residual:
@@ -938,6 +939,7 @@ class LengthBudget:
             total += ref[:, None, None]
         if fit_columns_m is not None and fit_columns_m.shape[-1]:
             total += fit_columns_m @ np.swapaxes(fit_columns_m, 1, 2)
+            total += self.rest_terms_m2     # (the directions not evaluated per sample)
         elif self._has_mean_terms:
             total += self.mean_terms_m2
         if self._has_residual:

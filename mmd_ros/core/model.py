@@ -227,7 +227,7 @@ FIT_REPLACEABLE = ('calibration_points', 'calibration_drift', 'reference_distanc
                    'subdivision', 'hysteresis')
 #: Keys of a model file's ``uncertainty.fit`` section.
 FIT_KEYS = ('residual_nm2', 'replaces', 'systematic_scale', 'mean_terms_nm2', 'directions', 'from',
-            'read_noise_nm', 'flank_nm2')
+            'read_noise_nm', 'flank_nm2', 'rest_terms_nm2')
 
 
 def _matrix6(value: Any, source: str, key: str) -> FloatArray:
@@ -265,6 +265,10 @@ class FitUncertainty:
     flank_m2 : (6,) — per bar, what the residual held beyond the model's claim where the bar
         lay within the lengths the fit saw but in a CDF segment whose middle it did not see
         (:meth:`~mmd_ros.core.budget.LengthBudget.flank`) [m^2]; added there
+    rest_terms_m2 : (6, 6) — the mean of c_k c_k^T over the fit's samples of the principal
+        directions not written in ``directions`` (a stage evaluates a few per sample): added to
+        every sample whose directions are evaluated, so that the fitted terms' whole covariance
+        is claimed [m^2]
     """
 
     residual_m2: FloatArray = field(default_factory=lambda: np.zeros((6, 6)))
@@ -275,6 +279,7 @@ class FitUncertainty:
     record: dict[str, Any] = field(default_factory=dict)
     read_noise_m: FloatArray | None = None
     flank_m2: FloatArray = field(default_factory=lambda: np.zeros(6))
+    rest_terms_m2: FloatArray = field(default_factory=lambda: np.zeros((6, 6)))
 
     def reset(self) -> None:
         for group in self.directions:
@@ -295,6 +300,8 @@ class FitUncertainty:
                {'read_noise_nm': [round(float(v) * 1e9, 4) for v in self.read_noise_m]}),
             **({} if not np.any(self.flank_m2) else
                {'flank_nm2': [round(float(v) * 1e18, 3) for v in self.flank_m2]}),
+            **({} if not np.any(self.rest_terms_m2) else
+               {'rest_terms_nm2': (self.rest_terms_m2 * nm2).tolist()}),
         }
 
     @classmethod
@@ -332,8 +339,10 @@ class FitUncertainty:
             if flank.size != 6 or np.any((flank < 0) | (flank > 1e8)):
                 raise ConfigError(source, f'{path}.flank_nm2', f'must be {what}, got {flank.tolist()}')
             flank = flank * 1e-18
+        rest = _matrix6(data.get('rest_terms_nm2', np.zeros((6, 6)).tolist()), source,
+                        f'{path}.rest_terms_nm2') * 1e-18
         return cls(residual, tuple(replaces), scale, directions, mean_terms,
-                   dict(record) if isinstance(record, dict) else {}, noise, flank)
+                   dict(record) if isinstance(record, dict) else {}, noise, flank, rest)
 
 
 @dataclass
