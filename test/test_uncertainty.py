@@ -491,7 +491,7 @@ def test_the_paper_s_one_sided_routine_is_covered_with_the_bars_stated_friction(
     friction state the bar was seated in (+-h, its sign unknown), and nothing of the routine
     measures h. From the bars' stated friction (``bars.friction_hysteresis_nm``, which the
     simulated bars state) the budget claims h^2 per point and the live friction; 12 twins in
-    bench_uncertainty.py --approaches 1: 97.3 % (58.4 % with neither claimed, 66.6 % with the
+    bench_uncertainty.py --approaches 1: 97.4 % (58.4 % with neither claimed, 66.6 % with the
     live part only); these 8 twins 95.6 %, 67.1 % with nothing stated. Without the statement
     the budget says what it does not claim."""
     ratio, cover = _pooled(Effects.realistic(), 'section_4_1', 8, seconds=3.0, approaches=1)
