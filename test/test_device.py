@@ -61,8 +61,10 @@ def _set(data, path, value):
     (('bars', 'signal_period_um'), 20, 'bars.subdivision_error_nm'),
     (('bars', 'subdivision_error_nm'), -30, 'bars.subdivision_error_nm'),
     (('bars', 'friction_hysteresis_nm'), -10, 'bars.friction_hysteresis_nm'),
-    (('reference_plate', 'seating_repeatability_nm'), -30, 'reference_plate.seating_repeatability_nm'),
-    (('reference_plate', 'seating_repeatability_nm'), 'x', 'reference_plate.seating_repeatability_nm'),
+    (('reference_plate', 'seating_repeatability_nm'), -30,
+     'reference_plate.seating_repeatability_nm'),
+    (('reference_plate', 'seating_repeatability_nm'), 'x',
+     'reference_plate.seating_repeatability_nm'),
     (('format_version',), 2, 'format_version'),
 ])
 def test_bad_files_are_refused_naming_the_key(path, value, key):

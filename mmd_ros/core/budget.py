@@ -301,7 +301,8 @@ class LengthBudget:
         if on:
             pairs = np.array([len(calibration.bars[measuring[i]].distances_m) for i in on])
             h[on] = hysteresis_claim(np.array([figures.hysteresis_m[measuring[i]] for i in on]),
-                                     figures.point_var(res) / np.maximum(pairs, 1))
+                                     figures.point_var(res, device.seating_repeatability_m)
+                                     / np.maximum(pairs, 1))
         for term in friction:
             amplitude = np.abs(np.asarray(getattr(term, 'amplitude_m', np.zeros(6)), dtype=np.float64))
             h = np.maximum(h, amplitude if amplitude.shape == (6,) else 0.0)
@@ -612,7 +613,8 @@ class LengthBudget:
             t.bias['latch_skew'] = 0.5 * self.latch_skew_s * v
             t.diag['latch_skew'] = (self.latch_skew_s ** 2 / 12.0) * v * v
         if fit_columns_m is not None and fit_columns_m.shape[-1]:
-            t.full['fitted_terms'] = fit_columns_m @ np.swapaxes(fit_columns_m, 1, 2) + self.rest_terms_m2
+            t.full['fitted_terms'] = (fit_columns_m @ np.swapaxes(fit_columns_m, 1, 2)
+                                      + self.rest_terms_m2)
         elif self._has_mean_terms:
             t.constant['fitted_terms'] = self.mean_terms_m2
         if self._has_residual:
