@@ -10,7 +10,10 @@ pooled and per run, and a JSON line.
 
 Usage: ``python bench/bench_uncertainty.py [--cases ideal,noeffect,realistic,realistic_noskew]
 [--scenario random|iso_y|rotary|thermal] [--runs 6] [--seconds 8] [--after] [--datum none|offset]
-[--approaches 2]``. ``--after`` first runs ``mmd analyze`` (full pose reference, absolute, or
+[--approaches 2] [--build 0]``. ``--build N`` instead times the construction of a realistic
+calibration's budget N times each way, its interpolation fit made anew (the kept fits cleared)
+and kept from the first (every pipeline and every trial budget of an analysis builds one):
+medians and their ratio, measured in the same run. ``--after`` first runs ``mmd analyze`` (full pose reference, absolute, or
 zeroed with ``--datum offset``) on a 60 s random run of each twin and judges that twin's
 extended model on a new run of it, also apart where every bar lies inside the lengths the fit
 saw and where one does not, and apart those inside with a bar where its fitted lengths end
@@ -122,6 +125,25 @@ def fit(twin, room, calibration, k, datum: str = 'none'):
     return result.model or Model(), found, 700.0
 
 
+def build_times(device, rounds: int) -> dict:
+    """Median seconds to build a realistic calibration's LengthBudget with its interpolation
+    fit made anew and kept, alternating, and their ratio."""
+    from mmd_ros.core import uncertainty
+    from mmd_ros.core.budget import LengthBudget
+    twin = TwinDevice(device, Effects.preset('realistic'), seed=1)
+    calibration = twin.calibrate(0.0, ambient_profile('section_4_1'), approaches=2)
+    fresh, kept = [], []
+    for _ in range(rounds):
+        uncertainty._INTERPOLATION_FITS.clear()
+        for out in (fresh, kept):
+            t0 = time.perf_counter()
+            LengthBudget(twin.documented_device, calibration, Model())
+            out.append(time.perf_counter() - t0)
+    f, k = float(np.median(fresh)), float(np.median(kept))
+    return {'rounds': rounds, 'fit_anew_ms': round(f * 1e3, 2), 'fit_kept_ms': round(k * 1e3, 2),
+            'ratio': round(f / k, 1)}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--cases', default='ideal,noeffect,realistic,realistic_noskew')
@@ -135,8 +157,17 @@ def main() -> None:
     parser.add_argument('--approaches', type=int, default=2, choices=(1, 2),
                         help='the twin\'s calibration: 2 two-sided with the drift read (default), 1 '
                         'the paper\'s routine')
+    parser.add_argument('--build', type=int, default=0, metavar='N',
+                        help='time a budget\'s construction N times, its interpolation fit anew '
+                        'and kept (instead of the coverage cases)')
     args = parser.parse_args()
     device = load_device(find_config('mmd_prototype.yaml'))
+    if args.build:
+        r = build_times(device, args.build)
+        print(f'budget construction, medians of {r["rounds"]}: interpolation fitted anew '
+              f'{r["fit_anew_ms"]:.1f} ms, kept {r["fit_kept_ms"]:.1f} ms ({r["ratio"]:.1f} x)')
+        print(json.dumps({'benchmark': 'uncertainty_budget_build', **r}))
+        return
     results = []
     for name in args.cases.split(','):
         t0 = time.perf_counter()
