@@ -45,6 +45,10 @@ def test_model_file_round_trip(tmp_path):
     ('format_version: 1\nuncertainty: {fit: {flank_nm2: [1, 2, 3, 4, 5, -6]}}\n',
      'uncertainty.fit.flank_nm2'),
     ('format_version: 1\nuncertainty: {fit: {flank_nm2: [1, 2, 3]}}\n', 'uncertainty.fit.flank_nm2'),
+    ('format_version: 1\nuncertainty: {fit: {rest_terms_nm2: [[1, 2], [2, 1]]}}\n',
+     'uncertainty.fit.rest_terms_nm2'),
+    ('format_version: 1\nuncertainty: {fit: {rest_terms_nm2: ' + str((-np.eye(6)).tolist()) + '}}\n',
+     'uncertainty.fit.rest_terms_nm2'),
     ('format_version: 1\nuncertainty: {sigma_um: 0.4}\n', 'uncertainty.sigma_um'),
 ])
 def test_bad_model_files_name_the_key(tmp_path, text, key):
