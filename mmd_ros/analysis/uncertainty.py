@@ -138,9 +138,9 @@ def _term_directions(ctx: FitContext, found: list[FittedEffect], idx: IntArray,
         dirs = v[:, keep] * np.sqrt(w[keep])                      # (P, r): one sigma each
         sig = f.effect.signature(ctx, f.hyper, idx)               # (n, 6, P)
         cols = sig @ dirs                                          # (n, 6, r)
-        mean_total += np.einsum('nir,njr->ij', cols, cols) / max(idx.size, 1)
+        outer = np.einsum('nir,njr->rij', cols, cols) / max(idx.size, 1)   # each mean c c^T
+        mean_total += outer.sum(axis=0)
         size = np.mean(np.sum(cols * cols, axis=1), axis=0)       # mean |c_k|^2
-        outer = np.einsum('nir,njr->rij', cols, cols) / max(idx.size, 1)
         for k in range(dirs.shape[1]):
             candidates.append((float(size[k]), limited_to_seen(
                 f.effect.make_terms(ctx, f.hyper, dirs[:, k]), seen_m), outer[k]))

@@ -293,6 +293,11 @@ class LengthBudget:
         # device description's figure for its bars stands for each bar's. A measured h carries
         # the scatter of the placements it is the mean of: the budget claims what the bars'
         # estimates together say of each (:func:`hysteresis_claim`), not the scatter itself
+        # (a point's variance holds its seating: what the routine measured, else the plate's
+        # stated figure)
+        self.seating_m = (figures.seating_m if figures.seating_m is not None
+                          else device.seating_repeatability_m)
+        self.point_var_m2 = figures.point_var(res, self.seating_m)
         friction = [t for t in model.terms if t.type_name in FRICTION_TERMS]
         self.friction_compensated = bool(friction)
         stated = device.friction_hysteresis_m or 0.0
@@ -301,8 +306,7 @@ class LengthBudget:
         if on:
             pairs = np.array([len(calibration.bars[measuring[i]].distances_m) for i in on])
             h[on] = hysteresis_claim(np.array([figures.hysteresis_m[measuring[i]] for i in on]),
-                                     figures.point_var(res, device.seating_repeatability_m)
-                                     / np.maximum(pairs, 1))
+                                     self.point_var_m2 / np.maximum(pairs, 1))
         for term in friction:
             amplitude = np.abs(np.asarray(getattr(term, 'amplitude_m', np.zeros(6)), dtype=np.float64))
             h = np.maximum(h, amplitude if amplitude.shape == (6,) else 0.0)
@@ -344,10 +348,6 @@ class LengthBudget:
         if figures.routine_temp_change_c is None:
             self.notes.append('calibration drift: the routine did not measure the temperature '
                               'change over its course (a reference bar on its resting pair first)')
-        # (a point's seating: what the routine measured, else the plate's stated figure)
-        self.seating_m = (figures.seating_m if figures.seating_m is not None
-                          else device.seating_repeatability_m)
-        self.point_var_m2 = figures.point_var(res, device.seating_repeatability_m)
         if self.seating_m is None:
             self.notes.append('calibration points: the seating of each placement is not claimed: '
                               'the routine did not measure it and the device description does not '

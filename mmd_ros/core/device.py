@@ -345,19 +345,22 @@ def parse_device(data: dict[str, Any], source: str = '<device>') -> DeviceDescri
         counter_bits=int(bits),
         channels=tuple(channels),
         raw=data,
-        thermal_mismatch_fraction=(r.number(bars, 'thermal_mismatch_fraction', 'bars', low=0.0, high=1.0)
-                                   if isinstance(bars, dict) and 'thermal_mismatch_fraction' in bars
-                                   else None),
-        latch_skew_s=(r.number(terminal, 'latch_skew_us', 'terminal', low=0.0, high=1000.0) * 1e-6
-                      if 'latch_skew_us' in terminal else None),
-        friction_hysteresis_m=(r.number(bars, 'friction_hysteresis_nm', 'bars', low=0.0,
-                                        high=100000.0) * M_PER_NM
-                               if 'friction_hysteresis_nm' in bars else None),
-        seating_repeatability_m=(r.number(plate, 'seating_repeatability_nm', 'reference_plate',
-                                          low=0.0, high=100000.0) * M_PER_NM
-                                 if 'seating_repeatability_nm' in plate else None),
+        thermal_mismatch_fraction=_stated(r, bars, 'thermal_mismatch_fraction', 'bars', 1.0, 1.0),
+        latch_skew_s=_stated(r, terminal, 'latch_skew_us', 'terminal', 1e-6, 1000.0),
+        friction_hysteresis_m=_stated(r, bars, 'friction_hysteresis_nm', 'bars', M_PER_NM, 1e5),
+        seating_repeatability_m=_stated(r, plate, 'seating_repeatability_nm', 'reference_plate',
+                                        M_PER_NM, 1e5),
         **_subdivision(r, bars, resolution),
     )
+
+
+def _stated(r: _Reader, section: Any, key: str, path: str, unit: float, high: float
+            ) -> float | None:
+    """A figure the description may state (a datasheet's, a characterisation's): the number at
+    ``key`` in 0 … ``high``, times ``unit``; None when the description does not say."""
+    if not isinstance(section, dict) or key not in section:
+        return None
+    return r.number(section, key, path, low=0.0, high=high) * unit
 
 
 def _subdivision(r: _Reader, bars: dict[str, Any], resolution_m: float) -> dict[str, float | None]:
