@@ -61,6 +61,8 @@ def _set(data, path, value):
     (('bars', 'signal_period_um'), 20, 'bars.subdivision_error_nm'),
     (('bars', 'subdivision_error_nm'), -30, 'bars.subdivision_error_nm'),
     (('bars', 'friction_hysteresis_nm'), -10, 'bars.friction_hysteresis_nm'),
+    (('bars', 'gravity_sag_nm'), -100, 'bars.gravity_sag_nm'),
+    (('bars', 'gravity_sag_nm'), 'long', 'bars.gravity_sag_nm'),
     (('reference_plate', 'seating_repeatability_nm'), -30,
      'reference_plate.seating_repeatability_nm'),
     (('reference_plate', 'seating_repeatability_nm'), 'x',

@@ -29,9 +29,9 @@ claim in two ways (``msg_docs/frames.md``):
   a posterior whose prior is those sources (scaled by k, ``systematic_scale``, never below 1,
   so that they claim per observed component as much as the terms with free constants,
   ``Effect.free_mean``, corrected over the log: an error the calibration may not know of,
-  whose mean over a log the reference does not see), between the bars with their
-  length-shaped part (the points' errors, the interpolation between them: functions of a
-  bar's length) conditioned on how each bar's residual varied with its length
+  whose mean over a log the reference does not see), with their length-shaped part (the
+  points' errors, the interpolation between them: functions of a bar's length) conditioned
+  on how each bar's residual varied with its length
   (:func:`_shape_constants`), and whose information is how the constant moves the pose as
   J^-1 varies over the runs, none for the common mode of the six bars
   (:func:`_unseen_constants`). A reference that sees only some pose components cannot
@@ -266,7 +266,8 @@ def _observing(ctx: FitContext, processed: Processed, model: Model) -> tuple[Len
     noise, motion); for the model the fit starts from and its own pass, made once per log."""
     def make() -> tuple[LengthBudget, Observed]:
         budget = LengthBudget(ctx.device, ctx.calibration, model)
-        return budget, budget.observe(processed.cdf_lengths_m, processed.reference_error_m, ctx.times_s)
+        return budget, budget.observe(processed.cdf_lengths_m, processed.reference_error_m,
+                                      ctx.times_s, processed.poses)
     if processed is ctx.base and model is ctx.model:
         return ctx.cached('base_budget', make)
     return make()
@@ -536,9 +537,11 @@ def _sized_from(fit: FitUncertainty, ctx: FitContext, found: list[FittedEffect],
             n += idx.size
         excess = _psd(observed_cov / n - predicted / n)
         if replace and zeroed:
-            # (the replaceable sources were predicted with the scale k already on them). The
-            # common mode keeps what they claim of it; between the bars, their length-shaped
-            # part is what the variation each bar showed leaves unknown of its mean
+            # (the replaceable sources were predicted with the scale k already on them). Their
+            # length-shaped part is what the variation each bar showed leaves unknown of its
+            # mean, in the common mode as between the bars: each bar's shape ties its own mean
+            # (the common mode keeping the calibration's whole claim of it claimed z 3.3 times
+            # its error on twins without a gravity sag, which that claim had stood for)
             budget = _observing(full[0][0].ctx, full[0][0].after, _trial(model, fit))[0]
             # (a fitted run's residual lacks the variation its terms of free constants took, and
             # their mean is held: the shape is read with their correction taken back out)
@@ -546,11 +549,8 @@ def _sized_from(fit: FitUncertainty, ctx: FitContext, found: list[FittedEffect],
                                       and f.effect.scope != 'run' and f.theta is not None]
             shape_var, shape_mean, moves, factor = _shape_constants(
                 parts, budget, fit.systematic_scale, free)
-            on_all = np.full((6, 6), 1.0 / 6.0)          # projectors: the common mode, the rest
-            apart = np.eye(6) - on_all
-            start = (on_all @ prior @ on_all
-                     + apart @ (prior - shaped + np.diag(shape_var * n)) @ apart) / n
-            unseen, estimate = _unseen_constants(parts, start, apart @ shape_mean)
+            start = (prior - shaped + np.diag(shape_var * n)) / n
+            unseen, estimate = _unseen_constants(parts, start, shape_mean)
             # and how far a run's mean moves with where it dwells, per bar
             dwell = np.maximum(_dwell_means(parts), moves)
             unseen = unseen + np.diag(dwell)
@@ -613,7 +613,8 @@ def _unseen_constants(parts: list[tuple[ResidualRun, IntArray, FloatArray, Float
     do, and a zeroed reference reads it as offsets: the common mode is given no information
     and keeps its prior (on the twin, a gravity sag the calibration read flat left -37 to
     -120 nm on every bar of new runs, while the constants the pose variation determined
-    differed between bars by 7 to 21 nm)."""
+    differed between bars by 7 to 21 nm: the bars' stated sag, a source of the prior, claims
+    it)."""
     info, score = np.zeros((6, 6)), np.zeros(6)
     for run, idx, _dd, _ref in parts:
         obs = run.ctx.obs

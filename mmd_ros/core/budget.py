@@ -35,7 +35,7 @@ from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.errors import CalibrationError
 from mmd_ros.core.model import Model, TermContext
 from mmd_ros.core.piecewise import bar_segments
-from mmd_ros.core.terms import MAX_GAP_S, SamplingSkewTerm, lengths_within
+from mmd_ros.core.terms import MAX_GAP_S, GravitySagTerm, SamplingSkewTerm, lengths_within
 from mmd_ros.core.uncertainty import (
     InterpolationError, NoiseEstimator, capture_var, fit_interpolation_error, hysteresis_claim,
     quantisation_cross_weights,
@@ -55,6 +55,10 @@ DIRECTION_TRAVEL_M = 1e-6
 FRICTION_TERMS = ('hysteresis', 'friction')
 #: Model terms that compensate the channels' latch skew (the latch_skew source is then off).
 SKEW_TERMS = ('sampling_skew',)
+#: Model terms that compensate the bars' gravity sag (the gravity_sag source is then off).
+SAG_TERMS = ('gravity_sag',)
+#: The vertical in {L}, the frame of the lower plate (taken level, as the gravity_sag term does).
+VERTICAL = np.array([0.0, 0.0, 1.0])
 #: Model terms that compensate the encoders' sub-divisional error on the measuring bars (at
 #: the signal period or a harmonic of it: the subdivision source keeps what they leave).
 CYCLIC_TERMS = ('cyclic_error',)
@@ -109,16 +113,19 @@ class Observed:
     settled : (N, 6) — how far each bar has travelled since the run began, min(1, path /
         turnover): 0 before its first move (the state a compensating term cannot know yet);
         with a compensating term the turnover is FRICTION_FORGET_TRAVELS of its travel
+    sag_m : (N, 6) — each bar's error from its gravity sag at the sample's pose, -g n_z^2
+        (None without a stated sag or a pose) [m]
     """
 
     read_noise_m: FloatArray
     directions: FloatArray
     velocity_m_s: FloatArray | None = None
     settled: FloatArray | None = None
+    sag_m: FloatArray | None = None
 
     def __getitem__(self, index: Any) -> Observed:
         return Observed(*(None if v is None else v[index] for v in (
-            self.read_noise_m, self.directions, self.velocity_m_s, self.settled)))
+            self.read_noise_m, self.directions, self.velocity_m_s, self.settled, self.sag_m)))
 
 
 class _Velocity:
@@ -203,7 +210,8 @@ class _Friction:
 SOURCES = ('quantisation', 'read_noise', 'reference_bar', 'calibration_points',
            'calibration_drift', 'reference_distances', 'interpolation', 'subdivision',
            'thermal_approximation',
-           'thermal_mismatch', 'hysteresis', 'latch_skew', 'unchecked_range', 'fitted_terms',
+           'thermal_mismatch', 'hysteresis', 'latch_skew', 'gravity_sag', 'unchecked_range',
+           'fitted_terms',
            'residual')
 
 
@@ -341,7 +349,10 @@ class LengthBudget:
         self.knots_m = np.array(knots)                         # (6, n) increasing
         self.pair_index = np.array(pair_idx, dtype=np.intp)     # (6, n)
         self.drift_m = np.array(drift)                         # (6, n) each point's thermal error
-        # the measured change is noisy: scale the profile to the unbiased estimate of its square
+        # the measured change is noisy: scale the profile to the unbiased estimate of its square,
+        # and claim it as a covariance e e^T of one change for every bar, not as an error of
+        # known sign (realistic twins whose room held still read changes of up to 0.23 °C, 2.6
+        # of their sigma; summed with the bars' sag as a signed error it cancelled it)
         temp, temp_sigma = figures.routine_temp_change_c, figures.routine_temp_sigma_c or 0.0
         if temp:
             self.drift_m *= math.sqrt(max(temp * temp - temp_sigma ** 2, 0.0)) / abs(temp)
@@ -422,6 +433,19 @@ class LengthBudget:
                              else float(skew or 0.0))
         self._velocity = _Velocity(1.0 / device.sample_rate_hz)
 
+        # -- the bars' gravity sag (their characterisation), unless a fitted term compensates it:
+        # a bar reads g (1 - n_z^2) long, n_z its axis' vertical component; calibrated lying on
+        # the plate (n_z = 0) its CDF holds g, so on the MMD it reads g n_z^2 short, an error
+        # of known size and sign at a known pose that the compensation does not correct
+        sag = device.gravity_sag_m
+        if sag is None:
+            self.notes.append('gravity sag: the device description does not state the bars\' '
+                              '(bars.gravity_sag_nm); a bar whose axis has the vertical '
+                              'component n_z reads g n_z^2 short')
+        self.gravity_sag_m = (0.0 if any(t.type_name in SAG_TERMS for t in model.terms)
+                              else float(sag or 0.0))
+        self._joints = (device.geometry.upper, device.geometry.lower)
+
         # -- the encoders' sub-divisional error (their datasheet): a bar reads e(q) at count q,
         # periodic in the signal period, with a phase no one knows; the calibration's points
         # carry theirs too. Its mean square a^2 / 2, less what fitted terms at the signal
@@ -464,6 +488,8 @@ class LengthBudget:
         self.mean_terms_m2 = fit.mean_terms_m2 if fit is not None else np.zeros((6, 6))
         self.rest_terms_m2 = fit.rest_terms_m2 if fit is not None else np.zeros((6, 6))
         self._subdivision_factor = self._kept('subdivision')
+        # (the sag's error over the poses a fit's residual saw is in that residual)
+        self._sag_kept = math.sqrt(self._kept('gravity_sag')) if self.gravity_sag_m else 0.0
         # what the per-sample path needs, decided once
         self._has_drift = bool(np.any(self.drift_m))
         self._has_pairs = bool(np.any(self.pair_var_m2 > 0))
@@ -499,13 +525,16 @@ class LengthBudget:
         return eps[:, :1] + frac * (eps[:, -1:] - eps[:, :1])
 
     def observe(self, cdf_lengths_m: FloatArray, reference_error_m: FloatArray,
-                times_s: FloatArray | None = None) -> Observed:
+                times_s: FloatArray | None = None, poses: FloatArray | None = None) -> Observed:
         """What the budget learns from N consecutive samples (call once per sample, in time
         order): the read-noise estimate from the CDF lengths (or the lengths plus the thermal
         error subtracted, which differ by terms that do not change while a bar stands still)
-        and the reference bars' Eq. (11) errors, each bar's motion direction and its speed.
+        and the reference bars' Eq. (11) errors, each bar's motion direction and its speed,
+        and at the samples' poses each bar's gravity sag error.
 
         times_s : (N,) the samples' times [s]; None: the device's sample period apart
+        poses : (N, 6) the samples' poses [m, rad] (NaN where unsolved: no sag claimed there);
+            None: the sag's error is not known (not claimed)
 
         returns : what :meth:`covariance` needs of these samples
         """
@@ -520,7 +549,12 @@ class LengthBudget:
                                if self._has_hysteresis else (np.zeros((n, 6)), None))
         velocity = (self._velocity(np.asarray(cdf_lengths_m, dtype=np.float64), times_s)
                     if self.latch_skew_s else None)
-        return Observed(self._resolve(est), directions, velocity, settled)
+        sag = None
+        if self.gravity_sag_m and poses is not None:
+            n_z2 = GravitySagTerm.features(*self._joints, np.asarray(poses, dtype=np.float64),
+                                           VERTICAL)
+            sag = -self.gravity_sag_m * np.nan_to_num(n_z2)
+        return Observed(self._resolve(est), directions, velocity, settled, sag)
 
     def _resolve(self, estimate: FloatArray) -> FloatArray:
         if self.fixed_noise_m is not None:
@@ -583,8 +617,9 @@ class LengthBudget:
             if not np.any(k):
                 continue
             value = tab[rows, i0] * (1.0 - f) + tab[rows, i0 + 1] * f
-            if name == 'calibration_drift':
-                t.bias[name] = np.sqrt(k) * value
+            if name == 'calibration_drift':     # (one change for every bar: rank one)
+                e = np.sqrt(k) * value
+                t.full[name] = e[:, :, None] * e[:, None, :]
             else:
                 t.diag[name] = k * value
         if self._has_pairs and self._kept('reference_distances'):
@@ -612,6 +647,8 @@ class LengthBudget:
             v = observed.velocity_m_s
             t.bias['latch_skew'] = 0.5 * self.latch_skew_s * v
             t.diag['latch_skew'] = (self.latch_skew_s ** 2 / 12.0) * v * v
+        if self._sag_kept and observed is not None and observed.sag_m is not None:
+            t.bias['gravity_sag'] = self._sag_kept * observed.sag_m
         if fit_columns_m is not None and fit_columns_m.shape[-1]:
             t.full['fitted_terms'] = (fit_columns_m @ np.swapaxes(fit_columns_m, 1, 2)
                                       + self.rest_terms_m2)
@@ -902,6 +939,7 @@ class LengthBudget:
         diag = fast['q12'] + noise[:, :6] ** 2
         factor, points = self._table_factors(x, bar_error_m, eps)
         bias = np.zeros((n, 6))
+        drift = None
         if np.any(points):
             tab = fast['points']
             diag += points * (tab[rows, i0] * g + tab[rows, i0 + 1] * f)
@@ -911,7 +949,7 @@ class LengthBudget:
                 diag += factor * (tab[rows, i0] * g + tab[rows, i0 + 1] * f)
             if fast['drift'] is not None:
                 tab = fast['drift']
-                bias += np.sqrt(factor) * (tab[rows, i0] * g + tab[rows, i0 + 1] * f)
+                drift = np.sqrt(factor) * (tab[rows, i0] * g + tab[rows, i0 + 1] * f)
         if fast['subdivision'] is not None and self._subdivision_factor:
             tab = fast['subdivision']
             diag += self._subdivision_factor * (tab[rows, i0] * g + tab[rows, i0 + 1] * f)
@@ -932,8 +970,12 @@ class LengthBudget:
             v = observed.velocity_m_s
             bias += (0.5 * self.latch_skew_s) * v
             diag += (self.latch_skew_s ** 2 / 12.0) * v * v
+        if self._sag_kept and observed is not None and observed.sag_m is not None:
+            bias += self._sag_kept * observed.sag_m
         total = bias[:, :, None] * bias[:, None, :]
         total[:, rows[0], rows[0]] += diag
+        if drift is not None:
+            total += drift[:, :, None] * drift[:, None, :]
         if self.thermal_mode == 'single':
             cross = self._cross(noise[-1, 6:], eps)[:, 0]
             ref = (np.maximum(fast['q12'] + noise[:, 6] ** 2 + self.zero_var_m2 - 2.0 * cross, 0.0)
@@ -1007,6 +1049,7 @@ class LengthBudget:
             'thermal_mismatch_fraction': self.mismatch_fraction,
             'hysteresis_nm': [round(float(v) * 1e9, 2) for v in self.hysteresis_m],
             'latch_skew_us': round(self.latch_skew_s * 1e6, 3),
+            'gravity_sag_nm': round(self.gravity_sag_m * 1e9, 3),
             'subdivision_nm': round(self.subdivision_m * 1e9, 3),
             'signal_period_um': round(self.signal_period_m * 1e6, 6),
             'subdivision_left_nm': [round(math.sqrt(2.0 * v) * 1e9, 3) for v in self.subdivision_left_m2],

@@ -41,7 +41,7 @@ SECTION_KEYS = {
                         'seating_repeatability_nm', 'pairs'),
     'bars': ('range_mm', 'encoder_resolution_nm', 'scale_cte_ppm_per_c', 'rod_cte_ppm_per_c',
              'fixed_length_mm', 'thermal_mismatch_fraction', 'subdivision_error_nm',
-             'signal_period_um', 'friction_hysteresis_nm'),
+             'signal_period_um', 'friction_hysteresis_nm', 'gravity_sag_nm'),
     'plates': ('position_layer_cte_ppm_per_c',),
     'limits': ('upper_tilt_deg', 'lower_tilt_deg', 'min_bar_separation_mm'),
     'terminal': ('sample_rate_hz', 'counter_bits', 'latch_skew_us', 'channels'),
@@ -117,6 +117,10 @@ class DeviceDescription:
     #: bars of the type [m]; None when the description does not say (a two-sided calibration
     #: measures each bar's own)
     friction_hysteresis_m: float | None = None
+    #: the bars' gravity sag, as the bars' characterisation states it: how much longer a bar
+    #: reads lying horizontally than standing vertically, g (a bar whose axis has the vertical
+    #: component n_z reads g (1 - n_z^2) long) [m]; None when the description does not say
+    gravity_sag_m: float | None = None
     #: how repeatably a bar seats in a socket pair of the reference plate, as the plate's
     #: characterisation states it: the standard deviation of a placement's centre distance [m];
     #: None when the description does not say (a two-sided calibration measures it)
@@ -167,6 +171,10 @@ class DeviceDescription:
         """A copy that states the bars' friction hysteresis (``bars.friction_hysteresis_nm``)
         [m]."""
         return self._stating('bars', friction_hysteresis_nm=round(float(amplitude_m) * 1e9, 6))
+
+    def with_gravity_sag(self, sag_m: float) -> DeviceDescription:
+        """A copy that states the bars' gravity sag (``bars.gravity_sag_nm``) [m]."""
+        return self._stating('bars', gravity_sag_nm=round(float(sag_m) * 1e9, 6))
 
     def with_seating_repeatability(self, sigma_m: float) -> DeviceDescription:
         """A copy that states the reference plate's seating repeatability
@@ -348,6 +356,7 @@ def parse_device(data: dict[str, Any], source: str = '<device>') -> DeviceDescri
         thermal_mismatch_fraction=_stated(r, bars, 'thermal_mismatch_fraction', 'bars', 1.0, 1.0),
         latch_skew_s=_stated(r, terminal, 'latch_skew_us', 'terminal', 1e-6, 1000.0),
         friction_hysteresis_m=_stated(r, bars, 'friction_hysteresis_nm', 'bars', M_PER_NM, 1e5),
+        gravity_sag_m=_stated(r, bars, 'gravity_sag_nm', 'bars', M_PER_NM, 1e5),
         seating_repeatability_m=_stated(r, plate, 'seating_repeatability_nm', 'reference_plate',
                                         M_PER_NM, 1e5),
         **_subdivision(r, bars, resolution),

@@ -224,7 +224,7 @@ class HysteresisTerm(ModelTerm):
 #: Sources of the uncertainty budget that a fit's measured residual may stand in for: the
 #: systematic errors derived from the calibration (msg_docs/frames.md).
 FIT_REPLACEABLE = ('calibration_points', 'calibration_drift', 'reference_distances', 'interpolation',
-                   'subdivision', 'hysteresis')
+                   'subdivision', 'hysteresis', 'gravity_sag')
 #: Keys of a model file's ``uncertainty.fit`` section.
 FIT_KEYS = ('residual_nm2', 'replaces', 'systematic_scale', 'mean_terms_nm2', 'directions', 'from',
             'read_noise_nm', 'flank_nm2', 'rest_terms_nm2')

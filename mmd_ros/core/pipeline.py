@@ -261,7 +261,7 @@ class Pipeline:
         cov = None
         if with_covariance and sol.jacobian_inverse is not None:
             observed = self.budget.observe(comp.cdf_lengths_m, comp.thermal.reference_error_m,
-                                           times_s)
+                                           times_s, sol.poses)
             if covariance_every > 1:
                 rows = slice(None, None, covariance_every)
                 cov = np.full((times_s.size, 6, 6), np.nan)
@@ -320,7 +320,8 @@ class Pipeline:
         out = comp.out_of_range[0]
         cov = None
         if with_covariance:
-            observed = self.budget.observe(comp.cdf_lengths_m, comp.thermal.reference_error_m, t)
+            observed = self.budget.observe(comp.cdf_lengths_m, comp.thermal.reference_error_m, t,
+                                           pose[None])
             if sol.converged:
                 jinv = np.linalg.inv(sol.jacobian)
                 cov = self.covariance(jinv[None], comp, observed)[0]

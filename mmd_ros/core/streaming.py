@@ -331,12 +331,13 @@ class _CovarianceInputs:
     bar_error_m: FloatArray
     fit_columns_m: FloatArray | None
     times_s: FloatArray | None = None
+    poses: FloatArray | None = None
     observed: Observed | None = None
 
     def observe(self) -> Observed:
         if self.observed is None:
             self.observed = self.budget.observe(self.lengths_m + self.bar_error_m,
-                                                self.reference_error_m, self.times_s)
+                                                self.reference_error_m, self.times_s, self.poses)
         return self.observed
 
 
@@ -441,6 +442,6 @@ class Kinematics:
                 times = (None if stamps_ns is None or not len(stamps_ns)
                          else np.asarray(stamps_ns, dtype=np.int64) * 1e-9)
                 unc = self._last = _CovarianceInputs(b, lengths_m, eps, dtemp, bar_error_m,
-                                                     fit_columns_m, times)
+                                                     fit_columns_m, times, poses)
         return KinematicsOut(poses, valid, converged, sol.status, iterations, residual,
                              sol.condition, sol.jacobians, plate_scale, unc)

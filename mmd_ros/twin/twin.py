@@ -209,8 +209,9 @@ class TwinDevice:
         (``bars.friction_hysteresis_nm``) is the RMS of the amplitudes the effects give the bars
         (each bar's own stays hidden, as a characterisation of the bar type states it); the
         reference plate's seating repeatability (``reference_plate.seating_repeatability_nm``) is
-        the effects' placement repeatability (each placement's own offset stays hidden). What a
-        description states, it keeps."""
+        the effects' placement repeatability (each placement's own offset stays hidden); the bars'
+        gravity sag (``bars.gravity_sag_nm``) is the effects' (alike for every bar, as the twin
+        makes it). What a description states, it keeps."""
         device = self.device
         if device.latch_skew_s is None:
             device = device.with_latch_skew(self.effects.sampling_skew_s)
@@ -222,6 +223,8 @@ class TwinDevice:
                 self.effects.hysteresis_m * math.sqrt((hi ** 3 - lo ** 3) / (3.0 * (hi - lo))))
         if device.seating_repeatability_m is None:
             device = device.with_seating_repeatability(self.effects.placement_repeatability_m)
+        if device.gravity_sag_m is None:
+            device = device.with_gravity_sag(self.effects.gravity_sag_m)
         return device
 
     # -- bars on the reference plate -----------------------------------------------------------
