@@ -118,7 +118,7 @@ def test_a_session_with_a_6dof_run_improves_every_component_of_another(session):
     every component improves, and the pose covariance covers that run's error against its
     absolute reference. It covered 55.3 % when the calibration's sources stayed whole beside
     the zeroed residual, before the claim of the constant error the runs leave unknown; now
-    98.2 % (ratios 0.77-1.58). The session's length terms are not written (they would move
+    98.2 % (ratios 0.77-1.60). The session's length terms are not written (they would move
     components its runs cannot check), and they leave the friction state each point of its
     one-sided calibration was captured in (+-0.15-0.45 µm per bar and pair). While the budget
     did not claim that, the error was 7-12 times (in sigma) what the calibration described,
