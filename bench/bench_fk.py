@@ -96,15 +96,16 @@ def per_sample_and_transfer(fk: ForwardKinematics) -> dict:
 
 
 def transfer_with_covariance() -> dict:
-    """The nodes' path with the covariance: a realistic twin's calibration (its budget has every
-    source: hysteresis, drift, interpolation...), 8 samples per transfer."""
+    """The nodes' path with the covariance: a realistic twin's calibration and the description
+    its simulated hardware states (its budget has every source: hysteresis, drift,
+    interpolation, latch skew, sub-divisional error, gravity sag...), 8 samples per transfer."""
     from mmd_ros.core.budget import LengthBudget
     from mmd_ros.core.model import Model
     from mmd_ros.core.streaming import Kinematics
     from mmd_ros.twin import AmbientProfile, Effects, TwinDevice
-    calibration = TwinDevice(DEVICE, Effects.realistic(), seed=1).calibrate(
-        0.0, AmbientProfile.section_4_1())
-    kin = Kinematics(DEVICE, LengthBudget(DEVICE, calibration, Model()))
+    twin = TwinDevice(DEVICE, Effects.realistic(), seed=1)
+    calibration = twin.calibrate(0.0, AmbientProfile.section_4_1())
+    kin = Kinematics(DEVICE, LengthBudget(twin.documented_device, calibration, Model()))
     lengths = inverse_kinematics(DEVICE.geometry, trajectory(20000))
     noisy = lengths + np.random.default_rng(1).normal(0, 50e-9, lengths.shape)
     eps, dt, scale = np.full((8, 1), 0.05e-6), np.full(8, -0.1), np.ones(8)
