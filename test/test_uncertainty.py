@@ -722,19 +722,21 @@ def test_after_the_loop_the_fit_s_uncertainty_is_in_the_model_and_covers(tmp_pat
     lengths the fit saw, and that range. Five twins (five calibrations: each draws every
     systematic error once, and a pooled coverage of two says little of a 95 % claim), each
     judged with its own model on new motion: the 95 % ellipsoid covers 93-97 % (measured
-    95.4 %) and no axis is under-stated (ratio > 0.8). Where every bar lies inside the
+    95.5 %) and no axis is under-stated (ratio > 0.8). Where every bar lies inside the
     lengths the fit saw (88 % of the samples), the ratio is within the issue's 0.8-1.25
-    (measured 0.92-1.06). Over all samples 0.97-1.14 (1.09-1.54 in y, pitch and yaw while the
-    size of what the terms corrected was claimed whole from the bound on): the rest take a bar
+    (measured 0.92-1.06), and over all samples too (0.95-1.10; 0.97-1.14 while the
+    calibration's sources came back from the bound of the CDF segments whose middle the fit
+    saw, 1.09-1.54 in y, pitch and yaw while the size of what the terms corrected was claimed
+    whole from the bound on): the rest take a bar
     outside those lengths, where the length terms are claimed uncertain by their change from
     the last length the fit checked and by the size of what they corrected within those
     lengths, the share of it a smooth error leaves unknown growing with the distance
     (unchecked_range: on an error of another shape than the twin's, the test below, this is
     what covers it), and the calibration-derived sources come back as the distance grows; a
-    bar in a CDF segment whose middle the fit did not see gets them back too, and what the
-    fit's residual held there beyond the claim (a twin whose fit saw only the flank of two
-    bars' end segments was covered 66 % when nothing came back): covered (measured 97.0 %,
-    98.3 % with the size claimed whole)."""
+    bar in a CDF segment whose middle the fit did not see gets what the fit's residual held
+    there beyond the claim (a twin whose fit saw only the flank of two bars' end segments was
+    covered 66 % when nothing was claimed there): covered (measured 96.0 %, 97.0 % while the
+    sources came back from the segments' bound, 98.3 % with the size claimed whole)."""
     from mmd_ros.core.model import FIT_REPLACEABLE
     errors, covs, inside = [], [], []
     for seed in (1, 2, 3, 4, 5):
@@ -761,7 +763,7 @@ def test_after_the_loop_the_fit_s_uncertainty_is_in_the_model_and_covers(tmp_pat
     ratio = np.sqrt(np.mean(np.diagonal(c, axis1=1, axis2=2), axis=0)) / np.sqrt(np.mean(e * e, axis=0))
     d2 = np.einsum('ni,ni->n', e, np.linalg.solve(c, e[:, :, None])[:, :, 0])
     print('after the loop: ratio', np.round(ratio, 2), 'coverage', np.mean(d2 <= LIMIT))
-    assert np.all((ratio > 0.8) & (ratio < 2.0)), ratio
+    assert np.all((ratio > 0.8) & (ratio < 1.25)), ratio
     assert 0.93 <= np.mean(d2 <= LIMIT) <= 0.97, np.mean(d2 <= LIMIT)
     m = np.concatenate(inside)
     assert 0.5 < m.mean() < 1.0, m.mean()
