@@ -466,13 +466,16 @@ class LengthBudget:
         # -- a fitted length-dependent term where the fit never saw the bar: its correction
         # there is an extrapolation that no data checked (the model's validity record)
         validity = Validity.from_model(model)
-        self._fit_range_m = validity.bar_range_m if validity is not None and fit is not None else None
-        self._seen_range_m = self._fit_range_m       # (the lengths themselves, for the tables)
+        # the lengths a fit's residual checked (the calibration's tables come back beyond them)
+        self._seen_range_m = (validity.bar_range_m if validity is not None and fit is not None
+                              else None)
         self._length_terms = [t for t in model.terms if t.type_name in LENGTH_TERMS]
-        if self._fit_range_m is not None and self._length_terms:
-            # with a length term, the residual stands for the CDF-derived sources only over
-            # the CDF segments whose middle the fit saw (:func:`segments_seen`)
-            self._fit_range_m = segments_seen(self.knots_m, self._fit_range_m)
+        # with a length term, of those the CDF segments whose middle the fit saw
+        # (:func:`segments_seen`): where the lengths seen end inside a segment is its flank
+        # (:meth:`flank`), and a point is checked only through a segment seen
+        self._fit_range_m = (segments_seen(self.knots_m, self._seen_range_m)
+                             if self._seen_range_m is not None and self._length_terms
+                             else self._seen_range_m)
         self._fitted_range_m = (validity.bar_range_m if validity is not None and self._length_terms
                                 else None)
         self._seen_var_m2 = (self._length_spread(self._fitted_range_m)
