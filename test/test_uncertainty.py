@@ -456,7 +456,7 @@ def _pooled(effects: Effects, ambient: str, k_runs: int, seconds: float = 5.0, a
         covs.append(res.covariance[ok])
     e, c = np.concatenate(errors), np.concatenate(covs)
     ratio = np.sqrt(np.mean(np.diagonal(c, axis1=1, axis2=2), axis=0)) / np.sqrt(np.mean(e * e, axis=0))
-    d2 = np.einsum('ni,ni->n', e, np.linalg.solve(c, e[:, :, None])[:, :, 0])
+    d2 = _d2(e, c)
     return ratio, float(np.mean(d2 <= LIMIT))
 
 
@@ -603,7 +603,7 @@ def test_the_bars_stated_gravity_sag_is_claimed_where_they_lean():
     cover = {}
     for stated, (errors, covs) in pooled.items():
         e, c = np.concatenate(errors), np.concatenate(covs)
-        d2 = np.einsum('ni,ni->n', e, np.linalg.solve(c, e[:, :, None])[:, :, 0])
+        d2 = _d2(e, c)
         cover[stated] = float(np.mean(d2 <= LIMIT))
     print('C-axis runs, sag stated / not:', cover)
     assert cover[True] >= 0.93, cover
@@ -761,7 +761,7 @@ def test_after_the_loop_the_fit_s_uncertainty_is_in_the_model_and_covers(tmp_pat
     assert np.all(unseen > 0)
     e, c = np.concatenate(errors), np.concatenate(covs)
     ratio = np.sqrt(np.mean(np.diagonal(c, axis1=1, axis2=2), axis=0)) / np.sqrt(np.mean(e * e, axis=0))
-    d2 = np.einsum('ni,ni->n', e, np.linalg.solve(c, e[:, :, None])[:, :, 0])
+    d2 = _d2(e, c)
     print('after the loop: ratio', np.round(ratio, 2), 'coverage', np.mean(d2 <= LIMIT))
     assert np.all((ratio > 0.8) & (ratio < 1.25)), ratio
     assert 0.93 <= np.mean(d2 <= LIMIT) <= 0.97, np.mean(d2 <= LIMIT)
@@ -1085,7 +1085,7 @@ def test_after_the_loop_a_scale_error_of_another_shape_is_covered_where_the_fit_
         cdf = res.compensated.cdf_lengths_m[res.valid]
         outside.append(~np.all((cdf >= bars[:, 0]) & (cdf <= bars[:, 1]), axis=1))
     e, c, out = np.concatenate(errors), np.concatenate(covs), np.concatenate(outside)
-    d2 = np.einsum('ni,ni->n', e, np.linalg.solve(c, e[:, :, None])[:, :, 0])
+    d2 = _d2(e, c)
     ratio = np.sqrt(np.mean(np.diagonal(c, axis1=1, axis2=2), axis=0) / np.mean(e * e, axis=0))
     print('coverage', np.mean(d2 <= LIMIT), 'outside', np.mean(d2[out] <= LIMIT), out.mean(),
           'inside', np.mean(d2[~out] <= LIMIT), 'ratio', np.round(ratio, 2))
@@ -1131,7 +1131,7 @@ def test_a_zeroed_fit_of_a_localised_length_error_moves_no_mean_it_cannot_see():
         errors.append(pose_error(res.poses, run.true_poses)[res.valid])
         covs.append(res.covariance[res.valid])
     e, c = np.concatenate(errors), np.concatenate(covs)
-    d2 = np.einsum('ni,ni->n', e, np.linalg.solve(c, e[:, :, None])[:, :, 0])
+    d2 = _d2(e, c)
     print('coverage', np.mean(d2 <= LIMIT))
     assert np.mean(d2 <= LIMIT) >= 0.93
 
