@@ -579,7 +579,7 @@ def test_the_bars_stated_gravity_sag_is_claimed_where_they_lean():
     vertical component): a known error at a known pose, which the budget claims when the
     device description states g (``bars.gravity_sag_nm``, the simulated bars state the twin's).
     The realistic twin's 0.1 um sag on C-axis runs (which tilt the bars as the platform turns):
-    6 calibrations 93.9 % in the ellipsoid (94.4 % with the twin's sag off), 88.3 % unstated.
+    6 calibrations 93.9 % in the ellipsoid (94.4 % with the twin's sag off), 88.2 % unstated.
     A gravity_sag term in the model compensates it: the source is then off."""
     from mmd_ros.core.terms import GravitySagTerm
     effects = Effects.realistic()
