@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import math
 
 import numpy as np
 import pytest
@@ -67,6 +68,9 @@ def _set(data, path, value):
      'reference_plate.seating_repeatability_nm'),
     (('reference_plate', 'seating_repeatability_nm'), 'x',
      'reference_plate.seating_repeatability_nm'),
+    (('plates', 'vertical'), [0, 0, 0], 'plates.vertical'),
+    (('plates', 'vertical'), [0, 1], 'plates.vertical'),
+    (('plates', 'vertical'), 'up', 'plates.vertical'),
     (('format_version',), 2, 'format_version'),
 ])
 def test_bad_files_are_refused_naming_the_key(path, value, key):
@@ -76,6 +80,18 @@ def test_bad_files_are_refused_naming_the_key(path, value, key):
         parse_device(data, 'bad.yaml')
     assert info.value.key == key
     assert 'bad.yaml' in str(info.value)
+
+
+def test_the_vertical_as_mounted_is_stated_as_a_direction_and_level_otherwise():
+    """``plates.vertical``: the upward direction in {L} as the MMD is mounted (a horizontal
+    spindle puts the lower plate on its side), any length, kept as a unit vector; not stated,
+    the lower plate is taken level."""
+    device = parse_device(copy.deepcopy(RAW), 'level.yaml')
+    assert device.vertical is None
+    assert device.up.tolist() == [0.0, 0.0, 1.0]
+    side = device.with_vertical([-2.0, 0.0, 2.0])
+    assert side.up == pytest.approx([-math.sqrt(0.5), 0.0, math.sqrt(0.5)])
+    assert parse_device(side.raw, 'again.yaml').up == pytest.approx(side.up)
 
 
 def test_a_signal_period_given_in_metres_is_caught():

@@ -374,6 +374,27 @@ def test_with_an_absolute_reference_an_offset_is_structure_an_effect_must_explai
     assert not above_floor(result.stats_after, floor, 1.5), result.conclusion
 
 
+def test_the_sag_is_fitted_along_the_vertical_the_log_s_description_states():
+    """An MMD on its side (+x of {L} up, between a horizontal spindle and its table): its bars
+    sag along x, which moves x, not z. The log's device description states the vertical
+    (``plates.vertical``), and the gravity_sag effect's signature and term go along it: 0.5 um
+    fitted at 0.536 um, x 0.088 -> 0.032 um (floor 0.038)."""
+    side = DEVICE.with_vertical([1.0, 0.0, 0.0])
+    twin = TwinDevice(side, Effects.ideal().with_assignments(['gravity_sag_m=5e-7']), seed=2)
+    room = AmbientProfile.constant(22.0)
+    calibration = twin.calibrate(0.0, room)
+    run = twin.simulate(make_scenario('random_motion', ['duration_s=30', 'seed=102']), room,
+                        start_s=600.0, reference='pose6')
+    result = analyze(run_log(twin, calibration, run, 600.0), options=AnalysisOptions(datum='none'))
+    assert [f.effect for f in result.found] == ['gravity_sag'], result.conclusion
+    term = next(t for t in result.model.terms if t.type_name == 'gravity_sag')
+    assert term.vertical.tolist() == [1.0, 0.0, 0.0]
+    assert 0.4e-6 < float(term.sag_m[0]) < 0.6e-6, term.sag_m
+    floor = result.runs[0].floor
+    assert above_floor(result.stats_before, {'x': floor['x']}, 2.0), result.stats_before
+    assert not above_floor(result.stats_after, floor, 1.5), result.conclusion
+
+
 # -- estimators on effects shaped otherwise ----------------------------------------------------
 def injected_log(tmp_path: Path, name: str, error_of, scenario: str = 'random_motion',
                  params: tuple[str, ...] = ('duration_s=40',), reference: str = 'pose6') -> Path:

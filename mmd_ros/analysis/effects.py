@@ -669,12 +669,12 @@ class GravitySag(Effect):
     title = 'gravity sag with bar inclination'
     physics = ('a bar bends under its weight across its axis and reads long by g (1 - n_z^2); '
                'calibrated lying flat, it reads short by g n_z^2 on the MMD (one g: the bars are '
-               'of one design)')
+               'of one design; n_z along the vertical the device description states)')
     needs_pose = True
 
     def _nz2(self, ctx: FitContext, idx: NDArray[np.int64]) -> FloatArray:
         geo = ctx.device.geometry
-        return GravitySagTerm.features(geo.upper, geo.lower, ctx.base.poses[idx], np.array([0.0, 0.0, 1.0]))
+        return GravitySagTerm.features(geo.upper, geo.lower, ctx.base.poses[idx], ctx.device.up)
 
     def parameters(self, ctx, hyper):
         return [Parameter('sag of a horizontal bar', 'µm', 1 / M_PER_UM, 20e-6)]
@@ -689,7 +689,7 @@ class GravitySag(Effect):
 
     def make_term(self, ctx, hyper, theta):
         geo = ctx.device.geometry
-        return GravitySagTerm(geo.upper, geo.lower, np.full(6, float(theta[0])))
+        return GravitySagTerm(geo.upper, geo.lower, np.full(6, float(theta[0])), ctx.device.up)
 
     def diagnostics(self, ctx, hyper):
         nz2 = self._nz2(ctx, np.arange(ctx.times_s.size))

@@ -57,8 +57,6 @@ FRICTION_TERMS = ('hysteresis', 'friction')
 SKEW_TERMS = ('sampling_skew',)
 #: Model terms that compensate the bars' gravity sag (the gravity_sag source is then off).
 SAG_TERMS = ('gravity_sag',)
-#: The vertical in {L}, the frame of the lower plate (taken level, as the gravity_sag term does).
-VERTICAL = np.array([0.0, 0.0, 1.0])
 #: Model terms that compensate the encoders' sub-divisional error on the measuring bars (at
 #: the signal period or a harmonic of it: the subdivision source keeps what they leave).
 CYCLIC_TERMS = ('cyclic_error',)
@@ -445,6 +443,10 @@ class LengthBudget:
         self.gravity_sag_m = (0.0 if any(t.type_name in SAG_TERMS for t in model.terms)
                               else float(sag or 0.0))
         self._joints = (device.geometry.upper, device.geometry.lower)
+        self._up = device.up        # n_z: along the upward vertical in {L} as mounted
+        if self.gravity_sag_m and device.vertical is None:
+            self.notes.append('gravity sag: the device description does not state the vertical '
+                              'as mounted (plates.vertical); the lower plate is taken level (+z)')
 
         # -- the encoders' sub-divisional error (their datasheet): a bar reads e(q) at count q,
         # periodic in the signal period, with a phase no one knows; the calibration's points
@@ -556,7 +558,7 @@ class LengthBudget:
         sag = None
         if self.gravity_sag_m and poses is not None:
             n_z2 = GravitySagTerm.features(*self._joints, np.asarray(poses, dtype=np.float64),
-                                           VERTICAL)
+                                           self._up)
             sag = -self.gravity_sag_m * np.nan_to_num(n_z2)
         return Observed(self._resolve(est), directions, velocity, settled, sag)
 
@@ -1058,6 +1060,7 @@ class LengthBudget:
             'hysteresis_nm': [round(float(v) * 1e9, 2) for v in self.hysteresis_m],
             'latch_skew_us': round(self.latch_skew_s * 1e6, 3),
             'gravity_sag_nm': round(self.gravity_sag_m * 1e9, 3),
+            'vertical': [round(float(v), 6) for v in self._up],
             'subdivision_nm': round(self.subdivision_m * 1e9, 3),
             'signal_period_um': round(self.signal_period_m * 1e6, 6),
             'subdivision_left_nm': [round(math.sqrt(2.0 * v) * 1e9, 3) for v in self.subdivision_left_m2],

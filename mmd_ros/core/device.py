@@ -42,7 +42,7 @@ SECTION_KEYS = {
     'bars': ('range_mm', 'encoder_resolution_nm', 'scale_cte_ppm_per_c', 'rod_cte_ppm_per_c',
              'fixed_length_mm', 'thermal_mismatch_fraction', 'subdivision_error_nm',
              'signal_period_um', 'friction_hysteresis_nm', 'gravity_sag_nm'),
-    'plates': ('position_layer_cte_ppm_per_c',),
+    'plates': ('position_layer_cte_ppm_per_c', 'vertical'),
     'limits': ('upper_tilt_deg', 'lower_tilt_deg', 'min_bar_separation_mm'),
     'terminal': ('sample_rate_hz', 'counter_bits', 'latch_skew_us', 'channels'),
 }
@@ -121,10 +121,20 @@ class DeviceDescription:
     #: reads lying horizontally than standing vertically, g (a bar whose axis has the vertical
     #: component n_z reads g (1 - n_z^2) long) [m]; None when the description does not say
     gravity_sag_m: float | None = None
+    #: the upward vertical as the MMD is mounted, a unit vector in {L} (the lower plate's frame);
+    #: None when the description does not say (the lower plate is then taken level: +z). The
+    #: bars' gravity sag goes with their axes' component along it (:attr:`up`)
+    vertical: tuple[float, float, float] | None = None
     #: how repeatably a bar seats in a socket pair of the reference plate, as the plate's
     #: characterisation states it: the standard deviation of a placement's centre distance [m];
     #: None when the description does not say (a two-sided calibration measures it)
     seating_repeatability_m: float | None = None
+
+    @property
+    def up(self) -> NDArray[np.float64]:
+        """The upward vertical in {L}, (3,): the stated ``plates.vertical``, else +z (the lower
+        plate level)."""
+        return np.array(self.vertical if self.vertical is not None else (0.0, 0.0, 1.0))
 
     @property
     def reference_distances_m(self) -> NDArray[np.float64]:
@@ -176,13 +186,17 @@ class DeviceDescription:
         """A copy that states the bars' gravity sag (``bars.gravity_sag_nm``) [m]."""
         return self._stating('bars', gravity_sag_nm=round(float(sag_m) * 1e9, 6))
 
+    def with_vertical(self, up: Any) -> DeviceDescription:
+        """A copy that states the upward vertical in {L} as mounted (``plates.vertical``)."""
+        return self._stating('plates', vertical=[float(v) for v in np.asarray(up, dtype=float)])
+
     def with_seating_repeatability(self, sigma_m: float) -> DeviceDescription:
         """A copy that states the reference plate's seating repeatability
         (``reference_plate.seating_repeatability_nm``) [m]."""
         return self._stating('reference_plate',
                              seating_repeatability_nm=round(float(sigma_m) * 1e9, 6))
 
-    def _stating(self, section: str, **values: float) -> DeviceDescription:
+    def _stating(self, section: str, **values: Any) -> DeviceDescription:
         data = copy.deepcopy(self.raw)
         data[section].update(values)
         return parse_device(data, self.source)
@@ -359,6 +373,7 @@ def parse_device(data: dict[str, Any], source: str = '<device>') -> DeviceDescri
         gravity_sag_m=_stated(r, bars, 'gravity_sag_nm', 'bars', M_PER_NM, 1e5),
         seating_repeatability_m=_stated(r, plate, 'seating_repeatability_nm', 'reference_plate',
                                         M_PER_NM, 1e5),
+        vertical=_vertical(r, plates),
         **_subdivision(r, bars, resolution),
     )
 
@@ -370,6 +385,20 @@ def _stated(r: _Reader, section: Any, key: str, path: str, unit: float, high: fl
     if not isinstance(section, dict) or key not in section:
         return None
     return r.number(section, key, path, low=0.0, high=high) * unit
+
+
+def _vertical(r: _Reader, plates: Any) -> tuple[float, float, float] | None:
+    """``plates.vertical``, the upward vertical in {L} as the MMD is mounted, normalised; None
+    when the description does not say."""
+    if not isinstance(plates, dict) or 'vertical' not in plates:
+        return None
+    v = r.floats(plates, 'vertical', 'plates', (3,), what='[x, y, z], the upward direction in {L}')
+    norm = float(np.linalg.norm(v))
+    if not norm > 0.0:
+        raise r.fail('plates.vertical', 'must not be the zero vector (it is the upward direction '
+                     'in {L}; [0, 0, 1] when the lower plate lies level)')
+    u = v / norm
+    return (float(u[0]), float(u[1]), float(u[2]))
 
 
 def _subdivision(r: _Reader, bars: dict[str, Any], resolution_m: float) -> dict[str, float | None]:

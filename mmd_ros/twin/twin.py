@@ -211,7 +211,8 @@ class TwinDevice:
         reference plate's seating repeatability (``reference_plate.seating_repeatability_nm``) is
         the effects' placement repeatability (each placement's own offset stays hidden); the bars'
         gravity sag (``bars.gravity_sag_nm``) is the effects' (alike for every bar, as the twin
-        makes it). What a description states, it keeps."""
+        makes it), and the vertical it sags along (``plates.vertical``) the one the twin stands
+        in: the description's, else level (+z of {L}). What a description states, it keeps."""
         device = self.device
         if device.latch_skew_s is None:
             device = device.with_latch_skew(self.effects.sampling_skew_s)
@@ -225,6 +226,8 @@ class TwinDevice:
             device = device.with_seating_repeatability(self.effects.placement_repeatability_m)
         if device.gravity_sag_m is None:
             device = device.with_gravity_sag(self.effects.gravity_sag_m)
+        if device.vertical is None:
+            device = device.with_vertical(device.up)
         return device
 
     # -- bars on the reference plate -----------------------------------------------------------
@@ -569,8 +572,9 @@ class _Plan:
                 later = np.linalg.norm(bar_legs(geo.upper, geo.lower, self.motion.pose(t + largest),
                                                 None, growth, growth), axis=2)
                 read = lengths + (skew / largest) * (later - lengths)
+            # (the bars sag along the vertical the description states: the twin stands so)
             reading = phys.scale_reading_m(meas, read, temps[:, meas], friction, clock, index,
-                                           legs[:, :, 2] / lengths)
+                                           (legs @ dev.up) / lengths)
             if self.motion.targets is not None:
                 out.update(self.motion.labels(t))
             if isinstance(self.motion, MachineTrajectory):
