@@ -32,7 +32,8 @@ claim in two ways (``msg_docs/frames.md``):
   whose mean over a log the reference does not see), with their length-shaped part (the
   points' errors, the interpolation between them: functions of a bar's length) conditioned
   on how each bar's residual varied with its length
-  (:func:`_shape_constants`), and whose information is how the constant moves the pose as
+  (:func:`_shape_constants`; the estimated mean shrunk by its noise, which the runs' halves
+  show, :func:`_shape_noise`), and whose information is how the constant moves the pose as
   J^-1 varies over the runs, none for the common mode of the six bars
   (:func:`_unseen_constants`). A reference that sees only some pose components cannot
   tell the bars apart: the calibration-derived sources stay, scaled by the factor k that
@@ -82,6 +83,8 @@ LENGTH_SHAPED = ('calibration_points', 'interpolation', 'subdivision')
 #: and at most over all runs (the conditional costs the cube of their sum).
 SHAPE_POINTS = 200
 SHAPE_POINTS_TOTAL = 1200
+#: Samples each half of a run needs for the noise in the shape's estimated mean.
+HALF_SAMPLES = 200
 #: Consecutive blocks of a run whose means of the residual show how a run's mean moves.
 DWELL_BLOCKS = 8
 
@@ -549,8 +552,13 @@ def _sized_from(fit: FitUncertainty, ctx: FitContext, found: list[FittedEffect],
                                       and f.effect.scope != 'run' and f.theta is not None]
             shape_var, shape_mean, moves, factor = _shape_constants(
                 parts, budget, fit.systematic_scale, free)
+            # the square of a noisy estimate overstates what it estimates by its noise: each
+            # bar's estimated mean shrunk by the noise its runs' halves disagree by
+            noise = _shape_noise(parts, budget, fit.systematic_scale, free)
+            shrink = np.clip(1.0 - noise / np.maximum(shape_mean * shape_mean, 1e-40), 0.0, 1.0)
             start = (prior - shaped + np.diag(shape_var * n)) / n
-            unseen, estimate = _unseen_constants(parts, start, shape_mean)
+            unseen, estimate = _unseen_constants(parts, start, shape_mean * np.sqrt(shrink))
+            fit.record['shape_noise_nm'] = [round(math.sqrt(v) * 1e9, 1) for v in noise]
             # and how far a run's mean moves with where it dwells, per bar
             dwell = np.maximum(_dwell_means(parts), moves)
             unseen = unseen + np.diag(dwell)
@@ -645,7 +653,8 @@ def _unseen_constants(parts: list[tuple[ResidualRun, IntArray, FloatArray, Float
 
 
 def _shape_constants(parts: list[tuple[ResidualRun, IntArray, FloatArray, FloatArray]],
-                     budget: LengthBudget, scale: float, free: list[FittedEffect]
+                     budget: LengthBudget, scale: float, free: list[FittedEffect],
+                     target: list[tuple[FloatArray, FloatArray]] | None = None
                      ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """Per bar, what the runs leave unknown of the mean over their samples of the calibration's
     length-shaped errors (:data:`LENGTH_SHAPED`) after the model, (6,) [m^2], and its estimate
@@ -681,12 +690,12 @@ def _shape_constants(parts: list[tuple[ResidualRun, IntArray, FloatArray, FloatA
     1.26 times the error; a session whose length terms were not written left its one-sided
     calibration's points' friction states, 7-12 times the description in sigma while the
     budget did not claim them, and its new run was covered 89 % without this. Fourth, the
-    factor a per bar."""
+    factor a per bar. With ``target`` (per bar, lengths and their weights), the estimate is of
+    the function's weighted mean at those lengths instead (:func:`_shape_noise`)."""
     var, mean, moves, factor = np.zeros(6), np.zeros(6), np.zeros(6), np.ones(6)
     ie, knots = budget.interpolation, budget.knots_m
     total = sum(idx.size for _run, idx, _dd, _ref in parts)
-    most = max(min(SHAPE_POINTS, SHAPE_POINTS_TOTAL // len(parts)), 20)    # per run
-    picks = [_spread(np.arange(idx.size), most) for _run, idx, _dd, _ref in parts]
+    picks = _shape_picks(parts)
     applied = [sum((f.effect.signature(part[0].ctx, f.hyper, part[1][pick]) @ f.theta
                     for f in free), np.zeros((pick.size, 6))) for part, pick in zip(parts, picks)]
     change = sum(np.mean(took, axis=0) * part[1].size for part, took in zip(parts, applied)) / total
@@ -708,13 +717,19 @@ def _shape_constants(parts: list[tuple[ResidualRun, IntArray, FloatArray, FloatA
         points = (budget.point_var_m2 + float(budget.point_friction_m2[b])      # per point
                   + float(budget.subdivision_left_m2[b]))
         cov = scale * (ie.covariance(xs, xs, knots[b]) + points * (hat @ hat.T))
+        if target is None:
+            tied_to = cov @ ws
+        else:       # (the covariance of the data's function with its mean at the target)
+            xt, wt = target[b]
+            tied_to = scale * (ie.covariance(xs, xt, knots[b])
+                               + points * (hat @ hat_weights(xt, knots[b]).T)) @ wt
         c = block_diag(*blocks)
         g = 1.0 / np.sqrt(np.concatenate(spread))          # noise whitened: s^2 I
         lam, u = np.linalg.eigh(g[:, None] * (c @ cov @ c.T) * g[None, :])
         lam = np.maximum(lam, 0.0)
         seen = c @ np.concatenate(d)
         z = u.T @ (g * seen)
-        tied = u.T @ (g * (c @ cov @ ws))
+        tied = u.T @ (g * (c @ tied_to))
         floor = budget.resolution_m ** 2 / 12.0 * float(np.min(g * g))
         a, s2 = _most_likely(lam, z, floor, max(float(np.mean(z * z)), floor * 10.0))
         t = a * lam + s2
@@ -727,6 +742,41 @@ def _shape_constants(parts: list[tuple[ResidualRun, IntArray, FloatArray, FloatA
         moves[b] = (1.0 - 1.0 / a) * float(ws @ (left - ws @ left) ** 2)
         factor[b] = a
     return var, mean, moves, factor
+
+
+def _shape_picks(parts: list[tuple[ResidualRun, IntArray, FloatArray, FloatArray]]
+                 ) -> list[IntArray]:
+    """The samples of each run at which :func:`_shape_constants` reads the shape: at most
+    :data:`SHAPE_POINTS` per run and :data:`SHAPE_POINTS_TOTAL` over all, evenly spread."""
+    most = max(min(SHAPE_POINTS, SHAPE_POINTS_TOTAL // len(parts)), 20)    # per run
+    return [_spread(np.arange(idx.size), most) for _run, idx, _dd, _ref in parts]
+
+
+def _shape_noise(parts: list[tuple[ResidualRun, IntArray, FloatArray, FloatArray]],
+                 budget: LengthBudget, scale: float, free: list[FittedEffect]) -> FloatArray:
+    """Per bar, the variance of the noise in the mean :func:`_shape_constants` estimates,
+    (6,) [m^2]: a quarter of the square of the difference between its estimates of the same
+    mean (over all the runs' samples) from the first and from the second half of every run's
+    samples (two estimates from half the data each differ by twice the noise of one, which is
+    twice the whole's). 0 when a half of a run holds fewer than :data:`HALF_SAMPLES`."""
+    if any(idx.size < 2 * HALF_SAMPLES for _run, idx, _dd, _ref in parts):
+        return np.zeros(6)
+    total = sum(idx.size for _run, idx, _dd, _ref in parts)
+    picks = _shape_picks(parts)
+    target = [(np.concatenate([run.after.cdf_lengths_m[idx[pick], b] for (run, idx, _dd, _ref), pick
+                               in zip(parts, picks)]),
+               np.concatenate([np.full(pick.size, idx.size / (total * pick.size))
+                               for (_run, idx, _dd, _ref), pick in zip(parts, picks)]))
+              for b in range(6)]
+    means = []
+    for half in (0, 1):
+        cut = []
+        for run, idx, dd, ref in parts:
+            k = idx.size // 2
+            keep = slice(None, k) if half == 0 else slice(k, None)
+            cut.append((run, idx[keep], dd[keep], ref[keep]))
+        means.append(_shape_constants(cut, budget, scale, free, target)[1])
+    return 0.25 * (means[0] - means[1]) ** 2
 
 
 def _most_likely(lam: FloatArray, z: FloatArray, floor: float, top: float) -> tuple[float, float]:
