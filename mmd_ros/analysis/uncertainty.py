@@ -700,12 +700,11 @@ def _shape_constants(parts: list[tuple[ResidualRun, IntArray, FloatArray, FloatA
                     for f in free), np.zeros((pick.size, 6))) for part, pick in zip(parts, picks)]
     change = sum(np.mean(took, axis=0) * part[1].size for part, took in zip(parts, applied)) / total
     for b in range(6):
-        x, d, w, blocks, spread, change_at = [], [], [], [], [], []
+        x, w = _shape_points(parts, picks, b)
+        d, blocks, spread, change_at = [], [], [], []
         for (run, idx, dd, _ref), took, pick in zip(parts, applied, picks):
             change_at.append(took[:, b])
-            x.append(run.after.cdf_lengths_m[idx[pick], b])
             d.append(dd[pick, b] - took[:, b])
-            w.append(np.full(pick.size, idx.size / (total * pick.size)))
             independent = max(_independent_samples(dd[:, b]), 1.0)
             spread.append(np.full(pick.size, max(pick.size / independent, 1.0)))
             centre = np.eye(pick.size)
@@ -752,6 +751,17 @@ def _shape_picks(parts: list[tuple[ResidualRun, IntArray, FloatArray, FloatArray
     return [_spread(np.arange(idx.size), most) for _run, idx, _dd, _ref in parts]
 
 
+def _shape_points(parts: list[tuple[ResidualRun, IntArray, FloatArray, FloatArray]],
+                  picks: list[IntArray], b: int) -> tuple[list[FloatArray], list[FloatArray]]:
+    """Per run, bar ``b``'s CDF lengths at the samples ``picks`` and their weights in the mean
+    over all the runs' samples (a run's share of them, spread evenly over its picks)."""
+    total = sum(idx.size for _run, idx, _dd, _ref in parts)
+    return ([run.after.cdf_lengths_m[idx[pick], b] for (run, idx, _dd, _ref), pick
+             in zip(parts, picks)],
+            [np.full(pick.size, idx.size / (total * pick.size))
+             for (_run, idx, _dd, _ref), pick in zip(parts, picks)])
+
+
 def _shape_noise(parts: list[tuple[ResidualRun, IntArray, FloatArray, FloatArray]],
                  budget: LengthBudget, scale: float, free: list[FittedEffect]) -> FloatArray:
     """Per bar, the variance of the noise in the mean :func:`_shape_constants` estimates,
@@ -761,13 +771,8 @@ def _shape_noise(parts: list[tuple[ResidualRun, IntArray, FloatArray, FloatArray
     twice the whole's). 0 when a half of a run holds fewer than :data:`HALF_SAMPLES`."""
     if any(idx.size < 2 * HALF_SAMPLES for _run, idx, _dd, _ref in parts):
         return np.zeros(6)
-    total = sum(idx.size for _run, idx, _dd, _ref in parts)
     picks = _shape_picks(parts)
-    target = [(np.concatenate([run.after.cdf_lengths_m[idx[pick], b] for (run, idx, _dd, _ref), pick
-                               in zip(parts, picks)]),
-               np.concatenate([np.full(pick.size, idx.size / (total * pick.size))
-                               for (_run, idx, _dd, _ref), pick in zip(parts, picks)]))
-              for b in range(6)]
+    target = [tuple(np.concatenate(v) for v in _shape_points(parts, picks, b)) for b in range(6)]
     means = []
     for half in (0, 1):
         cut = []
