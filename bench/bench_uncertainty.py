@@ -6,7 +6,11 @@ run a scenario; the pipeline's poses and covariances are compared with the twin'
 (not its reference instrument, which has noise of its own). Printed per case: predicted /
 observed sigma per axis (x y z roll pitch yaw; observed = RMS of the error, the twin's pose is
 absolute), the share of samples in the 95 % ellipsoid (Mahalanobis distance^2 <= chi^2_6(0.95))
-pooled and per run, and a JSON line.
+pooled and per run, and in the budget's own 95 % region (the same ellipsoid sized by its
+sources' forms, :func:`~mmd_ros.core.uncertainty.region_quantile`), their 95 % intervals over
+the runs (the runs drawn again with replacement: a run's samples share one draw of its
+calibration's constant error, so with 24 realistic runs a coverage near 95 % is known to
+about +-4 %), and a JSON line.
 
 Usage: ``python bench/bench_uncertainty.py [--cases ideal,noeffect,realistic,realistic_noskew]
 [--scenario random|iso_y|rotary|thermal] [--runs 6] [--seconds 8] [--after] [--datum none|offset]
@@ -33,11 +37,13 @@ from mmd_ros.core.accuracy import pose_error
 from mmd_ros.core.device import find_config, load_device
 from mmd_ros.core.model import Model
 from mmd_ros.core.pipeline import Pipeline
+from mmd_ros.core.uncertainty import region_quantile
 from mmd_ros.core.validity import Validity
 from mmd_ros.twin import Effects, TwinDevice, make_scenario
 from mmd_ros.twin.recording import ambient_profile, run_log
 
 LIMIT = chi2.ppf(0.95, 6)
+BOOTSTRAP = 2000       # resamples of the runs for the intervals
 CASES = {
     'ideal': ('ideal', (), 'section_4_1'),
     'noeffect': ('ideal', ('read_noise_m=0',), 'constant:20'),
@@ -53,19 +59,41 @@ SCENARIOS = {   # name: (scenario, parameters, sample rate)
 }
 
 
-def judge(errors: list[np.ndarray], covs: list[np.ndarray]) -> dict:
-    e, c = np.concatenate(errors), np.concatenate(covs)
-    pred = np.sqrt(np.mean(np.diagonal(c, axis1=1, axis2=2), axis=0))
-    obs = np.sqrt(np.mean(e * e, axis=0))
+def judge(errors: list[np.ndarray], covs: list[np.ndarray], tails: list[np.ndarray]) -> dict:
+    """Ratios and coverage pooled over the runs, and their 95 % intervals over the runs: the
+    runs drawn again with replacement (a run's samples share its calibration's constant error,
+    so the runs, not the samples, are the independent draws). Coverage of the ellipsoid a
+    Gaussian's chi^2 sizes, and of the region the budget's sources size (``region``:
+    :func:`region_quantile` of the pipeline's ``tails``)."""
+    n = np.array([e.shape[0] for e in errors], dtype=np.float64)
+    pred2 = np.array([np.sum(np.diagonal(c, axis1=1, axis2=2), axis=0) for c in covs])
+    obs2 = np.array([np.sum(e * e, axis=0) for e in errors])
 
-    def inside(ee: np.ndarray, cc: np.ndarray) -> float:
-        d2 = np.einsum('ni,ni->n', ee, np.linalg.solve(cc, ee[:, :, None])[:, :, 0])
-        return float(np.mean(d2 <= LIMIT))
+    def d2(ee: np.ndarray, cc: np.ndarray) -> np.ndarray:
+        return np.einsum('ni,ni->n', ee, np.linalg.solve(cc, ee[:, :, None])[:, :, 0])
 
-    return {'ratio': np.round(pred / obs, 3).tolist(), 'coverage': round(inside(e, c), 4),
-            'coverage_per_run': [round(inside(a, b), 4) for a, b in zip(errors, covs)],
-            'observed_um_urad': np.round(obs * 1e6, 4).tolist(),
-            'predicted_um_urad': np.round(pred * 1e6, 4).tolist(), 'samples': int(e.shape[0])}
+    hits = np.array([np.sum(d2(e, c) <= LIMIT) for e, c in zip(errors, covs)], dtype=np.float64)
+    region = np.array([np.sum(d2(e, c) <= region_quantile(c, t)) for e, c, t
+                       in zip(errors, covs, tails)], dtype=np.float64)
+    pick = np.random.default_rng(0).integers(0, len(n), (BOOTSTRAP, len(n)))
+    counts = np.stack([np.bincount(row, minlength=len(n)) for row in pick]).astype(np.float64)
+    with np.errstate(divide='ignore', invalid='ignore'):
+        ratio_b = np.sqrt((counts @ pred2) / (counts @ obs2))
+    cover_b = (counts @ hits) / (counts @ n)
+    region_b = (counts @ region) / (counts @ n)
+
+    def interval(v: np.ndarray) -> list:
+        return np.round(np.nanpercentile(v, [2.5, 97.5], axis=0), 3).T.tolist()
+
+    return {'ratio': np.round(np.sqrt(pred2.sum(0) / obs2.sum(0)), 3).tolist(),
+            'coverage': round(float(hits.sum() / n.sum()), 4),
+            'ratio_interval': interval(ratio_b), 'coverage_interval': interval(cover_b),
+            'region': round(float(region.sum() / n.sum()), 4),
+            'region_interval': interval(region_b),
+            'coverage_per_run': [round(float(h / k), 4) for h, k in zip(hits, n)],
+            'observed_um_urad': np.round(np.sqrt(obs2.sum(0) / n.sum()) * 1e6, 4).tolist(),
+            'predicted_um_urad': np.round(np.sqrt(pred2.sum(0) / n.sum()) * 1e6, 4).tolist(),
+            'samples': int(n.sum())}
 
 
 def run_case(device, name: str, scenario: str, runs: int, seconds: float, after: bool,
@@ -73,7 +101,7 @@ def run_case(device, name: str, scenario: str, runs: int, seconds: float, after:
     preset, effect_params, ambient = CASES[name]
     kind, params, rate = SCENARIOS[scenario]
     room = ambient_profile(ambient)
-    errors, covs, notes, inside, flank = [], [], [], [], []
+    errors, covs, tails, notes, inside, flank = [], [], [], [], [], []
     model = Model()
     for k in range(runs):
         twin = TwinDevice(device, Effects.preset(preset).with_assignments(effect_params), seed=k + 1)
@@ -87,17 +115,18 @@ def run_case(device, name: str, scenario: str, runs: int, seconds: float, after:
         run = twin.simulate(make_scenario(kind, p), room, start_s=start, reference='pose6',
                             sample_rate_hz=rate)
         pipeline = Pipeline(twin.documented_device, calibration, model)
-        res = pipeline.process(run.times_s, run.counts, with_covariance=True)
+        res = pipeline.process(run.times_s, run.counts, with_covariance=True, tails_every=1)
         ok = res.valid & np.all(np.isfinite(run.true_poses), axis=1)
         errors.append(pose_error(res.poses, run.true_poses)[ok])
         covs.append(res.covariance[ok])
+        tails.append(res.tails[ok])
         validity = Validity.from_model(model)
         cdf = res.compensated.cdf_lengths_m[ok]
         inside.append(np.ones(cdf.shape[0], dtype=bool) if validity is None else np.all(
             (cdf >= validity.bar_range_m[:, 0]) & (cdf <= validity.bar_range_m[:, 1]), axis=1))
         flank.append(inside[-1] & np.any(pipeline.budget.flank(cdf), axis=1))
     out = {'case': name, 'scenario': scenario, 'runs': runs, 'after_analysis': after,
-           'calibration_approaches': approaches, **judge(errors, covs)}
+           'calibration_approaches': approaches, **judge(errors, covs, tails)}
     if notes:
         out['analysis'] = '; '.join(notes)
         out['datum'] = datum
@@ -106,11 +135,14 @@ def run_case(device, name: str, scenario: str, runs: int, seconds: float, after:
         groups = (('inside_fit_range', inside, True), ('outside_fit_range', inside, False),
                   ('in_a_segment_s_flank', flank, True))
         for key, masks, want in groups:
-            parts = [(e[m == want], c[m == want]) for e, c, m in zip(errors, covs, masks)]
+            parts = [(e[m == want], c[m == want], t[m == want])
+                     for e, c, t, m in zip(errors, covs, tails, masks)]
             parts = [p for p in parts if p[0].shape[0]]
             if parts:
-                r = judge([p[0] for p in parts], [p[1] for p in parts])
-                out[key] = {'ratio': r['ratio'], 'coverage': r['coverage'], 'samples': r['samples']}
+                r = judge(*(list(z) for z in zip(*parts)))
+                out[key] = {k: r[k] for k in ('ratio', 'coverage', 'ratio_interval',
+                                              'coverage_interval', 'region', 'region_interval',
+                                              'samples')}
     return out
 
 
@@ -123,6 +155,16 @@ def fit(twin, room, calibration, k, datum: str = 'none'):
     result = analyze(run_log(twin, calibration, run, 600.0), options=AnalysisOptions(datum=datum))
     found = '+'.join(f.effect for f in result.found) or 'nothing'
     return result.model or Model(), found, 700.0
+
+
+def spread(r: dict, what: str) -> str:
+    """The 95 % intervals of a judgement's ratios and coverage, one line."""
+    ratios = ' '.join(f'{a:.2f}-{b:.2f}' for a, b in r['ratio_interval'])
+    lo, hi = r['coverage_interval']
+    rlo, rhi = r['region_interval']
+    return (f'    95 % intervals{" " + what if what else ""}: ratio {ratios}   ellipsoid '
+            f'{100 * lo:.1f}-{100 * hi:.1f} %\n    the budget\'s own 95 % region '
+            f'{100 * r["region"]:.1f} % ({100 * rlo:.1f}-{100 * rhi:.1f} %)')
 
 
 def build_times(device, rounds: int) -> dict:
@@ -179,10 +221,12 @@ def main() -> None:
               + f'   ellipsoid {100 * r["coverage"]:.1f} % (runs '
               + ' '.join(f'{100 * v:.0f}' for v in r['coverage_per_run']) + ')'
               + (f'   [{r["analysis"]}]' if 'analysis' in r else ''), flush=True)
+        print(spread(r, 'over the runs'))
         for key in ('inside_fit_range', 'outside_fit_range', 'in_a_segment_s_flank'):
             if key in r:
                 print(f'  {key:17s} ratio ' + ' '.join(f'{v:.2f}' for v in r[key]['ratio'])
                       + f'   ellipsoid {100 * r[key]["coverage"]:.1f} % ({r[key]["samples"]} samples)')
+                print(spread(r[key], ''))
     print(json.dumps({'benchmark': 'uncertainty', 'results': results}))
 
 

@@ -216,6 +216,13 @@ def test_a_covariance_wanted_only_for_its_coverage_is_computed_for_a_sample_of_t
     assert a['every'] == 1 and b['every'] == 4
     assert b['samples'] == pytest.approx(a['samples'] / 4, rel=0.01)
     assert b['ellipsoid_coverage'] == pytest.approx(a['ellipsoid_coverage'], abs=0.03)
+    # the budget's own 95 % region (its size from where the error is bounded) on the same
+    # samples: no larger than a Gaussian's chi^2 ellipsoid
+    for r in (a, b):
+        assert r['region_samples'] == r['samples']
+        assert r['region_quantile'][1] <= r['ellipsoid_quantile']
+        assert r['region_coverage'] <= r['ellipsoid_coverage']
+    assert b['region_coverage'] == pytest.approx(a['region_coverage'], abs=0.03)
     for ra, rb in zip(a['per_component'], b['per_component']):
         assert rb['ratio'] == pytest.approx(ra['ratio'], rel=0.05), ra['name']
     assert '/mmd/pose_with_covariance' in LogReader(tmp_path / 'full.mcap').topics

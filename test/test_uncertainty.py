@@ -29,7 +29,7 @@ from mmd_ros.core.validity import Validity
 from mmd_ros.core.uncertainty import (
     InterpolationError, NoiseEstimator, averaged_quantisation_var, capture_var, dither_var,
     fit_interpolation_error, hysteresis_claim, quantisation_cross_cov, read_noise_from_dither,
-    two_sided_figures,
+    region_quantile, tail_columns, two_sided_figures,
 )
 from mmd_ros.twin import Effects, TwinDevice, make_scenario
 from mmd_ros.twin.recording import ambient_profile, run_log
@@ -109,6 +109,35 @@ def test_two_sided_figures_from_synthetic_placements():
     found, seating, dof = two_sided_figures(short, long, 0.0)
     np.testing.assert_allclose(found, h, atol=30e-9)
     assert dof == 12 and 15e-9 < seating < 50e-9
+
+
+@pytest.mark.parametrize('uniform, gaussian, known', [(1.0, 0.0, 0.0), (1.0, 0.3, 1.0),
+                                                      (0.3, 1.0, 0.5), (0.0, 1.0, 0.0)])
+def test_the_region_of_bounded_errors_is_sized_by_their_form(uniform, gaussian, known):
+    """Bar errors of a rectangular quantisation, a Gaussian noise and a fixed known error,
+    through a Jacobian: a Gaussian's chi^2 ellipsoid holds 99.8 % of them where quantisation
+    dominates; the region sized by their fourth cumulants holds 95 +- 1.5 % of the whole pose,
+    of one component and of three, and is the chi^2 ellipsoid when all is Gaussian."""
+    rng = np.random.default_rng(3)
+    n = 100_000
+    jinv = np.linalg.inv(rng.normal(size=(6, 6)) + 3.0 * np.eye(6))
+    b = known * np.array([1.0, -1.0, 0.5, 0.0, 0.2, -0.3])
+    bars = (uniform * math.sqrt(3.0) * rng.uniform(-1.0, 1.0, (n, 6))
+            + gaussian * rng.normal(size=(n, 6)) + b)
+    e = bars @ jinv.T
+    cov = np.broadcast_to(jinv @ (np.eye(6) * (uniform ** 2 + gaussian ** 2) + np.outer(b, b))
+                          @ jinv.T, (n, 6, 6))
+    cols = tail_columns(np.broadcast_to(jinv, (n, 6, 6)), np.full((n, 6), -1.2 * uniform ** 4),
+                        np.broadcast_to(b, (n, 6)), np.ones(n))
+    for k in ([0, 1, 2, 3, 4, 5], [0], [0, 1, 2]):
+        c, ek = cov[:, k][:, :, k], e[:, k]
+        d2 = _d2(ek, c)
+        q = region_quantile(c, cols[:, k])
+        assert 0.935 <= np.mean(d2 <= q) <= 0.965, (k, np.mean(d2 <= q))
+        if uniform == 0.0:
+            np.testing.assert_allclose(q, chi2.ppf(0.95, len(k)), rtol=1e-9)
+    if uniform == 1.0 and gaussian == 0.0:
+        assert np.mean(_d2(e, cov) <= LIMIT) > 0.995
 
 
 def test_the_hysteresis_claimed_is_what_the_bars_estimates_say_not_their_placements_scatter():
@@ -439,10 +468,12 @@ def test_a_fit_section_round_trips_and_its_directions_enter_every_sample(realist
 
 # -- coverage of the twin's true pose -----------------------------------------------------------
 def _pooled(effects: Effects, ambient: str, k_runs: int, seconds: float = 5.0, approaches: int = 2,
-            device=None):
+            device=None, region: bool = False):
     """Errors against the twin's true pose and covariances of several calibrations (the
-    pipeline given ``device``, else the twin's documented description)."""
-    errors, covs = [], []
+    pipeline given ``device``, else the twin's documented description): predicted / observed
+    sigma per axis and the share in the 95 % ellipsoid; with ``region`` also the share in the
+    budget's own 95 % region (the ellipsoid sized by its sources' forms)."""
+    errors, covs, tails = [], [], []
     for k in range(k_runs):
         twin = TwinDevice(DEVICE, effects, seed=k + 1)
         room = ambient_profile(ambient)
@@ -450,23 +481,30 @@ def _pooled(effects: Effects, ambient: str, k_runs: int, seconds: float = 5.0, a
         run = twin.simulate(make_scenario('random_motion', [f'duration_s={seconds}', f'seed={k}']),
                             room, start_s=600.0, reference='pose6')
         res = Pipeline(device or twin.documented_device, calibration).process(
-            run.times_s, run.counts, with_covariance=True)
+            run.times_s, run.counts, with_covariance=True, tails_every=int(region))
         ok = res.valid
         errors.append(pose_error(res.poses, run.true_poses)[ok])
         covs.append(res.covariance[ok])
+        tails.append(None if res.tails is None else res.tails[ok])
     e, c = np.concatenate(errors), np.concatenate(covs)
     ratio = np.sqrt(np.mean(np.diagonal(c, axis1=1, axis2=2), axis=0)) / np.sqrt(np.mean(e * e, axis=0))
     d2 = _d2(e, c)
-    return ratio, float(np.mean(d2 <= LIMIT))
+    if not region:
+        return ratio, float(np.mean(d2 <= LIMIT))
+    q = region_quantile(c, np.concatenate(tails))
+    return ratio, float(np.mean(d2 <= LIMIT)), float(np.mean(d2 <= q))
 
 
 def test_clean_twin_is_covered():
     """`--effects ideal` (quantisation, 5 nm read noise, the room cooling during the routine):
-    predicted / observed sigma within 0.8-1.25 on every axis. The 95 % ellipsoid covers more
-    than 95 %: quantisation errors are bounded (uniform), not Gaussian."""
-    ratio, cover = _pooled(Effects.ideal(), 'section_4_1', 6, seconds=4.0)
+    predicted / observed sigma within 0.8-1.25 on every axis. A Gaussian's 95 % ellipsoid
+    covers more than 95 %: quantisation errors are bounded (uniform), not Gaussian; the
+    budget's own 95 % region, sized by its sources' forms, covers less, and still 95 %
+    (bench_uncertainty.py, 24 calibrations: 98.8 % and 97.6 %)."""
+    ratio, cover, region = _pooled(Effects.ideal(), 'section_4_1', 6, seconds=4.0, region=True)
+    print('ideal: ratio', np.round(ratio, 2), 'ellipsoid', cover, 'region', region)
     assert np.all((ratio > 0.8) & (ratio < 1.25)), ratio
-    assert 0.93 <= cover <= 1.0, cover
+    assert 0.95 <= region < cover - 0.005, (region, cover)
 
 
 def test_twin_without_any_effect_is_covered():
@@ -486,9 +524,11 @@ def test_realistic_twin_is_covered():
     the interpolation error (fitted to the points), the routine's drift, the thermal mismatch
     (section 4.1), and the channels' latch skew from the terminal's stated bound (its
     datasheet; each channel's own delay stays hidden) times each bar's speed in the stream."""
-    ratio, cover = _pooled(Effects.realistic(), 'section_4_1', 8, seconds=3.0)
+    ratio, cover, region = _pooled(Effects.realistic(), 'section_4_1', 8, seconds=3.0, region=True)
+    print('realistic: ratio', np.round(ratio, 2), 'ellipsoid', cover, 'region', region)
     assert np.all((ratio > 0.8) & (ratio < 1.25)), ratio
     assert cover >= 0.93, cover
+    assert 0.93 <= region < cover, (region, cover)
 
 
 def test_the_paper_s_one_sided_routine_is_covered_with_the_bars_stated_friction():

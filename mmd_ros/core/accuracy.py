@@ -12,6 +12,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.stats import chi2
 
+from mmd_ros.core.uncertainty import region_quantile
 from mmd_ros.core.units import arcsec, um
 
 __all__ = [
@@ -154,7 +155,7 @@ def format_stats(stats: list[ComponentStats], title: str) -> str:
 
 def coverage(errors: FloatArray, covariance: FloatArray, valid: NDArray[np.bool_], *,
              absolute: bool, reference_sigma: FloatArray | None = None,
-             level: float = 0.95) -> dict[str, object] | None:
+             level: float = 0.95, tails: FloatArray | None = None) -> dict[str, object] | None:
     """Does the pose covariance cover the error against a reference? (msg_docs/frames.md)
 
     Over the samples that are measurements and where the reference knows the components:
@@ -165,11 +166,16 @@ def coverage(errors: FloatArray, covariance: FloatArray, valid: NDArray[np.bool_
       variance when the log states it (``reference_sigma``);
     - coverage: the share of samples whose error lies in the ``level`` ellipsoid of the
       marginal covariance of the known components (Mahalanobis distance^2 <= chi^2_m(level),
-      m known components), and per component in +-z sigma (z of ``level``, two-sided).
+      m known components), and per component in +-z sigma (z of ``level``, two-sided);
+    - with ``tails``: the share in the ``level`` region of the budget's own distribution, the
+      same ellipsoid sized by :func:`~mmd_ros.core.uncertainty.region_quantile` (its sources'
+      forms: a quantisation, a sine, a known error are bounded, and a Gaussian's chi^2 region
+      holds more than ``level`` of them).
 
     errors : (N, 6) MMD - reference [m, rad], NaN where unknown
     covariance : (N, 6, 6) [m, rad]^2
     reference_sigma : (6,) the reference's standard uncertainty [m, rad], NaN or None unknown
+    tails : (N, 6, K) the covariance's light-tailed directions (``ProcessResult.tails``), or None
     returns : a JSON-ready mapping, or None when no sample has a known component
     """
     e = np.asarray(errors, dtype=np.float64)
@@ -202,10 +208,19 @@ def coverage(errors: FloatArray, covariance: FloatArray, valid: NDArray[np.bool_
                      'ratio': float(predicted[j] / observed[j]) if observed[j] > 0 else None,
                      'reference_sigma': float(to(np.sqrt(ref[j]))),
                      'within_interval': float(per[j])})
-    return {'samples': int(use.sum()), 'components': [POSE_NAMES[k] for k in known],
-            'offset_removed': not absolute, 'level': level,
-            'ellipsoid_coverage': float(np.mean(d2 <= chi2.ppf(level, len(known)))),
-            'per_component': rows}
+    out = {'samples': int(use.sum()), 'components': [POSE_NAMES[k] for k in known],
+           'offset_removed': not absolute, 'level': level,
+           'ellipsoid_coverage': float(np.mean(d2 <= chi2.ppf(level, len(known)))),
+           'ellipsoid_quantile': float(chi2.ppf(level, len(known))),
+           'per_component': rows}
+    cols = None if tails is None else np.asarray(tails, dtype=np.float64)[use][:, known]
+    has = None if cols is None else np.all(np.isfinite(cols.reshape(len(cols), -1)), axis=1)
+    if has is not None and has.any():   # (the samples whose tails were computed)
+        q = region_quantile(cov[has], cols[has], level)
+        out['region_coverage'] = float(np.mean(d2[has] <= q))
+        out['region_samples'] = int(has.sum())
+        out['region_quantile'] = [float(v) for v in np.percentile(q, [5, 50, 95])]
+    return out
 
 
 class CoverageAccumulator:
@@ -224,10 +239,13 @@ class CoverageAccumulator:
         self._seen = 0          # measurements offered so far (the stride counts from the first)
         self._errors: list[FloatArray] = []
         self._cov: list[FloatArray] = []
+        self._tails: list[FloatArray] = []
         self._kept = 0
 
-    def add(self, errors: FloatArray, covariance: FloatArray, valid: NDArray[np.bool_]) -> None:
-        """errors (N, 6) [m, rad]; covariance (N, 6, 6); valid (N,): the measurements"""
+    def add(self, errors: FloatArray, covariance: FloatArray, valid: NDArray[np.bool_],
+            tails: FloatArray | None = None) -> None:
+        """errors (N, 6) [m, rad]; covariance (N, 6, 6); valid (N,): the measurements; tails
+        (N, 6, K) the covariance's light-tailed directions, or None (then for every block)"""
         c = np.asarray(covariance)
         v = np.asarray(valid, dtype=bool) & np.isfinite(c[:, 0, 0])   # (rows not computed: NaN)
         e, c = np.asarray(errors, dtype=np.float64)[v], c[v]
@@ -236,10 +254,14 @@ class CoverageAccumulator:
         keep = index % self.every == 0
         self._errors.append(e[keep])
         self._cov.append(c[keep])
+        if tails is not None:
+            self._tails.append(np.asarray(tails)[v][keep])
         self._kept += int(keep.sum())
         while self._kept > self.max_samples:
-            e_all, c_all = np.concatenate(self._errors), np.concatenate(self._cov)
-            self._errors, self._cov = [e_all[::2]], [c_all[::2]]
+            self._errors = [np.concatenate(self._errors)[::2]]
+            self._cov = [np.concatenate(self._cov)[::2]]
+            if self._tails:
+                self._tails = [np.concatenate(self._tails)[::2]]
             self.every *= 2
             self._kept = self._errors[0].shape[0]
 
@@ -249,8 +271,10 @@ class CoverageAccumulator:
         if not self._kept:
             return None
         e, c = np.concatenate(self._errors), np.concatenate(self._cov)
+        tails = np.concatenate(self._tails) if self._tails else None
         out = coverage(e, c, np.ones(e.shape[0], dtype=bool), absolute=absolute,
-                       reference_sigma=reference_sigma, level=level)
+                       reference_sigma=reference_sigma, level=level,
+                       tails=tails if tails is not None and len(tails) == len(e) else None)
         if out is not None:
             out['every'] = self.every
         return out
@@ -267,6 +291,13 @@ def format_coverage(report: dict[str, object]) -> str:
         ratio = f'{r["ratio"]:.2f}' if r['ratio'] is not None else '–'
         lines.append(f'  {r["name"]:<10} {r["unit"]:>7} {r["predicted_sigma"]:>10.4f} '
                      f'{r["observed_sigma"]:>10.4f} {ratio:>7} {100 * r["within_interval"]:>8.1f}%')
-    lines.append(f'  {level:.0f} % ellipsoid of the known components covers '
-                 f'{100 * float(report["ellipsoid_coverage"]):.1f} % of the samples')  # type: ignore[arg-type]
+    share = float(report['ellipsoid_coverage'])  # type: ignore[arg-type]
+    size = float(report['ellipsoid_quantile'])  # type: ignore[arg-type]
+    lines.append(f'  {level:.0f} % ellipsoid of the known components covers {100 * share:.1f} % of '
+                 f'the samples (Mahalanobis d² <= {size:.2f}, a Gaussian\'s)')
+    if 'region_coverage' in report:
+        q = report['region_quantile']
+        lines.append(f'  the budget\'s own {level:.0f} % region, sized by its sources\' forms '
+                     f'(d² <= {q[1]:.2f}; {q[0]:.2f}-{q[2]:.2f}), covers '  # type: ignore[index]
+                     f'{100 * float(report["region_coverage"]):.1f} %')  # type: ignore[arg-type]
     return '\n'.join(lines)

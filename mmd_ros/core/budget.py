@@ -43,7 +43,7 @@ from mmd_ros.core.uncertainty import (
 from mmd_ros.core.validity import Validity
 
 __all__ = ['DIRECTION_TRAVEL_M', 'FRICTION_FORGET_TRAVELS', 'FRICTION_START_VAR', 'FRICTION_TURNOVER_M',
-           'LengthBudget', 'Observed', 'SOURCES']
+           'KNOWN_ERROR_SHAPE', 'LengthBudget', 'Observed', 'SHAPES', 'SOURCES']
 
 FloatArray = NDArray[np.float64]
 
@@ -73,6 +73,16 @@ FRICTION_START_VAR = 1.0 / 3.0
 #: times exp(-p / travel) (Dahl's law contracts two states at that rate); the budget follows the
 #: path up to this many travels (what is left of the variance there, exp(-2 x 10), is nothing).
 FRICTION_FORGET_TRAVELS = 10.0
+#: The sources whose distribution is not Gaussian, independent per bar, with the excess kurtosis
+#: of their form (E[x^4] / E[x^2]^2 - 3): a count's quantisation is rectangular over one count
+#: (-1.2, GUM 4.3.7); an encoder's sub-divisional error is a sine of a phase that a moving bar
+#: sweeps evenly (-1.5, the arcsine distribution); the latch skew's unknown share of a known
+#: bound is rectangular (-1.2). The other sources are taken Gaussian (0): for the size of a
+#: coverage region that is the cautious choice. A known error b (the sum of the errors the
+#: budget knows but the compensation does not correct) is a fixed vector: -2 as one component
+#: (its sign does not change d^2).
+SHAPES = {'quantisation': -1.2, 'subdivision': -1.5, 'latch_skew': -1.2}
+KNOWN_ERROR_SHAPE = -2.0
 
 
 @dataclass
@@ -912,6 +922,25 @@ class LengthBudget:
         for name, m in t.constant.items():
             cov[name] = np.broadcast_to(m, (n, 6, 6))
         return cov, dict(t.bias)
+
+    def light_tails(self, lengths_m: FloatArray, reference_error_m: FloatArray,
+                    temp_change_c: FloatArray, bar_error_m: FloatArray | None = None,
+                    fit_columns_m: FloatArray | None = None, observed: Observed | None = None
+                    ) -> tuple[FloatArray, FloatArray]:
+        """What makes Sigma_d's error lighter-tailed than a Gaussian of that covariance, for the
+        size of a coverage region (:func:`~mmd_ros.core.uncertainty.region_quantile`): per bar
+        the fourth cumulant of its :data:`SHAPES` sources, sum of gamma_s var_s^2, (N, 6)
+        [m^4, <= 0], and the known error b (N, 6) [m] (zeros when there is none). Same
+        arguments as :meth:`sources`."""
+        t = self._terms(lengths_m, reference_error_m, temp_change_c, bar_error_m, fit_columns_m,
+                        observed)
+        n = np.asarray(lengths_m).shape[0]
+        cumulant = np.zeros((n, 6))
+        for name, gamma in SHAPES.items():
+            if name in t.diag:
+                cumulant += gamma * t.diag[name] ** 2
+        known = sum(t.bias.values()) if t.bias else np.zeros((n, 6))
+        return cumulant, np.asarray(known, dtype=np.float64)
 
     def variances(self, lengths_m: FloatArray, reference_error_m: FloatArray,
                   temp_change_c: FloatArray, bar_error_m: FloatArray | None = None,

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from mmd_ros.core.budget import LengthBudget, Observed
+from mmd_ros.core.budget import KNOWN_ERROR_SHAPE, LengthBudget, Observed
 from mmd_ros.core.calibration import Calibration, CdfBank
 from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.errors import CalibrationError
@@ -26,7 +26,7 @@ from mmd_ros.core.model import Model, TermContext
 from mmd_ros.core.thermal import (
     ReferenceBar, ThermalCompensation, ThermalState, reference_plate_growth,
 )
-from mmd_ros.core.uncertainty import pose_covariance
+from mmd_ros.core.uncertainty import pose_covariance, tail_columns
 
 __all__ = ['Compensated', 'Pipeline', 'ProcessResult', 'SampleResult', 'bars_without_signal']
 
@@ -77,6 +77,9 @@ class ProcessResult:
     covariance : ndarray, shape (N, 6, 6), or None — pose covariance [m, rad]^2
     no_signal : ndarray, shape (N,) — the terminal flagged a channel the sample needs
         (:func:`bars_without_signal`): no length, no pose, status OUT_OF_SPAN (as live)
+    tails : ndarray, shape (N, 6, 7), or None — with ``tails_every``, where the covariance's
+        error is lighter-tailed than a Gaussian (:func:`~mmd_ros.core.uncertainty.tail_columns`:
+        the size of its coverage regions)
     """
 
     times_s: FloatArray
@@ -90,6 +93,7 @@ class ProcessResult:
     condition: FloatArray
     covariance: FloatArray | None
     no_signal: NDArray[np.bool_] | None = None
+    tails: FloatArray | None = None
 
 
 @dataclass(frozen=True)
@@ -227,7 +231,7 @@ class Pipeline:
     def process(self, times_s: FloatArray, counts: FloatArray, *,
                 with_covariance: bool = False, covariance_every: int = 1,
                 compiled: bool | None = None,
-                status: NDArray[np.uint8] | None = None) -> ProcessResult:
+                status: NDArray[np.uint8] | None = None, tails_every: int = 0) -> ProcessResult:
         """Poses of N consecutive samples (one run, in time order).
 
         covariance_every : with the covariance, that of every k-th sample only (the others NaN):
@@ -240,6 +244,9 @@ class Pipeline:
             gets no length (NaN after the model's terms, which still see the sample, as the
             live compensation does), so its sample no pose: FK leaves it unsolved, status
             OUT_OF_SPAN, valid False.
+        tails_every : with the covariance, where its error is lighter-tailed than a Gaussian
+            (``ProcessResult.tails``, for the size of its coverage regions) at every k-th
+            sample (k a multiple of ``covariance_every``; NaN elsewhere); 0: none
         """
         times_s = np.asarray(times_s, dtype=np.float64)
         lost = None if status is None else bars_without_signal(self.device, status)
@@ -258,19 +265,20 @@ class Pipeline:
         unsolved = out_of_range if no_signal is None else out_of_range | no_signal
         valid = sol.converged & ~unsolved
         fk_status = np.where(unsolved, np.int8(FkStatus.OUT_OF_SPAN), sol.status)
-        cov = None
+        cov = tails = None
         if with_covariance and sol.jacobian_inverse is not None:
             observed = self.budget.observe(comp.cdf_lengths_m, comp.thermal.reference_error_m,
                                            times_s, sol.poses)
-            if covariance_every > 1:
-                rows = slice(None, None, covariance_every)
-                cov = np.full((times_s.size, 6, 6), np.nan)
-                cov[rows] = self.covariance(sol.jacobian_inverse, measured, observed, rows=rows,
-                                            compiled=compiled)
-            else:
-                cov = self.covariance(sol.jacobian_inverse, measured, observed, compiled=compiled)
+            rows = slice(None, None, covariance_every)
+            cov = np.full((times_s.size, 6, 6), np.nan)
+            cov[rows] = self.covariance(sol.jacobian_inverse, measured, observed, rows=rows,
+                                        compiled=compiled)
+            if tails_every:
+                rows = slice(None, None, tails_every)
+                tails = np.full((times_s.size, 6, 7), np.nan)
+                tails[rows] = self.tails(sol.jacobian_inverse, measured, observed, rows=rows)
         return ProcessResult(times_s, comp, sol.poses, sol.converged, valid, fk_status,
-                             sol.iterations, sol.residual_m, sol.condition, cov, no_signal)
+                             sol.iterations, sol.residual_m, sol.condition, cov, no_signal, tails)
 
     def _solve_batch(self, comp: Compensated, with_inverse: bool, compiled: bool | None):
         """FK of d / s with the nominal joints, translations times s (the module docstring)."""
@@ -296,6 +304,20 @@ class Pipeline:
             None if comp.fit_columns_m is None else comp.fit_columns_m[r],
             None if observed is None else observed[r])
         return pose_covariance(jinv[r], sigma_d, th.plate_scale[r], compiled=compiled)
+
+    def tails(self, jinv: FloatArray, comp: Compensated, observed: Observed | None = None,
+              *, rows: slice | None = None) -> FloatArray:
+        """Where the pose covariance's error is lighter-tailed than a Gaussian, (N, 6, 7)
+        [m, rad] (:func:`~mmd_ros.core.uncertainty.tail_columns` of the budget's
+        :meth:`~mmd_ros.core.budget.LengthBudget.light_tails`); arguments as :meth:`covariance`.
+        """
+        r = slice(None) if rows is None else rows
+        th = comp.thermal
+        cumulant, known = self.budget.light_tails(
+            comp.lengths_m[r], th.reference_error_m[r], th.temp_change_c[r], th.bar_error_m[r],
+            None if comp.fit_columns_m is None else comp.fit_columns_m[r],
+            None if observed is None else observed[r])
+        return tail_columns(jinv[r], cumulant, known, th.plate_scale[r], KNOWN_ERROR_SHAPE)
 
     # -- stream --------------------------------------------------------------------------------
     def process_sample(self, time_s: float, counts: FloatArray, *,

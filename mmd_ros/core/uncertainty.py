@@ -62,6 +62,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import brentq, minimize
+from scipy.stats import chi2
 
 from mmd_ros.core import validate
 from mmd_ros.core.kinematics import propagate_covariance
@@ -73,7 +74,7 @@ __all__ = [
     'pose_covariance',
     'quantisation_cross_cov',
     'quantisation_cross_weights',
-    'read_noise_from_dither', 'two_sided_figures',
+    'read_noise_from_dither', 'region_quantile', 'tail_columns', 'two_sided_figures',
 ]
 
 FloatArray = NDArray[np.float64]
@@ -559,3 +560,44 @@ def pose_covariance(jinv: FloatArray, length_cov_m2: FloatArray, plate_scale: Fl
     # J is dd/dp of the lengths d / s, so the lengths' covariance is divided by s^2 first
     return propagate_covariance(jinv, length_cov_m2 / (scale * scale)[:, None, None], scale,
                                 compiled=compiled)
+
+
+def tail_columns(jinv: FloatArray, cumulant_m4: FloatArray, known_m: FloatArray,
+                 plate_scale: FloatArray, known_shape: float = -2.0) -> FloatArray:
+    """The pose-space directions c_k along which Sigma_p's error is lighter-tailed than a
+    Gaussian, scaled so that a region's size can be read from them (:func:`region_quantile`):
+    each bar's column of J^-1 times (-kappa_i)^(1/4), kappa_i its sources' fourth cumulant
+    (:meth:`~mmd_ros.core.budget.LengthBudget.light_tails`), and J^-1 b times
+    (-known_shape)^(1/4), b the known error; mapped as :func:`pose_covariance` maps Sigma_d.
+
+    jinv : (N, 6, 6) inverse Jacobians on d / s; cumulant_m4 : (N, 6) [m^4], <= 0
+    known_m : (N, 6) [m]; plate_scale : (N,)
+    returns : (N, 6, 7) [m, rad]
+    """
+    scale = np.asarray(plate_scale, dtype=np.float64)
+    bars = np.asarray(jinv) * np.maximum(-np.asarray(cumulant_m4), 0.0)[:, None, :] ** 0.25
+    known = np.einsum('nij,nj->ni', jinv, known_m) * (-known_shape) ** 0.25
+    cols = np.concatenate([bars, known[:, :, None]], axis=2) / scale[:, None, None]
+    cols[:, :3] *= scale[:, None, None]
+    return cols
+
+
+def region_quantile(covariance: FloatArray, columns: FloatArray, level: float = 0.95
+                    ) -> FloatArray:
+    """The size q of the region d^2 = e^T Sigma^-1 e <= q that holds ``level`` of an error
+    whose covariance is Sigma and whose light-tailed parts are ``columns``
+    (:func:`tail_columns`), per sample: a Gaussian error gives chi^2_m(level); sources of
+    bounded form (a rectangular quantisation, a sine, a known error) make d^2 vary less about its
+    mean m, Var(d^2) = 2 m - sum_k (c_k^T Sigma^-1 c_k)^2 (the fourth cumulants of independent
+    components), and q is read from the scaled chi^2 of that mean and variance
+    (a chi^2_nu, a nu = m, 2 a^2 nu = Var(d^2): Satterthwaite's approximation).
+
+    covariance : (N, m, m); columns : (N, m, K) in the same m components
+    returns : (N,)
+    """
+    cov = np.asarray(covariance, dtype=np.float64)
+    m = cov.shape[-1]
+    lev = np.einsum('nik,nik->nk', columns, np.linalg.solve(cov, columns))
+    var = np.clip(2.0 * m - np.sum(lev * lev, axis=1), 2e-3 * m, 2.0 * m)
+    a = var / (2.0 * m)
+    return a * chi2.ppf(level, m / a)

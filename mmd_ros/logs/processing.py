@@ -93,6 +93,8 @@ class ProcessedRun:
     budget: dict[str, Any] | None = None
     #: (N,) samples the terminal flagged (encoder signal lost on a channel they need): no pose
     no_signal: NDArray[np.bool_] | None = None
+    #: (N, 6, 7) where the covariance's error is lighter-tailed than a Gaussian (``tails_every``)
+    tails: NDArray[np.float64] | None = None
 
     @classmethod
     def concatenate(cls, parts: list[ProcessedRun]) -> ProcessedRun:
@@ -123,12 +125,15 @@ def _resolve_calibration(source: RunSource, calibration: Calibration | str | Non
 
 def process_blocks(source: RunSource, model: Model, *, calibration: Calibration | str | None = None,
                    with_covariance: bool = False, covariance_every: int = 1, block: int = BLOCK,
-                   compiled: bool | None = None) -> Iterator[tuple[RunBlock, ProcessedRun]]:
+                   compiled: bool | None = None, tails_every: int = 0
+                   ) -> Iterator[tuple[RunBlock, ProcessedRun]]:
     """The run block by block through one pipeline: (samples, their results), in time order.
     The next block is read in a background thread while one is computed.
 
     calibration : a calibration or a calibration file to use instead of the log's
     compiled : the compiled helpers (default: when they are in use); False: the numpy path
+    tails_every : with the covariance, its light-tailed directions at every k-th sample
+        (:meth:`Pipeline.process`), for the size of its coverage region; 0: none
     """
     parts = _prefetched(source.blocks(block))
     first = next(parts, None)   # what is wrong with the samples is said before the calibration
@@ -140,14 +145,15 @@ def process_blocks(source: RunSource, model: Model, *, calibration: Calibration 
         times = (part.stamps_ns - t0).astype(np.float64) * 1e-9
         res = pipeline.process(times, part.counts, with_covariance=with_covariance,
                                covariance_every=covariance_every, compiled=compiled,
-                               status=part.status)
+                               status=part.status, tails_every=tails_every)
         comp = res.compensated
         yield part, ProcessedRun(
             part.stamps_ns, comp.lengths_m, res.poses, res.converged, res.valid, res.status,
             comp.out_of_range, res.iterations, res.residual_m, res.condition,
             comp.thermal.reference_error_m, comp.thermal.temp_change_c, res.covariance,
             pipeline.budget.summary() if with_covariance else None,
-            res.no_signal if res.no_signal is not None else np.zeros(part.stamps_ns.size, bool))
+            res.no_signal if res.no_signal is not None else np.zeros(part.stamps_ns.size, bool),
+            res.tails)
 
 
 def process_run(run: RunLog, model: Model, *, calibration_path: str | None = None,
@@ -210,7 +216,7 @@ class RunSummary:
             self.pose_error.add(errors, result.valid)
             if result.covariance is not None:
                 self.coverage = self.coverage or CoverageAccumulator()
-                self.coverage.add(errors, result.covariance, result.valid)
+                self.coverage.add(errors, result.covariance, result.valid, result.tails)
         if result.budget is not None:
             self.budget = result.budget
         if part.reference_lengths is not None:
@@ -369,6 +375,9 @@ def process_log(source: RunSource, out: Path, model: Model, *,
     # a covariance wanted only for its coverage is computed for the samples the summary keeps
     coverage_only = coverage and source.has_reference_pose and not with_covariance
     every = max(1, source.n_samples // CoverageAccumulator.MAX_SAMPLES) if coverage_only else 1
+    # and the size of its coverage region, from where the budget's error is light-tailed
+    tails_every = (max(1, source.n_samples // CoverageAccumulator.MAX_SAMPLES)
+                   if coverage and source.has_reference_pose else 0)
     summary = RunSummary(covariance_every=every)
     writer: ProcessedLogWriter | None = None
     handle: IO[str] | None = None
@@ -387,7 +396,8 @@ def process_log(source: RunSource, out: Path, model: Model, *,
         for part, result in process_blocks(source, model, calibration=calibration,
                                            with_covariance=with_covariance or coverage_only,
                                            covariance_every=every,
-                                           compiled=compiled, block=block):
+                                           compiled=compiled, block=block,
+                                           tails_every=tails_every):
             if writer is None:
                 cal = _resolve_calibration(source, calibration)
                 writer = files.enter_context(ProcessedLogWriter(
