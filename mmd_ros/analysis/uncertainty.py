@@ -357,6 +357,42 @@ def measured_read_noise(ctxs: list[FitContext]) -> FloatArray | None:
                          neginf=0.0)
 
 
+#: The budget's sources that one calibration draws once and a run carries throughout, the same
+#: for every length of a bar (the routine's drift, the plate's distances, the reference bar's
+#: zero); its points' own errors are constants too, carried between the points by Eq. (10).
+RUN_CONSTANT = ('calibration_drift', 'reference_distances', 'reference_bar')
+
+
+def calibration_constants(ctx: FitContext, idx: IntArray) -> tuple[FloatArray, FloatArray]:
+    """The errors one calibration draws once, as bar-length columns at the samples ``idx`` and
+    their covariance by the budget of the model a fit starts from: a constant per bar
+    (:data:`RUN_CONSTANT`, their mean over the samples) and each calibration point's own error
+    (its variance at the point), carried by the hat functions of Eq. (10) at each sample's CDF
+    length. Returns (n, 6, Q) [1] and (Q, Q) [m^2], Q = 6 + the points of all bars."""
+    budget, observed = _observing(ctx, ctx.base, ctx.model)
+    b = ctx.base
+    sub = _spread(idx, 2000)
+    cov, _ = budget.sources(b.lengths_m[sub], b.reference_error_m[sub], b.temp_change_c[sub],
+                            b.bar_error_m[sub], None, observed[sub])
+    constant = sum((np.mean(c, axis=0) for name, c in cov.items() if name in RUN_CONSTANT),
+                   np.zeros((6, 6)))
+    knots = budget.knots_m                                           # (6, K)
+    k = knots.shape[1]
+    at = np.arange(k) % b.lengths_m.shape[0]
+    points = budget.sources(knots.T, b.reference_error_m[at], b.temp_change_c[at],
+                            None, None, None)[0].get('calibration_points')
+    point_var = (np.zeros(6 * k) if points is None
+                 else np.diagonal(points, axis1=1, axis2=2).T.reshape(-1))     # bar-major
+    cols = np.zeros((idx.size, 6, 6 + 6 * k))
+    cols[:, np.arange(6), np.arange(6)] = 1.0
+    for i in range(6):
+        cols[:, i, 6 + i * k:6 + (i + 1) * k] = hat_weights(b.cdf_lengths_m[idx, i], knots[i])
+    q = np.zeros((6 + 6 * k, 6 + 6 * k))
+    q[:6, :6] = constant
+    q[np.arange(6, 6 + 6 * k), np.arange(6, 6 + 6 * k)] = point_var
+    return cols, q
+
+
 def claimed_sigma(ctx: FitContext, idx: IntArray) -> FloatArray:
     """What the budget of the model a fit starts from claims for each observed component of a
     log, the RMS over the samples ``idx`` of its predicted sigma, (k,) [m, rad].
