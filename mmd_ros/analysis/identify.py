@@ -1088,13 +1088,14 @@ class _Selector:
         return fitted[1] - fitted[0]
 
     def run_constant_sigma(self) -> list[FloatArray]:
-        """Per active effect, the standard deviation its parameters take from the error a run
-        carries throughout (:func:`~mmd_ros.analysis.uncertainty.run_constant_covariance`: the
-        calibration's points, drift, the reference bar's zero), which the fit's residual
-        variance does not show: a constant c per bar enters the data as J^-1 c (absolute) or
-        its variation (zeroed), and the fit maps it into every parameter whose signature it
-        resembles (the bars' sag, n_z^2 of nearly equal bars, takes their common constant:
-        fitted with the twin's full pose it fell 3-22 sigma from the truth)."""
+        """Per active effect, the standard deviation its parameters take from the errors a
+        calibration draws once and a run carries throughout
+        (:func:`~mmd_ros.analysis.uncertainty.calibration_constants`: each point's own error
+        along the bar, the drift's, plate's and reference bar's constants), which the fit's
+        residual variance does not show: such an error x enters the data as J^-1 x (absolute)
+        or its variation (zeroed), and the fit maps it, G^-1 D^T X, into every parameter whose
+        signature it resembles (the bars' sag, n_z^2 of nearly equal bars, takes their common
+        constant: fitted with the twin's full pose it fell 6-22 sigma from the truth)."""
         d = self.base('train')
         if d.shape[1] == 0:
             return []
@@ -1559,8 +1560,9 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
             params = sel.parameters(a.effect, a.hyper)
             ident = np.linalg.norm(a.basis, axis=1) > 0
             first_theta = sel.theta_for(a.effect, theta, first)
-            # what is claimed of a parameter that serves every bar includes how far the bars
-            # agree on it (the pose's claim has the residual for what the model lacks)
+            # what is claimed of a parameter: the calibration's constants it took, and for one
+            # that serves every bar how far the bars agree on it (the pose's claim keeps the
+            # least-squares part: its residual stands for the rest)
             sigma = np.hypot(sigma * sel.parameter_consistency(a, theta), sys_sigma)
             shift = sel.setting_shift(a, theta)
             if shift is not None:
