@@ -69,12 +69,11 @@ def judge(errors: list[np.ndarray], covs: list[np.ndarray], tails: list[np.ndarr
     pred2 = np.array([np.sum(np.diagonal(c, axis1=1, axis2=2), axis=0) for c in covs])
     obs2 = np.array([np.sum(e * e, axis=0) for e in errors])
 
-    def d2(ee: np.ndarray, cc: np.ndarray) -> np.ndarray:
-        return np.einsum('ni,ni->n', ee, np.linalg.solve(cc, ee[:, :, None])[:, :, 0])
-
-    hits = np.array([np.sum(d2(e, c) <= LIMIT) for e, c in zip(errors, covs)], dtype=np.float64)
-    region = np.array([np.sum(d2(e, c) <= region_quantile(c, t)) for e, c, t
-                       in zip(errors, covs, tails)], dtype=np.float64)
+    d2 = [np.einsum('ni,ni->n', e, np.linalg.solve(c, e[:, :, None])[:, :, 0])
+          for e, c in zip(errors, covs)]
+    hits = np.array([np.sum(d <= LIMIT) for d in d2], dtype=np.float64)
+    region = np.array([np.sum(d <= region_quantile(c, t)) for d, c, t in zip(d2, covs, tails)],
+                      dtype=np.float64)
     pick = np.random.default_rng(0).integers(0, len(n), (BOOTSTRAP, len(n)))
     counts = np.stack([np.bincount(row, minlength=len(n)) for row in pick]).astype(np.float64)
     with np.errstate(divide='ignore', invalid='ignore'):

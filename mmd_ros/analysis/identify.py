@@ -460,6 +460,15 @@ def _pose_floor(ctx: FitContext, train_idx: IntArray) -> FloatArray:
         sample_noise(ctx.base.poses, ctx.base, train_idx)))
 
 
+def _normal(d: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """The design ``d`` (m, p) with unit-norm columns, their norms and the pseudo-inverse of
+    its Gram matrix: coefficients of data Y are gram_inv @ (dn^T Y) / norms."""
+    norms = np.linalg.norm(d, axis=0)
+    norms[norms == 0] = 1.0
+    dn = d / norms
+    return dn, norms, np.linalg.pinv(dn.T @ dn, rcond=1e-13, hermitian=True)
+
+
 # -- observation rows --------------------------------------------------------------------------
 class _Rows:
     """Weighted observation rows of a set of samples of one log: y (m,), nuisance (m, q).
@@ -736,10 +745,7 @@ class _Selector:
         m, p = d.shape
         if p == 0:
             return np.zeros(0), np.zeros((0, 0))
-        norms = np.linalg.norm(d, axis=0)
-        norms[norms == 0] = 1.0
-        dn = d / norms
-        gram_inv = np.linalg.pinv(dn.T @ dn, rcond=1e-13, hermitian=True)
+        dn, norms, gram_inv = _normal(d)
         coef = gram_inv @ (dn.T @ y) / norms
         e = y - d @ coef
         sigma2 = float(e @ e) / max(m - p, 1)
@@ -1054,11 +1060,7 @@ class _Selector:
         slopes = np.stack([(self.columns(a.effect, up, 'train', i) - self.columns(a.effect, down, 'train', i))
                            @ theta / (2 * dh) for i in range(6)], axis=1)
         slope = slopes.sum(axis=1)
-        start = self.train.nuisance.shape[1]
-        for other in self.active:
-            if other is a:
-                break
-            start += other.basis.shape[1]
+        start = self._column_start(a)
         weak = a.weak_basis()
         own = [a.basis] if weak is None else [a.basis, weak]
         columns = self.columns(a.effect, a.hyper, 'train')
@@ -1087,6 +1089,16 @@ class _Selector:
             fitted.append(basis @ coef[start:start + basis.shape[1]])
         return fitted[1] - fitted[0]
 
+    def _column_start(self, a: _Active) -> int:
+        """The first column of active effect ``a`` in :meth:`base` (after the datum offsets and
+        the effects before it)."""
+        start = self.train.nuisance.shape[1]
+        for other in self.active:
+            if other is a:
+                break
+            start += other.basis.shape[1]
+        return start
+
     def run_constant_sigma(self) -> list[FloatArray]:
         """Per active effect, the standard deviation its parameters take from the errors a
         calibration draws once and a run carries throughout
@@ -1105,13 +1117,9 @@ class _Selector:
             cols, q = calibration_constants(r.ctx, rows.idx)
             x.append(rows.project(cols))
             q = q * (rows.idx.size / max(total, 1))
-            cov = q if cov is None or cov.shape != q.shape else cov + q
-        x = np.concatenate(x)
-        norms = np.linalg.norm(d, axis=0)
-        norms[norms == 0] = 1.0
-        dn = d / norms
-        gram_inv = np.linalg.pinv(dn.T @ dn, rcond=1e-13, hermitian=True)
-        moved = gram_inv @ (dn.T @ x) / norms[:, None]       # (columns, 6): per unit constant
+            cov = q if cov is None else cov + q
+        dn, norms, gram_inv = _normal(d)
+        moved = gram_inv @ (dn.T @ np.concatenate(x)) / norms[:, None]   # per unit of each
         out, start = [], self.train.nuisance.shape[1]
         for a in self.active:
             m = a.basis @ moved[start:start + a.basis.shape[1]]
@@ -1135,11 +1143,7 @@ class _Selector:
         sig = a.effect.signature(self.train.runs[0].ctx, a.hyper, few)
         if np.max(np.sum(np.any(sig != 0.0, axis=0), axis=0)) <= 1:
             return 1.0      # (every parameter acts on one bar: each bar's share is its own fit)
-        start = self.train.nuisance.shape[1]
-        for other in self.active:
-            if other is a:
-                break
-            start += other.basis.shape[1]
+        start = self._column_start(a)
         base = self.base('train')
         design = np.delete(base, np.arange(start, start + a.basis.shape[1]), axis=1)
         shares = np.stack([self.columns(a.effect, a.hyper, 'train', i) @ theta for i in range(6)],

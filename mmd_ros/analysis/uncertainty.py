@@ -369,13 +369,9 @@ def calibration_constants(ctx: FitContext, idx: IntArray) -> tuple[FloatArray, F
     (:data:`RUN_CONSTANT`, their mean over the samples) and each calibration point's own error
     (its variance at the point), carried by the hat functions of Eq. (10) at each sample's CDF
     length. Returns (n, 6, Q) [1] and (Q, Q) [m^2], Q = 6 + the points of all bars."""
-    budget, observed = _observing(ctx, ctx.base, ctx.model)
+    budget, _ = _observing(ctx, ctx.base, ctx.model)
     b = ctx.base
-    sub = _spread(idx, 2000)
-    cov, _ = budget.sources(b.lengths_m[sub], b.reference_error_m[sub], b.temp_change_c[sub],
-                            b.bar_error_m[sub], None, observed[sub])
-    constant = sum((np.mean(c, axis=0) for name, c in cov.items() if name in RUN_CONSTANT),
-                   np.zeros((6, 6)))
+    constant = np.mean(_sources(ctx, b, ctx.model, _spread(idx, 2000), RUN_CONSTANT)[1], axis=0)
     knots = budget.knots_m                                           # (6, K)
     k = knots.shape[1]
     at = np.arange(k) % b.lengths_m.shape[0]
