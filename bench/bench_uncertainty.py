@@ -14,10 +14,10 @@ about +-4 %), and a JSON line.
 
 Usage: ``python bench/bench_uncertainty.py [--cases ideal,noeffect,realistic,realistic_noskew]
 [--scenario random|iso_y|rotary|thermal] [--runs 6] [--seconds 8] [--after] [--datum none|offset]
-[--approaches 2] [--build 0]``. ``--build N`` instead times the construction of a realistic
-calibration's budget N times each way, its interpolation fit made anew (the kept fits cleared)
-and kept from the first (every pipeline and every trial budget of an analysis builds one):
-medians and their ratio, measured in the same run. ``--after`` first runs ``mmd analyze`` (full pose reference, absolute, or
+[--approaches 2] [--no-stated-sag] [--build 0]``. ``--build N`` instead times the construction
+of a realistic calibration's budget N times each way, its interpolation fit made anew (the kept
+fits cleared) and kept from the first (every pipeline and every trial budget of an analysis
+builds one): medians and their ratio, measured in the same run. ``--after`` first runs ``mmd analyze`` (full pose reference, absolute, or
 zeroed with ``--datum offset``) on a 60 s random run of each twin and judges that twin's
 extended model on a new run of it, also apart where every bar lies inside the lengths the fit
 saw and where one does not, and apart those inside with a bar where its fitted lengths end
@@ -96,7 +96,7 @@ def judge(errors: list[np.ndarray], covs: list[np.ndarray], tails: list[np.ndarr
 
 
 def run_case(device, name: str, scenario: str, runs: int, seconds: float, after: bool,
-             approaches: int = 2, datum: str = 'none') -> dict:
+             approaches: int = 2, datum: str = 'none', stated_sag: bool = True) -> dict:
     preset, effect_params, ambient = CASES[name]
     kind, params, rate = SCENARIOS[scenario]
     room = ambient_profile(ambient)
@@ -108,7 +108,7 @@ def run_case(device, name: str, scenario: str, runs: int, seconds: float, after:
         start = 600.0
         if after:
             # each twin's own extended model, judged on new motion of that twin
-            model, found, start = fit(twin, room, calibration, k, datum)
+            model, found, start = fit(twin, room, calibration, k, datum, stated_sag)
             notes.append(found)
         p = [v.format(seconds=seconds, k=k) for v in params]
         run = twin.simulate(make_scenario(kind, p), room, start_s=start, reference='pose6',
@@ -129,6 +129,7 @@ def run_case(device, name: str, scenario: str, runs: int, seconds: float, after:
     if notes:
         out['analysis'] = '; '.join(notes)
         out['datum'] = datum
+        out['stated_sag'] = stated_sag
         # every bar inside the lengths its model's fit saw, and the rest (judged apart); and of
         # the first, those with a bar where its fitted lengths end inside a CDF segment
         groups = (('inside_fit_range', inside, True), ('outside_fit_range', inside, False),
@@ -145,13 +146,15 @@ def run_case(device, name: str, scenario: str, runs: int, seconds: float, after:
     return out
 
 
-def fit(twin, room, calibration, k, datum: str = 'none'):
+def fit(twin, room, calibration, k, datum: str = 'none', stated_sag: bool = True):
     """mmd analyze on a 60 s random run with the full pose reference, absolute (``datum``
-    'none') or zeroed (an offset per component removed, 'offset': the default for a pose)."""
+    'none') or zeroed (an offset per component removed, 'offset': the default for a pose),
+    started from the bars' stated gravity sag unless ``stated_sag`` is False."""
     from mmd_ros.analysis.identify import AnalysisOptions, analyze
     run = twin.simulate(make_scenario('random_motion', ['duration_s=60', f'seed={100 + k}']), room,
                         start_s=600.0, reference='pose6')
-    result = analyze(run_log(twin, calibration, run, 600.0), options=AnalysisOptions(datum=datum))
+    options = AnalysisOptions(datum=datum, stated_sag=stated_sag)
+    result = analyze(run_log(twin, calibration, run, 600.0), options=options)
     found = '+'.join(f.effect for f in result.found) or 'nothing'
     return result.model or Model(), found, 700.0
 
@@ -198,6 +201,9 @@ def main() -> None:
     parser.add_argument('--approaches', type=int, default=2, choices=(1, 2),
                         help='the twin\'s calibration: 2 two-sided with the drift read (default), 1 '
                         'the paper\'s routine')
+    parser.add_argument('--no-stated-sag', action='store_true', dest='no_stated_sag',
+                        help='with --after: the analysis starts from the model as given, not from '
+                        'the bars\' stated gravity sag')
     parser.add_argument('--build', type=int, default=0, metavar='N',
                         help='time a budget\'s construction N times, its interpolation fit anew '
                         'and kept (instead of the coverage cases)')
@@ -213,7 +219,7 @@ def main() -> None:
     for name in args.cases.split(','):
         t0 = time.perf_counter()
         r = run_case(device, name, args.scenario, args.runs, args.seconds, args.after, args.approaches,
-                     args.datum)
+                     args.datum, not args.no_stated_sag)
         r['seconds'] = round(time.perf_counter() - t0, 1)
         results.append(r)
         print(f'{name:17s} {args.scenario:8s} ratio ' + ' '.join(f'{v:.2f}' for v in r['ratio'])

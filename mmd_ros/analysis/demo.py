@@ -40,9 +40,14 @@ def close_the_loop(logs: list[str | Path], out_dir: str | Path, *,
     result = analyze(runs)
     written = write_report(result, out)
     print(f'validation: {result.validation}')
+    for text in result.stated:
+        print(f'started from {text}: "before" includes it (the model as given is shown where '
+              'that differs)')
     for r in result.runs:
         print(f'{Path(r.name).name} ({r.reference}), noise floor '
               + ', '.join(f'{n} {v:.2g} {_UNIT[u]}' for (n, v), u in zip(r.floor.items(), r.units)))
+        if r.given is not None and _line(r.given) != _line(r.before):
+            print(f'  held-out blocks, the model as given: {_line(r.given)}')
         print(f'  held-out blocks: {_line(r.before)}  ->  {_line(r.after) if r.after else "unchanged"}')
         if r.loro_before is not None:
             print(f'  predicted by the model fitted on the other runs: {_line(r.loro_before)}  ->  '

@@ -153,6 +153,9 @@ def _markdown(a: Analysis, figs: dict[str, str], model_path: Path | None) -> str
         L += [f'Extended model: `{model_path.name}` (`mmd process --model {model_path.name}`, or the '
               'compensation node\'s `model_file` parameter).', '']
     L += ['## 1. Residual of the current model (held-out blocks)', '']
+    for text, r in ((t, a.runs[0]) for t in a.stated):
+        L += [f'Started from {text}: the figures below include it (the model as given: '
+              f'{_fmt(r.given)}).', '']
     floor = ', '.join(f'{n} {f * s:.3g} {_u(u)}' for n, f, s, u in zip(o.names, a.floor, o.to_report, o.units))
     L += [f'Noise floor (encoder quantisation propagated, and the sample-to-sample noise): {floor}.', '']
     L += _stats_table(a.stats_before, None) + ['']
@@ -277,6 +280,8 @@ def format_summary(a: Analysis) -> str:
     lines = [f'residual of the current model ({a.obs.description}), held-out RMS: '
              + ', '.join(f'{s.name} {s.rms:.3g} {_u(s.unit)}' for s in a.stats_before)]
     lines.append(f'validation: {a.validation}')
+    for text in a.stated:
+        lines.append(f'started from {text} (the figures before include it)')
     for r in a.runs:
         if r.loro_before is not None:
             lines.append(f'  {Path(r.name).name}: leave-one-run-out {_fmt(r.loro_before)} → {_fmt(r.loro_after)}'

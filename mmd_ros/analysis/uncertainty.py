@@ -654,7 +654,7 @@ def _unseen_constants(parts: list[tuple[ResidualRun, IntArray, FloatArray, Float
     and keeps its prior (on the twin, a gravity sag the calibration read flat left -37 to
     -120 nm on every bar of new runs, while the constants the pose variation determined
     differed between bars by 7 to 21 nm: the bars' stated sag, a source of the prior, claims
-    it)."""
+    it; ``mmd analyze`` now starts from the stated sag, and the prior keeps the rest)."""
     info, score = np.zeros((6, 6)), np.zeros(6)
     for run, idx, _dd, _ref in parts:
         obs = run.ctx.obs

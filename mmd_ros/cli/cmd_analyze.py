@@ -70,7 +70,7 @@ def run_command(args: argparse.Namespace) -> int:
         n_blocks=args.blocks, max_samples=args.max_samples, min_gain=args.min_gain,
         max_effects=args.max_effects, datum='none' if args.absolute_reference else 'auto',
         seed=args.seed, cyclic_periods_m=periods, accept_unchecked=args.accept_unchecked,
-        axis_motion=not args.no_axis_motion)
+        axis_motion=not args.no_axis_motion, stated_sag=not args.no_stated_sag)
     result = analyze(runs, model, calibration, options, progress=say)
     written = {}
     if args.out:
@@ -129,6 +129,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    '(default: the MMD\'s other five components are read as the machine\'s motion '
                    'along the axis, a function of its position and direction, which determines '
                    'what moves with speed)')
+    p.add_argument('--no-stated-sag', action='store_true', dest='no_stated_sag',
+                   help='start from the model as given (default: also from the bars\' gravity sag '
+                   'the device description states, bars.gravity_sag_nm, when the model has none; '
+                   'a zeroed reference does not see the common mode it moves)')
     p.add_argument('--absolute-reference', action='store_true', dest='absolute_reference',
                    help='the reference pose is absolute in {L} (default: zeroed, an offset per '
                    'component is removed)')

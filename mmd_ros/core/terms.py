@@ -533,7 +533,8 @@ class GravitySagTerm(ModelTerm):
     reads long by g_i (1 - n_z^2) (n_z: component of its axis along the vertical). The bars are
     calibrated lying horizontally on the reference plate (n_z = 0), which puts g_i into the CDF,
     so a bar on the MMD reads short by g_i n_z^2. Correction: +g_i n_z^2 (first-pass pose; the
-    vertical is ``vertical`` in {L}, default +z: the lower plate level).
+    vertical is ``vertical`` in {L}, default +z: the lower plate level); none where there is no
+    pose (bars on the reference plate lie flat, as calibrated).
     """
 
     type_name = 'gravity_sag'
@@ -558,7 +559,8 @@ class GravitySagTerm(ModelTerm):
     def correction(self, ctx: TermContext) -> FloatArray:
         if ctx.poses is None:
             return np.zeros_like(ctx.lengths_m)
-        return self.sag_m * self.features(self.upper_m, self.lower_m, ctx.poses, self.vertical)
+        nz2 = self.features(self.upper_m, self.lower_m, ctx.poses, self.vertical)
+        return self.sag_m * np.nan_to_num(nz2)
 
     @classmethod
     def from_params(cls, params: dict[str, Any], source: str) -> GravitySagTerm:
