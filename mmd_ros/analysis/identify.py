@@ -58,8 +58,8 @@ from mmd_ros.analysis.data import (
 from mmd_ros.analysis.effects import Effect, Parameter, catalogue
 from mmd_ros.analysis.errors import AnalysisError
 from mmd_ros.analysis.uncertainty import (
-    CLAIM_LEVEL, FittedEffect, ResidualRun, beyond_claim, claimed_sigma, fitted_effects, measured_read_noise,
-    calibration_constants, with_fit_uncertainty)
+    CLAIM_LEVEL, FittedEffect, ResidualRun, beyond_claim, claimed_sigma, fitted_effects,
+    measured_read_noise, calibration_constants, with_fit_uncertainty)
 from mmd_ros.core.budget import SAG_TERMS
 from mmd_ros.core.calibration import Calibration
 from mmd_ros.core.device import DeviceDescription
@@ -1879,8 +1879,8 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
             extended = _build_model(model, [], _records(runs, [], summaries, uncertainty_only,
                                                         stated_text))
             extended = with_fit_uncertainty(
-                extended, runs[-1].ctx, statement, [ResidualRun(r.ctx, r.ctx.base, r.res_before, idx)
-                                             for r, idx in zip(runs, every)],
+                extended, runs[-1].ctx, statement,
+                [ResidualRun(r.ctx, r.ctx.base, r.res_before, idx) for r, idx in zip(runs, every)],
                 residual_from='the logs analysed, every usable sample (no term was fitted to them)')
 
     first_summary = summaries[0]
@@ -1926,6 +1926,8 @@ def _check_statement(sel: _Selector, stated: list[ModelTerm]
     if got is None or not np.all(np.isfinite(got[0])):
         return [], None
     d, s = float(got[0][0]), float(got[1][0])
+    if not s > 0.0:         # (no direction the data identify)
+        return [], None
     claimed = math.hypot(d, s)
     check = {'error_nm': d * 1e9, 'sigma_nm': s * 1e9, 'claimed_nm': claimed * 1e9}
     return [FittedEffect(effect, None, np.array([[claimed * claimed]]), np.zeros(1))], check
