@@ -1059,6 +1059,29 @@ def test_the_data_check_the_stated_sag_and_the_model_claims_what_they_leave():
     assert wrong['claimed_nm'] > 0.5 * 50.0
 
 
+def test_a_statement_the_data_do_not_check_is_claimed_whole():
+    """Where the runs do not exercise the bars' inclination (or identify no direction of the
+    sag), the stated figure is not checked and the model claims it whole; where they do, the
+    claim is sqrt(d^2 + s^2); a sag the fit added itself, or no statement, claims nothing here."""
+    from types import SimpleNamespace
+    from mmd_ros.analysis.identify import _check_statement
+    from mmd_ros.core.terms import GravitySagTerm
+    geo = DEVICE.geometry
+    stated = [GravitySagTerm(geo.upper, geo.lower, np.full(6, 1e-7))]
+    for got in (None, (np.array([np.nan]), np.array([np.nan])), (np.zeros(1), np.zeros(1))):
+        sel = SimpleNamespace(active=[], check=lambda effect, got=got: got)
+        effects, check = _check_statement(sel, stated)
+        assert check == {'error_nm': None, 'sigma_nm': None, 'claimed_nm': pytest.approx(100.0)}
+        assert len(effects) == 1 and effects[0].covariance[0, 0] == pytest.approx(1e-14)
+    sel = SimpleNamespace(active=[], check=lambda effect: (np.array([3e-8]), np.array([4e-8])))
+    effects, check = _check_statement(sel, stated)
+    assert check['claimed_nm'] == pytest.approx(50.0) and check['error_nm'] == pytest.approx(30.0)
+    assert effects[0].covariance[0, 0] == pytest.approx(2.5e-15)
+    fitted = SimpleNamespace(effect=SimpleNamespace(name='gravity_sag'))
+    assert _check_statement(SimpleNamespace(active=[fitted], check=None), stated) == ([], None)
+    assert _check_statement(SimpleNamespace(active=[], check=None), []) == ([], None)
+
+
 def test_the_report_names_the_bars_whose_length_error_the_calibration_does_not_describe():
     from mmd_ros.analysis.report import _shape_text
     described = _shape_text([12.0] * 6, [1.0] * 6)

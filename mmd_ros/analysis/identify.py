@@ -338,9 +338,10 @@ class Analysis:
     #: what the analysis started from beyond the model as given: effects the device description
     #: states (the bars' gravity sag), one line each; not fitted, written with a written model
     stated: list[str] = field(default_factory=list)
-    #: what the data say of the stated sag: its error's estimate and sigma [nm], and the
-    #: sigma claimed with the model (None when the analysis started from no statement)
-    stated_check: dict[str, float] | None = None
+    #: what the data say of the stated sag: its error's estimate and sigma [nm] (None when the
+    #: data do not exercise the bars' inclination), and the sigma claimed with the model (the
+    #: whole figure when unchecked); None when the analysis started from no statement
+    stated_check: dict[str, float | None] | None = None
 
     @property
     def changed(self) -> bool:
@@ -1790,7 +1791,10 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
 
     # -- what the data say of the statement the analysis started from, claimed with the model
     statement, check = _check_statement(sel, stated)
-    if check is not None:
+    if check is not None and check['error_nm'] is None:
+        stated_text[0] += ('; the data do not exercise the bars\' inclination: not checked, '
+                           f'claimed whole with the model (± {check["claimed_nm"]:.0f} nm)')
+    elif check is not None:
         stated_text[0] += (f'; the data put its error at {check["error_nm"]:+.0f} ± '
                            f'{1.96 * check["sigma_nm"]:.0f} nm (95 %; they cannot tell it from '
                            'errors of the same signature), claimed with the model as '
@@ -1904,7 +1908,7 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
 
 
 def _check_statement(sel: _Selector, stated: list[ModelTerm]
-                     ) -> tuple[list[FittedEffect], dict[str, float] | None]:
+                     ) -> tuple[list[FittedEffect], dict[str, float | None] | None]:
     """What the data say of the stated sag the analysis started from (:func:`_stated_terms`),
     with the effects the fit applies in place: the error of the statement, its estimate d and
     sigma s, and the statement's error claimed with the model, as an effect whose parameter
@@ -1918,16 +1922,19 @@ def _check_statement(sel: _Selector, stated: list[ModelTerm]
     routine, whose points' friction steps the signature takes in part (a true statement was
     put 133 +- 27 nm off on a 30 s run). Claiming d^2 - s^2, the unbiased estimate of a true
     error's square, not below zero: z 1.62 where true, 1.13 and 90.0 % where stated 50 nm.
-    None and no effect when there is no statement, or a fitted sag in its place."""
+    Where the data do not exercise the bars' inclination the statement is not checked, and its
+    whole figure is claimed (error and sigma None). None and no effect when there is no
+    statement, or a fitted sag in its place."""
     if not stated or any(a.effect.name == 'gravity_sag' for a in sel.active):
         return [], None
     effect = catalogue(['gravity_sag'])[0]
     got = sel.check(effect)
-    if got is None or not np.all(np.isfinite(got[0])):
-        return [], None
+    check: dict[str, float | None]
+    if got is None or not np.all(np.isfinite(got[0])) or not float(got[1][0]) > 0.0:
+        claimed = float(np.max(np.abs(stated[0].params()['sag_um']))) * M_PER_UM
+        check = {'error_nm': None, 'sigma_nm': None, 'claimed_nm': claimed * 1e9}
+        return [FittedEffect(effect, None, np.array([[claimed * claimed]]), np.zeros(1))], check
     d, s = float(got[0][0]), float(got[1][0])
-    if not s > 0.0:         # (no direction the data identify)
-        return [], None
     claimed = math.hypot(d, s)
     check = {'error_nm': d * 1e9, 'sigma_nm': s * 1e9, 'claimed_nm': claimed * 1e9}
     return [FittedEffect(effect, None, np.array([[claimed * claimed]]), np.zeros(1))], check
