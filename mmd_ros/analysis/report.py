@@ -153,9 +153,9 @@ def _markdown(a: Analysis, figs: dict[str, str], model_path: Path | None) -> str
         L += [f'Extended model: `{model_path.name}` (`mmd process --model {model_path.name}`, or the '
               'compensation node\'s `model_file` parameter).', '']
     L += ['## 1. Residual of the current model (held-out blocks)', '']
-    for text, r in ((t, a.runs[0]) for t in a.stated):
+    for text in a.stated:
         L += [f'Started from {text}: the figures below include it (the model as given: '
-              f'{_fmt(r.given)}).', '']
+              f'{_fmt(a.runs[0].given)}).', '']
     floor = ', '.join(f'{n} {f * s:.3g} {_u(u)}' for n, f, s, u in zip(o.names, a.floor, o.to_report, o.units))
     L += [f'Noise floor (encoder quantisation propagated, and the sample-to-sample noise): {floor}.', '']
     L += _stats_table(a.stats_before, None) + ['']
