@@ -17,11 +17,12 @@ Usage: ``python bench/bench_uncertainty.py [--cases ideal,noeffect,realistic,rea
 [--approaches 2] [--no-stated-sag] [--build 0]``. ``--build N`` instead times the construction
 of a realistic calibration's budget N times each way, its interpolation fit made anew (the kept
 fits cleared) and kept from the first (every pipeline and every trial budget of an analysis
-builds one): medians and their ratio, measured in the same run. ``--after`` first runs ``mmd analyze`` (full pose reference, absolute, or
-zeroed with ``--datum offset``) on a 60 s random run of each twin and judges that twin's
-extended model on a new run of it, also apart where every bar lies inside the lengths the fit
-saw and where one does not, and apart those inside with a bar where its fitted lengths end
-inside a CDF segment (``LengthBudget.flank``).
+builds one): medians and their ratio, measured in the same run. ``--after`` first runs
+``mmd analyze`` (full pose reference, absolute, or zeroed with ``--datum offset``), started from
+the bars' stated gravity sag unless ``--no-stated-sag``, on a 60 s random run of each twin and
+judges that twin's extended model on a new run of it, also apart where every bar lies inside
+the lengths the fit saw and where one does not, and apart those inside with a bar where its
+fitted lengths end inside a CDF segment (``LengthBudget.flank``).
 """
 
 from __future__ import annotations
