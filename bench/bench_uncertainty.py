@@ -12,7 +12,7 @@ the runs (the runs drawn again with replacement: a run's samples share one draw 
 calibration's constant error, so with 24 realistic runs a coverage near 95 % is known to
 about +-4 %), and a JSON line.
 
-Usage: ``python bench/bench_uncertainty.py [--cases ideal,noeffect,realistic,realistic_noskew]
+Usage: ``python bench/bench_uncertainty.py [--cases ideal,noeffect,realistic,realistic_sagspread]
 [--scenario random|iso_y|rotary|thermal] [--runs 6] [--seconds 8] [--after] [--datum none|offset]
 [--approaches 2] [--no-stated-sag] [--build 0]``. ``--build N`` instead times the construction
 of a realistic calibration's budget N times each way, its interpolation fit made anew (the kept
@@ -51,6 +51,8 @@ CASES = {
     'realistic': ('realistic', (), 'section_4_1'),
     'realistic_noskew': ('realistic', ('sampling_skew_s=0',), 'section_4_1'),
     'realistic_nosag': ('realistic', ('gravity_sag_m=0',), 'section_4_1'),
+    # each twin's bars one sag drawn about the figure its description states, +- 15 %
+    'realistic_sagspread': ('realistic', ('gravity_sag_spread=0.15',), 'section_4_1'),
 }
 SCENARIOS = {   # name: (scenario, parameters, sample rate)
     'random': ('random_motion', ('duration_s={seconds}', 'seed={k}'), None),

@@ -64,6 +64,7 @@ def _set(data, path, value):
     (('bars', 'friction_hysteresis_nm'), -10, 'bars.friction_hysteresis_nm'),
     (('bars', 'gravity_sag_nm'), -100, 'bars.gravity_sag_nm'),
     (('bars', 'gravity_sag_nm'), 'long', 'bars.gravity_sag_nm'),
+    (('bars', 'gravity_sag_uncertainty_nm'), 15, 'bars.gravity_sag_uncertainty_nm'),  # no figure
     (('reference_plate', 'seating_repeatability_nm'), -30,
      'reference_plate.seating_repeatability_nm'),
     (('reference_plate', 'seating_repeatability_nm'), 'x',
@@ -92,6 +93,23 @@ def test_the_vertical_as_mounted_is_stated_as_a_direction_and_level_otherwise():
     side = device.with_vertical([-2.0, 0.0, 2.0])
     assert side.up == pytest.approx([-math.sqrt(0.5), 0.0, math.sqrt(0.5)])
     assert parse_device(side.raw, 'again.yaml').up == pytest.approx(side.up)
+
+
+def test_a_stated_sag_carries_its_uncertainty_when_stated():
+    """``bars.gravity_sag_uncertainty_nm`` qualifies the stated figure: kept in metres, written
+    back by ``with_gravity_sag``, refused negative; None unless stated."""
+    device = parse_device(copy.deepcopy(RAW), 'plain.yaml')
+    assert device.gravity_sag_m is None and device.gravity_sag_sigma_m is None
+    stated = device.with_gravity_sag(100e-9, 15e-9)
+    assert stated.gravity_sag_m == pytest.approx(100e-9)
+    assert stated.gravity_sag_sigma_m == pytest.approx(15e-9)
+    assert parse_device(stated.raw, 'again.yaml').gravity_sag_sigma_m == pytest.approx(15e-9)
+    assert device.with_gravity_sag(100e-9).gravity_sag_sigma_m is None
+    data = copy.deepcopy(stated.raw)
+    data['bars']['gravity_sag_uncertainty_nm'] = -1
+    with pytest.raises(ConfigError) as info:
+        parse_device(data, 'bad.yaml')
+    assert info.value.key == 'bars.gravity_sag_uncertainty_nm'
 
 
 def test_a_signal_period_given_in_metres_is_caught():

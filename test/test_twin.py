@@ -302,6 +302,28 @@ def test_effects_switched_off_leave_counts_alone(device):
     assert not ideal.skew_s.any() and not ideal.hysteresis_m.any() and not ideal.seating_m.any()
 
 
+def test_each_twin_has_its_own_sag_about_the_figure_it_states(device):
+    """``gravity_sag_spread``: the bars of one twin share one sag, drawn about the figure
+    (relative sigma the spread); the description states the figure and spread times it as its
+    uncertainty, not the twin's own sag. Without a spread the figure is exact, and stated so
+    (an uncertainty of 0)."""
+    effects = quiet(gravity_sag_m=1e-6, gravity_sag_spread=0.2)
+    sags = np.array([float(BarPhysics(device, effects, k).sag_m) for k in range(1, 41)])
+    assert 0.1e-6 < np.std(sags) < 0.3e-6 and abs(np.mean(sags) - 1e-6) < 0.1e-6
+    twin = TwinDevice(device, effects, seed=3)
+    stated = twin.documented_device
+    assert stated.gravity_sag_m == pytest.approx(1e-6)
+    assert stated.gravity_sag_sigma_m == pytest.approx(0.2e-6)
+    on = pair_counts(twin, device)
+    off = pair_counts(TwinDevice(device, quiet(), seed=3), device)
+    assert np.abs(on - off).max() * RES == pytest.approx(float(twin.physics.sag_m), abs=RES)
+    exact = TwinDevice(device, quiet(gravity_sag_m=1e-6), seed=3)
+    assert float(exact.physics.sag_m) == 1e-6
+    assert exact.documented_device.gravity_sag_sigma_m == 0.0
+    with pytest.raises(TwinError, match='gravity_sag_spread'):
+        quiet(gravity_sag_spread=0.6)
+
+
 def test_read_noise_and_count_offsets(device):
     times = np.arange(5000) / 1000.0
     noisy = TwinDevice(device, quiet(read_noise_m=100e-9), seed=2).counts_on_pair(0, 'dr4', times, ROOM)

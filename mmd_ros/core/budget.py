@@ -121,19 +121,19 @@ class Observed:
     settled : (N, 6) — how far each bar has travelled since the run began, min(1, path /
         turnover): 0 before its first move (the state a compensating term cannot know yet);
         with a compensating term the turnover is FRICTION_FORGET_TRAVELS of its travel
-    sag_m : (N, 6) — each bar's error from its gravity sag at the sample's pose, -g n_z^2
-        (None without a stated sag or a pose) [m]
+    n_z2 : (N, 6) — each bar's n_z^2 at the sample's pose (its axis' vertical component,
+        squared: its gravity sag reads it g n_z^2 short; None without a stated sag or a pose)
     """
 
     read_noise_m: FloatArray
     directions: FloatArray
     velocity_m_s: FloatArray | None = None
     settled: FloatArray | None = None
-    sag_m: FloatArray | None = None
+    n_z2: FloatArray | None = None
 
     def __getitem__(self, index: Any) -> Observed:
         return Observed(*(None if v is None else v[index] for v in (
-            self.read_noise_m, self.directions, self.velocity_m_s, self.settled, self.sag_m)))
+            self.read_noise_m, self.directions, self.velocity_m_s, self.settled, self.n_z2)))
 
 
 class _Velocity:
@@ -450,8 +450,11 @@ class LengthBudget:
             self.notes.append('gravity sag: the device description does not state the bars\' '
                               '(bars.gravity_sag_nm); a bar whose axis has the vertical '
                               'component n_z reads g n_z^2 short')
-        self.gravity_sag_m = (0.0 if any(t.type_name in SAG_TERMS for t in model.terms)
-                              else float(sag or 0.0))
+        compensated = any(t.type_name in SAG_TERMS for t in model.terms)
+        self.gravity_sag_m = 0.0 if compensated else float(sag or 0.0)
+        # and how far these bars' sag may lie from the figure, as a random error of every bar
+        # alike (their n_z^2 times one draw), where the description states it
+        self.gravity_sag_sigma_m = 0.0 if compensated else float(device.gravity_sag_sigma_m or 0.0)
         self._joints = (device.geometry.upper, device.geometry.lower)
         self._up = device.up        # n_z: along the upward vertical in {L} as mounted
         if self.gravity_sag_m and device.vertical is None:
@@ -505,7 +508,8 @@ class LengthBudget:
         self.rest_terms_m2 = fit.rest_terms_m2 if fit is not None else np.zeros((6, 6))
         self._subdivision_factor = self._kept('subdivision')
         # (the sag's error over the poses a fit's residual saw is in that residual)
-        self._sag_kept = math.sqrt(self._kept('gravity_sag')) if self.gravity_sag_m else 0.0
+        self._sag_kept = (math.sqrt(self._kept('gravity_sag'))
+                          if self.gravity_sag_m or self.gravity_sag_sigma_m else 0.0)
         # what the per-sample path needs, decided once
         self._has_drift = bool(np.any(self.drift_m))
         self._has_pairs = bool(np.any(self.pair_var_m2 > 0))
@@ -565,12 +569,11 @@ class LengthBudget:
                                if self._has_hysteresis else (np.zeros((n, 6)), None))
         velocity = (self._velocity(np.asarray(cdf_lengths_m, dtype=np.float64), times_s)
                     if self.latch_skew_s else None)
-        sag = None
-        if self.gravity_sag_m and poses is not None:
-            n_z2 = GravitySagTerm.features(*self._joints, np.asarray(poses, dtype=np.float64),
-                                           self._up)
-            sag = -self.gravity_sag_m * np.nan_to_num(n_z2)
-        return Observed(self._resolve(est), directions, velocity, settled, sag)
+        n_z2 = None
+        if (self.gravity_sag_m or self.gravity_sag_sigma_m) and poses is not None:
+            n_z2 = np.nan_to_num(GravitySagTerm.features(
+                *self._joints, np.asarray(poses, dtype=np.float64), self._up))
+        return Observed(self._resolve(est), directions, velocity, settled, n_z2)
 
     def _resolve(self, estimate: FloatArray) -> FloatArray:
         if self.fixed_noise_m is not None:
@@ -663,8 +666,11 @@ class LengthBudget:
             v = observed.velocity_m_s
             t.bias['latch_skew'] = 0.5 * self.latch_skew_s * v
             t.diag['latch_skew'] = (self.latch_skew_s ** 2 / 12.0) * v * v
-        if self._sag_kept and observed is not None and observed.sag_m is not None:
-            t.bias['gravity_sag'] = self._sag_kept * observed.sag_m
+        if self._sag_kept and observed is not None and observed.n_z2 is not None:
+            t.bias['gravity_sag'] = (-self._sag_kept * self.gravity_sag_m) * observed.n_z2
+            if self.gravity_sag_sigma_m:
+                e = (self._sag_kept * self.gravity_sag_sigma_m) * observed.n_z2
+                t.full['gravity_sag'] = e[:, :, None] * e[:, None, :]
         if fit_columns_m is not None and fit_columns_m.shape[-1]:
             t.full['fitted_terms'] = (fit_columns_m @ np.swapaxes(fit_columns_m, 1, 2)
                                       + self.rest_terms_m2)
@@ -1009,9 +1015,14 @@ class LengthBudget:
             v = observed.velocity_m_s
             bias += (0.5 * self.latch_skew_s) * v
             diag += (self.latch_skew_s ** 2 / 12.0) * v * v
-        if self._sag_kept and observed is not None and observed.sag_m is not None:
-            bias += self._sag_kept * observed.sag_m
+        sag = None
+        if self._sag_kept and observed is not None and observed.n_z2 is not None:
+            bias -= (self._sag_kept * self.gravity_sag_m) * observed.n_z2
+            if self.gravity_sag_sigma_m:
+                sag = (self._sag_kept * self.gravity_sag_sigma_m) * observed.n_z2
         total = bias[:, :, None] * bias[:, None, :]
+        if sag is not None:
+            total += sag[:, :, None] * sag[:, None, :]
         total[:, rows[0], rows[0]] += diag
         if drift is not None:
             total += drift[:, :, None] * drift[:, None, :]
@@ -1089,6 +1100,7 @@ class LengthBudget:
             'hysteresis_nm': [round(float(v) * 1e9, 2) for v in self.hysteresis_m],
             'latch_skew_us': round(self.latch_skew_s * 1e6, 3),
             'gravity_sag_nm': round(self.gravity_sag_m * 1e9, 3),
+            'gravity_sag_uncertainty_nm': round(self.gravity_sag_sigma_m * 1e9, 3),
             'vertical': [round(float(v), 6) for v in self._up],
             'subdivision_nm': round(self.subdivision_m * 1e9, 3),
             'signal_period_um': round(self.signal_period_m * 1e6, 6),

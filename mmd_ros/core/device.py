@@ -41,7 +41,8 @@ SECTION_KEYS = {
                         'seating_repeatability_nm', 'pairs'),
     'bars': ('range_mm', 'encoder_resolution_nm', 'scale_cte_ppm_per_c', 'rod_cte_ppm_per_c',
              'fixed_length_mm', 'thermal_mismatch_fraction', 'subdivision_error_nm',
-             'signal_period_um', 'friction_hysteresis_nm', 'gravity_sag_nm'),
+             'signal_period_um', 'friction_hysteresis_nm', 'gravity_sag_nm',
+             'gravity_sag_uncertainty_nm'),
     'plates': ('position_layer_cte_ppm_per_c', 'vertical'),
     'limits': ('upper_tilt_deg', 'lower_tilt_deg', 'min_bar_separation_mm'),
     'terminal': ('sample_rate_hz', 'counter_bits', 'latch_skew_us', 'channels'),
@@ -121,6 +122,10 @@ class DeviceDescription:
     #: reads lying horizontally than standing vertically, g (a bar whose axis has the vertical
     #: component n_z reads g (1 - n_z^2) long) [m]; None when the description does not say
     gravity_sag_m: float | None = None
+    #: the standard uncertainty of that figure for these bars (how far their sag may lie from
+    #: the one stated, one sigma, as the characterisation states it) [m]; None when the
+    #: description does not say (then nothing is known of the figure beyond it)
+    gravity_sag_sigma_m: float | None = None
     #: the upward vertical as the MMD is mounted, a unit vector in {L} (the lower plate's frame);
     #: None when the description does not say (the lower plate is then taken level: +z). The
     #: bars' gravity sag goes with their axes' component along it (:attr:`up`)
@@ -182,9 +187,13 @@ class DeviceDescription:
         [m]."""
         return self._stating('bars', friction_hysteresis_nm=round(float(amplitude_m) * 1e9, 6))
 
-    def with_gravity_sag(self, sag_m: float) -> DeviceDescription:
-        """A copy that states the bars' gravity sag (``bars.gravity_sag_nm``) [m]."""
-        return self._stating('bars', gravity_sag_nm=round(float(sag_m) * 1e9, 6))
+    def with_gravity_sag(self, sag_m: float, sigma_m: float | None = None) -> DeviceDescription:
+        """A copy that states the bars' gravity sag (``bars.gravity_sag_nm``) and, unless None,
+        its standard uncertainty (``bars.gravity_sag_uncertainty_nm``) [m]."""
+        values = {'gravity_sag_nm': round(float(sag_m) * 1e9, 6)}
+        if sigma_m is not None:
+            values['gravity_sag_uncertainty_nm'] = round(float(sigma_m) * 1e9, 6)
+        return self._stating('bars', **values)
 
     def with_vertical(self, up: Any) -> DeviceDescription:
         """A copy that states the upward vertical in {L} as mounted (``plates.vertical``)."""
@@ -371,6 +380,7 @@ def parse_device(data: dict[str, Any], source: str = '<device>') -> DeviceDescri
         latch_skew_s=_stated(r, terminal, 'latch_skew_us', 'terminal', 1e-6, 1000.0),
         friction_hysteresis_m=_stated(r, bars, 'friction_hysteresis_nm', 'bars', M_PER_NM, 1e5),
         gravity_sag_m=_stated(r, bars, 'gravity_sag_nm', 'bars', M_PER_NM, 1e5),
+        gravity_sag_sigma_m=_sag_sigma(r, bars),
         seating_repeatability_m=_stated(r, plate, 'seating_repeatability_nm', 'reference_plate',
                                         M_PER_NM, 1e5),
         vertical=_vertical(r, plates),
@@ -385,6 +395,16 @@ def _stated(r: _Reader, section: Any, key: str, path: str, unit: float, high: fl
     if not isinstance(section, dict) or key not in section:
         return None
     return r.number(section, key, path, low=0.0, high=high) * unit
+
+
+def _sag_sigma(r: _Reader, bars: Any) -> float | None:
+    """``bars.gravity_sag_uncertainty_nm``, the stated sag's standard uncertainty [m]: only
+    with the figure it qualifies."""
+    sigma = _stated(r, bars, 'gravity_sag_uncertainty_nm', 'bars', M_PER_NM, 1e5)
+    if sigma is not None and 'gravity_sag_nm' not in bars:
+        raise r.fail('bars.gravity_sag_uncertainty_nm', 'qualifies bars.gravity_sag_nm, which '
+                     'the description does not state')
+    return sigma
 
 
 def _vertical(r: _Reader, plates: Any) -> tuple[float, float, float] | None:

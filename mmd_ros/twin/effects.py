@@ -78,6 +78,10 @@ class Effects:
         skew_k uniform in [0, sampling_skew_s] [s]
     gravity_sag_m : reading error of a horizontal bar from its gravity sag [m]; a bar with axis
         z-component n_z reads gravity_sag_m * (1 - n_z^2) long
+    gravity_sag_spread : relative standard deviation of this twin's sag about gravity_sag_m,
+        one draw per twin, alike for its bars (a characterisation states the figure of the bar
+        type, these bars have their own); the twin's description states gravity_sag_m and this
+        spread times it as the figure's uncertainty (0: the figure is exact)
     drift_m_per_s : largest slow drift of a bar's reading (each bar a uniform fraction in
         [-1, 1]), counted from the twin's time 0 [m/s]
     placement_repeatability_m : standard deviation of a bar's seating offset on a socket pair
@@ -99,6 +103,7 @@ class Effects:
     cyclic_period_m: float = 20e-6
     sampling_skew_s: float = 0.0
     gravity_sag_m: float = 0.0
+    gravity_sag_spread: float = 0.0
     drift_m_per_s: float = 0.0
     placement_repeatability_m: float = 0.0
     bump: Bump | None = None
@@ -118,6 +123,9 @@ class Effects:
         if self.thermal_mismatch > 0.3:
             raise TwinError(f'effect thermal_mismatch is a relative spread, at most 0.3, '
                             f'got {self.thermal_mismatch}')
+        if self.gravity_sag_spread > 0.5:
+            raise TwinError(f'effect gravity_sag_spread is a relative spread, at most 0.5, '
+                            f'got {self.gravity_sag_spread}')
         if self.sampling_skew_s > 1e-3:
             raise TwinError(f'effect sampling_skew_s must stay below one 1 kHz sample period, '
                             f'got {self.sampling_skew_s} s')

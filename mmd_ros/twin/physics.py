@@ -53,6 +53,7 @@ IntArray = NDArray[np.int64]
 #: Random streams, one per effect, so that switching one effect leaves the others' draws alone.
 STREAM_OFFSETS, STREAM_NONLINEARITY, STREAM_THERMAL, STREAM_HYSTERESIS = 1, 2, 3, 4
 STREAM_CYCLIC, STREAM_SKEW, STREAM_DRIFT, STREAM_SEATING = 5, 6, 7, 8
+STREAM_SAG = 9
 STREAM_READ_NOISE, STREAM_REFERENCE = 101, 102
 
 #: Half width of the random power-on count offset, and the per-channel base between channels.
@@ -197,6 +198,7 @@ class BarPhysics:
     drift_m_per_s: FloatArray = field(init=False, repr=False)
     seating_m: FloatArray = field(init=False, repr=False)  # (8, 7)
     reseating_m: FloatArray = field(init=False, repr=False)  # (8, 7, RESEATS): seats 1, 2...
+    sag_m: FloatArray = field(init=False, repr=False)  # () this twin's gravity sag, every bar
 
     def __post_init__(self) -> None:
         eff, dev = self.effects, self.device
@@ -240,6 +242,8 @@ class BarPhysics:
         put('seating_m', eff.placement_repeatability_m * rng(STREAM_SEATING).standard_normal((n, n_pairs)))
         put('reseating_m', eff.placement_repeatability_m * np.random.default_rng(
             [self.seed, STREAM_SEATING, 1]).standard_normal((n, n_pairs, RESEATS)))
+        put('sag_m', eff.gravity_sag_m * max(
+            1.0 + eff.gravity_sag_spread * float(rng(STREAM_SAG).standard_normal()), 0.0))
 
     def seating(self, channels: ArrayLike, pairs: ArrayLike, seat: int = 0) -> FloatArray:
         """Seating offsets [m] of bars on pairs (index arrays of one shape) at seating ``seat``:
@@ -286,8 +290,8 @@ class BarPhysics:
         if eff.cyclic_error_m:
             reading += eff.cyclic_error_m * np.sin(2.0 * np.pi * u / eff.cyclic_period_m
                                                    + self.cyclic_phase_rad[ch])
-        if eff.gravity_sag_m:
-            reading += eff.gravity_sag_m * (1.0 if axis_z is None else 1.0 - axis_z ** 2)
+        if self.sag_m:
+            reading += self.sag_m * (1.0 if axis_z is None else 1.0 - axis_z ** 2)
         if eff.bump is not None and eff.bump.channel in ch:
             col = ch == eff.bump.channel
             centre_u = eff.bump.centre_m - dev.fixed_length_m

@@ -210,8 +210,10 @@ class TwinDevice:
         (each bar's own stays hidden, as a characterisation of the bar type states it); the
         reference plate's seating repeatability (``reference_plate.seating_repeatability_nm``) is
         the effects' placement repeatability (each placement's own offset stays hidden); the bars'
-        gravity sag (``bars.gravity_sag_nm``) is the effects' (alike for every bar, as the twin
-        makes it), and the vertical it sags along (``plates.vertical``) the one the twin stands
+        gravity sag (``bars.gravity_sag_nm``) is the effects' figure and its uncertainty
+        (``bars.gravity_sag_uncertainty_nm``) their spread times it (0 without a spread: the
+        twin's sag is then its figure; with one, this twin's own sag, alike for its bars, stays
+        hidden), and the vertical it sags along (``plates.vertical``) the one the twin stands
         in: the description's, else level (+z of {L}). What a description states, it keeps."""
         device = self.device
         if device.latch_skew_s is None:
@@ -225,7 +227,8 @@ class TwinDevice:
         if device.seating_repeatability_m is None:
             device = device.with_seating_repeatability(self.effects.placement_repeatability_m)
         if device.gravity_sag_m is None:
-            device = device.with_gravity_sag(self.effects.gravity_sag_m)
+            sag = self.effects.gravity_sag_m
+            device = device.with_gravity_sag(sag, sag * self.effects.gravity_sag_spread)
         if device.vertical is None:
             device = device.with_vertical(device.up)
         return device
