@@ -58,9 +58,9 @@ from mmd_ros.analysis.data import (
 from mmd_ros.analysis.effects import Effect, Parameter, catalogue
 from mmd_ros.analysis.errors import AnalysisError
 from mmd_ros.analysis.uncertainty import (
-    CLAIM_LEVEL, FittedEffect, ResidualRun, beyond_claim, claimed_sigma, fitted_effects,
-    measured_read_noise, calibration_constants, with_fit_uncertainty)
-from mmd_ros.core.budget import SAG_TERMS, LengthBudget
+    CLAIM_LEVEL, FittedEffect, ResidualRun, base_budget, beyond_claim, claimed_sigma,
+    fitted_effects, measured_read_noise, calibration_constants, with_fit_uncertainty)
+from mmd_ros.core.budget import SAG_TERMS
 from mmd_ros.core.calibration import Calibration
 from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.kinematics import jacobian
@@ -1991,8 +1991,7 @@ def _point_sd(sel: _Selector, points: Effect) -> FloatArray:
     the friction state each point was captured in), the largest over the logs' calibrations."""
     per_bar = np.zeros(6)
     for r in sel.runs:
-        b = r.ctx.cached('length_budget', lambda r=r: LengthBudget(r.ctx.device, r.ctx.calibration,
-                                                                   r.ctx.model))
+        b = base_budget(r.ctx)
         per_bar = np.maximum(per_bar, np.sqrt(b.point_var_m2 + b.point_friction_m2
                                               + b.subdivision_left_m2))
     n = len(sel.parameters(points, None))

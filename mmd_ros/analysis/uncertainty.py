@@ -61,9 +61,9 @@ from mmd_ros.core.terms import limited_to_seen
 from mmd_ros.core.uncertainty import hat_weights, pose_covariance
 from mmd_ros.core.validity import Validity
 
-__all__ = ['CLAIM_LEVEL', 'FittedEffect', 'MAX_DIRECTIONS', 'ResidualRun', 'beyond_claim',
-           'claimed_sigma', 'fit_uncertainty', 'fitted_effects', 'measured_read_noise',
-           'with_fit_uncertainty']
+__all__ = ['CLAIM_LEVEL', 'FittedEffect', 'MAX_DIRECTIONS', 'ResidualRun', 'base_budget',
+           'beyond_claim', 'claimed_sigma', 'fit_uncertainty', 'fitted_effects',
+           'measured_read_noise', 'with_fit_uncertainty']
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -274,6 +274,11 @@ def _observing(ctx: FitContext, processed: Processed, model: Model) -> tuple[Len
     if processed is ctx.base and model is ctx.model:
         return ctx.cached('base_budget', make)
     return make()
+
+
+def base_budget(ctx: FitContext) -> LengthBudget:
+    """The budget of the model the fit starts from, for a log (made once per log)."""
+    return _observing(ctx, ctx.base, ctx.model)[0]
 
 
 def _sources(ctx: FitContext, processed: Processed, model: Model, idx: IntArray,
