@@ -959,8 +959,9 @@ class _Selector:
             cn = self.columns(e, hyper, 'train')
             # every parameter that moves the data, however little: the prior holds the weak ones
             # (with the points no sample came near left out, a one-sided routine's friction
-            # steps there went into the sag: true statements put -312 to +163 nm off, sigma
-            # 23-49 nm, 7 of 12 twins disputed; with them -158 to +89 nm, sigma 40-60 nm)
+            # steps there went into the sag: d -312 to +163 nm, sigma 23-49 nm, where the twins'
+            # sag lay within 24 nm of the stated 100 +- 15, 7 of 12 disputed; with them -158 to
+            # +89 nm, sigma 40-60 nm)
             use = (np.linalg.norm(cn, axis=0) > 0) & (sd > 0)
             cols.append(cn[:, use])
             sds.append(sd[use])
@@ -1950,7 +1951,8 @@ def _check_statement(sel: _Selector, stated: list[ModelTerm], prior_m: float | N
     sag's error estimate took them (after a one-sided routine, true statements were put -285
     to +109 nm off, sigma 17-37 nm, 8 twins); so it is estimated jointly with every
     calibration point's error, each as uncertain as the budget claims it (``sel.check``'s
-    nuisance, :func:`_point_sd`): -158 to +89 nm on the same twins, sigma 40-60 nm. That is
+    nuisance, :func:`_point_sd`): -158 to +89 nm on the same seeds with their sag drawn
+    +- 15 % (d against each twin's own), sigma 40-60 nm. That is
     the error d +- s of the statement as the data see it.
 
     ``prior_m``, the figure's stated uncertainty sigma_p (``bars.gravity_sag_uncertainty_nm``),
