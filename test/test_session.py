@@ -509,3 +509,18 @@ def test_a_clean_iso_run_with_a_laser_at_24c_adds_nothing(tmp_path, seed):
     result = analyze(read_run(path))
     assert result.found == [] and result.model is None, [f.effect for f in result.found]
     assert result.at_floor
+
+
+def test_a_reference_noise_the_log_does_not_state_is_read_from_the_data(tmp_path):
+    """Another program's log of a clean device whose 6-DOF reference has 1 nm and 0.1″ of noise
+    and does not say so: that noise was taken for the MMD's, and the analysis wrote an
+    uncertainty of roll 4.6 times the budget's into an unchanged model. It is now read from the
+    data (the residual's white noise beyond the MMD's own), said in the reference's line, and
+    nothing is written."""
+    result = analyze(read_run(injected_log(tmp_path, 'clean.mcap', None)))
+    obs = result.obs
+    assert obs.sigma_estimated
+    assert np.allclose(obs.sigma[3:], 0.1 / 206264.8, rtol=0.15), obs.sigma
+    assert np.all(obs.sigma[:3] < 5e-9), obs.sigma
+    assert 'which the log does not state, read from the data' in result.runs[0].reference
+    assert result.model is None and not result.uncertainty_only, result.conclusion

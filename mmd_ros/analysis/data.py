@@ -125,6 +125,8 @@ class Observation:
     datum : True when a constant offset per component is removed (zeroed instrument)
     sigma : (k,) the reference's own standard uncertainty per observed component [m, rad]
         (the log's ``reference_sigma``), 0 where not stated
+    sigma_estimated : ``sigma`` is the reference's white noise as the data show it
+        (:func:`reference_noise`), the log stating none
     """
 
     kind: str
@@ -135,6 +137,7 @@ class Observation:
     usable: BoolArray
     datum: bool
     sigma: FloatArray | None = None
+    sigma_estimated: bool = False
 
     @property
     def to_report(self) -> FloatArray:
@@ -150,10 +153,16 @@ class Observation:
     @property
     def description(self) -> str:
         if self.kind == 'lengths':
-            return f'known bar lengths ({", ".join(self.names)})'
-        if len(self.components) == 6:
-            return 'full 6-DOF reference pose'
-        return f'reference pose components {", ".join(self.names)} (the others unknown)'
+            text = f'known bar lengths ({", ".join(self.names)})'
+        elif len(self.components) == 6:
+            text = 'full 6-DOF reference pose'
+        else:
+            text = f'reference pose components {", ".join(self.names)} (the others unknown)'
+        if self.sigma_estimated and self.sigma is not None and np.any(self.sigma > 0):
+            noise = ', '.join(f'{n} {v * f:.2g} {"″" if u == "arcsec" else "µm"}'
+                              for n, v, f, u in zip(self.names, self.sigma, self.to_report, self.units))
+            text += f'; its own noise, which the log does not state, read from the data: {noise}'
+        return text
 
     def residual(self, processed: Processed) -> FloatArray:
         """MMD minus reference, (N, k) [m, rad]; angles wrapped to (-pi, pi]."""
@@ -348,6 +357,41 @@ def sample_noise(values: FloatArray, processed: Processed, idx: NDArray[np.int64
         return np.zeros(values.shape[1])
     mad = np.median(np.abs(diff - np.median(diff, axis=0)), axis=0)
     return 1.4826 * mad / np.sqrt(2.0)
+
+
+def reference_noise(obs: Observation, processed: Processed, residual: FloatArray,
+                    idx: NDArray[np.int64]) -> FloatArray:
+    """The reference's own white noise per observed component, (k,) [m, rad], for a log that
+    does not state it: what the residual's white noise holds beyond the MMD's own in the same
+    component, read from its own stream over the same samples (the two are independent;
+    :func:`white_noise`, which follows motion, so that the MMD's noise is read while it moves).
+    Unstated, the reference's 0.1″ of angle noise on a clean log was taken for the MMD's and
+    written as an uncertainty of roll 4.6 times the budget's."""
+    own = processed.poses if obs.kind == 'pose' else processed.lengths_m
+    mmd = white_noise(own[:, obs.components], idx)
+    return np.sqrt(np.maximum(white_noise(residual, idx) ** 2 - mmd ** 2, 0.0))
+
+
+#: Savitzky-Golay smoothing weights, 5 samples, quadratic; the centre's own weight 17/35.
+_SMOOTH5 = np.array([-3.0, 12.0, 17.0, 12.0, -3.0]) / 35.0
+
+
+def white_noise(values: FloatArray, idx: NDArray[np.int64]) -> FloatArray:
+    """White noise of ``values`` (N, k), (k,): the robust standard deviation of each sample's
+    departure from the quadratic through it and its two neighbours either side (a
+    Savitzky-Golay fit: motion up to a constant acceleration leaves nothing), over the samples of
+    ``idx`` whose four neighbours are in ``idx`` too, divided by sqrt(1 - 17/35) (what the
+    fit takes of a white sample). Zero with fewer than 10 such samples."""
+    centre = idx[2:-2][(idx[4:] - idx[:-4]) == 4] if idx.size > 4 else idx[:0]
+    if centre.size < 10:
+        return np.zeros(values.shape[1])
+    window = centre[:, None] + np.arange(-2, 3)[None, :]
+    dev = values[centre] - np.einsum('w,nwk->nk', _SMOOTH5, values[window])
+    dev = dev[np.all(np.isfinite(dev), axis=1)]
+    if dev.shape[0] < 10:
+        return np.zeros(values.shape[1])
+    mad = np.median(np.abs(dev - np.median(dev, axis=0)), axis=0)
+    return 1.4826 * mad / np.sqrt(1.0 - _SMOOTH5[2])
 
 
 def binned_r2(values: FloatArray, feature: FloatArray, n_bins: int = 20) -> float:

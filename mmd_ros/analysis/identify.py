@@ -53,9 +53,10 @@ from threadpoolctl import threadpool_limits
 from mmd_ros.analysis.axis_motion import AxisMotion, axis_motion
 from mmd_ros.analysis.data import (
     FitContext, Observation, Processed, Split, binned_r2, effective_samples, make_observation,
-    make_split, noise_floor, quantisation_floor, residual_features, run_pipeline, sample_noise,
+    make_split, noise_floor, quantisation_floor, reference_noise, residual_features, run_pipeline,
+    sample_noise,
 )
-from mmd_ros.analysis.effects import Effect, Parameter, catalogue
+from mmd_ros.analysis.effects import CATALOGUE, Effect, Parameter, catalogue
 from mmd_ros.analysis.errors import AnalysisError
 from mmd_ros.analysis.uncertainty import (
     CLAIM_LEVEL, FittedEffect, ResidualRun, base_budget, beyond_claim, claimed_sigma,
@@ -457,8 +458,10 @@ def _prepare(index: int, run: RunLog, model: Model, calibration: Calibration | N
         split = make_split(times, usable, o.n_blocks, o.max_samples, o.seed + index)
     except AnalysisError as exc:
         raise AnalysisError(f'{run.path}: {exc}') from None
-    ctx = FitContext(run.device, calibration, model, times, run.counts, before, obs, o)
     raw = obs.residual(before)
+    if obs.sigma is None:
+        obs = replace(obs, sigma=reference_noise(obs, before, raw, split.train_idx), sigma_estimated=True)
+    ctx = FitContext(run.device, calibration, model, times, run.counts, before, obs, o)
     res_before = _datum_corrected(obs, raw, before.measured(obs.kind), split.train_idx)
     floor = noise_floor(obs, run.device, before, np.nan_to_num(res_before), split.train_idx, ctx.thermal_on)
     floor = np.maximum(floor, 1e-12)
