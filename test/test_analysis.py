@@ -130,7 +130,14 @@ def test_an_undeclared_effect_is_named_first_and_removed(logs, effect):
                                 reference, opts)
     found = result.found[0]
     assert found.parameters and np.all(np.isfinite(found.value))
-    assert result.model.terms and result.model.extra['analysis'][-1]['added'][0]['effect'] == effect
+    added = result.model.extra['analysis'][-1]['added'][0]
+    assert added['effect'] == effect
+    if effect == 'drift':
+        # it belongs to the run fitted (removed there, above); the model is for other runs
+        assert not added['in_terms'] and not any(t.type_name == 'drift' for t in result.model.terms)
+        assert 'Not in the model\'s terms: slow drift' in result.conclusion, result.conclusion
+    else:
+        assert result.model.terms and added['in_terms']
 
 
 @pytest.mark.parametrize('effect,seed,with_effect', VARIANTS)

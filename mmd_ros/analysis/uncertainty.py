@@ -11,9 +11,10 @@ claim in two ways (``msg_docs/frames.md``):
   directions that carry least (at most 1 % of the mean trace together) are left out of the
   per-sample sum and enter, with all others, as their mean over the fit's samples
   (``mean_terms_nm2``, for a stage without counts). Parameters that belong to the fitted run
-  (a drift's offset and rate, ``Effect.scope == 'run'``) are an extrapolation on any other
-  run: each bar's own correction is one more direction, and its variance over the fitted run
-  enters that bar's residual (another run may drift of its own);
+  (a drift's offset and rate, ``Effect.scope == 'run'``) are not among the model's terms, and
+  on any other run the same drift would be an error no data checked: each bar's own correction
+  is one more direction, and its variance over the fitted run enters that bar's residual
+  (another run may drift of its own);
 - **the residual**: with a reference that determines every bar (a full pose, or bar lengths)
   the bar-length residual, J dp, has a covariance R, the reference's own variance (the log's
   ``reference_sigma``) taken out. With several logs it is each log's error under the model
@@ -163,10 +164,10 @@ def _term_directions(ctx: FitContext, found: list[FittedEffect], idx: IntArray,
         if f.effect.scope != 'run' or f.theta is None or not np.any(f.theta):
             continue
         # parameters that belong to the fitted run (a drift: an offset at its start and a rate)
-        # are, on any other run, an extrapolation no data checked: each bar's correction is
-        # claimed as uncertain as it is large, bar by bar (a reading that settled over each
-        # run's first seconds, fitted as a drift on one run, left 7.7 % of another run's
-        # samples in the ellipsoid)
+        # are not in the model's terms; on any other run such a drift is an error no data
+        # checked: each bar's correction is claimed as uncertain as it is large, bar by bar (a
+        # reading that settled over each run's first seconds, fitted as a drift on one run,
+        # left 7.7 % of another run's samples in the ellipsoid)
         sig = f.effect.signature(ctx, f.hyper, idx)                            # (n, 6, P)
         touches = np.any(sig != 0.0, axis=0)                                   # (6, P)
         for bar in range(6):
@@ -179,6 +180,13 @@ def _term_directions(ctx: FitContext, found: list[FittedEffect], idx: IntArray,
             chosen.append(limited_to_seen(f.effect.make_terms(ctx, f.hyper, theta), seen_m))
             # and another run may have a drift of its own, as large as this one varied
             run_own[bar, bar] += float(np.var(own[:, bar]))
+        # and the bars together, as they drifted: a reading that settles alike on every bar
+        # after handling moves the common mode, which bar by bar claims sqrt(6) times too
+        # little of (z on new motion 0.42 times its error; the drift, applied, had cancelled
+        # the new run's own until it was left out of the model's terms)
+        whole = sig @ f.theta
+        mean_total += whole.T @ whole / max(idx.size, 1)
+        chosen.append(limited_to_seen(f.effect.make_terms(ctx, f.hyper, f.theta), seen_m))
     forced = len(chosen)
     carried = 0.0
     rest = np.zeros((6, 6))
