@@ -290,7 +290,7 @@ def every_term(calibration) -> list:
                               np.column_stack([knots[:, 2], knots[:, 4]])),
         CdfOffsetsTerm(knots, rng.normal(0, 0.3e-6, knots.shape)),
         CyclicErrorTerm(20e-6, DEVICE.encoder_resolution_m, list(DEVICE.measuring_channels), origin,
-                        six(50e-9), six(50e-9)),
+                        six(50e-9), six(50e-9), None, six(20e-9), six(20e-9)),
         SamplingSkewTerm(six(30e-6)),
         GravitySagTerm(geo.upper, geo.lower, np.full(6, 1e-6)),
         DriftTerm(six(0.1e-6), six(1e-9)),
@@ -304,6 +304,17 @@ def short_run():
     calibration = twin.calibrate(0.0, room)
     run = twin.simulate(make_scenario('random_motion', ['duration_s=1.5']), room, start_s=3600.0)
     return calibration, run
+
+
+def test_a_cyclic_term_without_a_second_harmonic_loads_as_before():
+    """Model files written before the second harmonic have no sin2_nm / cos2_nm."""
+    from mmd_ros.core.model import term_from_dict
+    params = {'type': 'cyclic_error', 'period_um': 20.0, 'resolution_nm': 50.0,
+              'channels': list(DEVICE.measuring_channels), 'count_origin': 0.0, 'sin_nm': 30.0,
+              'cos_nm': 0.0}
+    term = term_from_dict(params, 'old.yaml', 'terms[0]')
+    assert not np.any(term.sin2_m) and not np.any(term.cos2_m)
+    assert np.allclose(term.mean_square_m2(), 0.5 * (30e-9) ** 2)
 
 
 def test_model_file_round_trip_of_every_term(tmp_path, short_run):

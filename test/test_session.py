@@ -474,9 +474,31 @@ def test_a_cyclic_error_at_a_period_of_no_list_is_found_from_the_spectrum(tmp_pa
     assert 'cyclic_error' in found, result.conclusion
     period, in_calibration = found['cyclic_error'].hyper
     assert math.isclose(period, 13e-6, rel_tol=2e-3) and not in_calibration, found['cyclic_error'].hyper
-    amp = np.hypot(found['cyclic_error'].value[:6], found['cyclic_error'].value[6:])
+    amp = np.hypot(found['cyclic_error'].value[:6], found['cyclic_error'].value[6:12])
     assert np.allclose(amp, 80e-9, atol=15e-9), amp
     del names
+
+
+def test_a_cyclic_error_s_second_harmonic_is_fitted_with_its_fundamental(tmp_path):
+    """An encoder whose signals have unequal amplitudes or are not in quadrature errs at half
+    its signal period too (Heydemann): 60 nm at 20 µm and 30 nm at 10 µm. The fundamental alone
+    was fitted (amplitudes 49-65 nm) and left 0.051 µm where the clean log has 0.028; both
+    harmonics are fitted now."""
+    channels = list(DEVICE.measuring_channels)
+
+    def cyclic(d, counts):
+        phase = 2 * np.pi * counts[:, channels] * DEVICE.encoder_resolution_m / 20e-6
+        return 60e-9 * np.sin(phase + np.arange(6)) + 30e-9 * np.sin(2 * phase + 2.0 * np.arange(6))
+
+    result = analyze(read_run(injected_log(tmp_path, 'cyc2.mcap', cyclic)))
+    clean = analyze(read_run(injected_log(tmp_path, 'clean.mcap', None)))
+    found = {f.effect: f for f in result.found}
+    assert 'cyclic_error' in found, result.conclusion
+    assert math.isclose(found['cyclic_error'].hyper[0], 20e-6, rel_tol=2e-3)
+    value = np.asarray(found['cyclic_error'].value).reshape(4, 6)
+    assert np.allclose(np.hypot(value[0], value[1]), 60e-9, atol=12e-9), value
+    assert np.allclose(np.hypot(value[2], value[3]), 30e-9, atol=12e-9), value
+    assert overall(result) < 1.5 * overall(clean, after=False), (overall(result), overall(clean, after=False))
 
 
 def test_a_cyclic_error_is_found_from_the_spectrum_of_a_laser_run_that_dwells():

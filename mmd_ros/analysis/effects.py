@@ -599,7 +599,7 @@ class CyclicError(Effect):
         return max(period - step, 0.5 * period), period + step
 
     def parameters(self, ctx, hyper):
-        return _bar_names('sin', 'nm', 1e9, 2e-6) + _bar_names('cos', 'nm', 1e9, 2e-6)
+        return [p for kind in ('sin', 'cos', 'sin 2nd', 'cos 2nd') for p in _bar_names(kind, 'nm', 1e9, 2e-6)]
 
     def _phase_position(self, ctx: FitContext, idx: NDArray[np.int64]) -> FloatArray:
         channels, origin = self._setup(ctx)
@@ -607,19 +607,20 @@ class CyclicError(Effect):
 
     def signature(self, ctx, hyper, idx):
         channels, origin = self._setup(ctx)
-        s, c = CyclicErrorTerm.features(ctx.counts[idx], channels, origin,
-                                        ctx.device.encoder_resolution_m, hyper[0], self._knots(ctx, hyper))
-        return _per_bar([s, c])
+        return _per_bar(CyclicErrorTerm.features(ctx.counts[idx], channels, origin,
+                                                 ctx.device.encoder_resolution_m, hyper[0],
+                                                 self._knots(ctx, hyper)))
 
     def coverage(self, ctx, hyper, idx):
         span = np.ptp(self._phase_position(ctx, idx), axis=0)
         bars = span >= 2 * hyper[0]
-        return np.tile(bars, 2), '' if bars.all() else 'bars that move less than two signal periods: ' + _bars(~bars)
+        return np.tile(bars, 4), '' if bars.all() else 'bars that move less than two signal periods: ' + _bars(~bars)
 
     def make_term(self, ctx, hyper, theta):
         channels, origin = self._setup(ctx)
+        t = np.asarray(theta).reshape(4, 6)
         return CyclicErrorTerm(hyper[0], ctx.device.encoder_resolution_m, channels, origin,
-                               theta[:6], theta[6:], self._knots(ctx, hyper))
+                               t[0], t[1], self._knots(ctx, hyper), t[2], t[3])
 
     def diagnostics(self, ctx, hyper):
         all_idx = np.arange(ctx.times_s.size)
@@ -628,10 +629,12 @@ class CyclicError(Effect):
                 for i in np.flatnonzero(_moving_bars(ctx))}
 
     def interpret(self, ctx, hyper, theta, sigma):
-        amp = np.hypot(theta[:6], theta[6:]) * 1e9
+        t = np.asarray(theta).reshape(4, 6) * 1e9
+        amp, amp2 = np.hypot(t[0], t[1]), np.hypot(t[2], t[3])
         where = ('read in the calibration too' if hyper[1] else
                  'not read by the calibration (its points do not carry it)')
-        return [f'amplitude {amp.min():.0f} … {amp.max():.0f} nm at a {hyper[0] / M_PER_UM:g} µm period, {where}']
+        return [f'amplitude {amp.min():.0f} … {amp.max():.0f} nm at a {hyper[0] / M_PER_UM:g} µm period '
+                f'(second harmonic {amp2.min():.0f} … {amp2.max():.0f} nm), {where}']
 
 
 class SamplingSkew(Effect):

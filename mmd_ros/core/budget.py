@@ -475,7 +475,7 @@ class LengthBudget:
         compensated = np.zeros(6)
         for t in model.terms:
             if t.type_name in CYCLIC_TERMS and _harmonic_of(float(t.period_m), self.signal_period_m):
-                compensated += 0.5 * (np.asarray(t.sin_m) ** 2 + np.asarray(t.cos_m) ** 2)
+                compensated += t.mean_square_m2()
         self.subdivision_left_m2 = np.maximum(0.5 * self.subdivision_m ** 2 - compensated, 0.0)
 
         # -- a fitted length-dependent term where the fit never saw the bar: its correction

@@ -730,9 +730,11 @@ class CdfOffsetsTerm(ModelTerm):
 class CyclicErrorTerm(ModelTerm):
     """Encoder sub-division (cyclic) error: the interpolation of the incremental scale's sine
     signals errs periodically with the signal period. Bar i reads a_i sin(phi) + b_i cos(phi)
-    too long, phi = 2 pi (q_i - q0_i) resolution / period, counted from ``count_origin`` (the
-    bar's calibration count on the first reference pair, so the phase refers to the scale, not
-    to the power-on count). With ``calibration_counts`` (each bar's counts at its calibration
+    + a2_i sin(2 phi) + b2_i cos(2 phi) too long, phi = 2 pi (q_i - q0_i) resolution / period,
+    counted from ``count_origin`` (the bar's calibration count on the first reference pair, so
+    the phase refers to the scale, not to the power-on count). The fundamental is what offsets
+    of the two signals make, the second harmonic what their unequal amplitudes and a phase
+    other than 90 degrees make (Heydemann, Appl. Opt. 20, 1981). With ``calibration_counts`` (each bar's counts at its calibration
     points) the error as the calibrated bar reads it: the calibration read the same scale, so
     the CDF's line through its points (Eq. 10) carries the error's values at those counts, and
     the bar reads the error minus that line. Correction: minus that. Re-fit after a new
@@ -743,13 +745,16 @@ class CyclicErrorTerm(ModelTerm):
 
     def __init__(self, period_m: float, resolution_m: float, channels: list[int],
                  count_origin: FloatArray, sin_m: FloatArray, cos_m: FloatArray,
-                 calibration_counts: list[FloatArray] | None = None) -> None:
+                 calibration_counts: list[FloatArray] | None = None,
+                 sin2_m: FloatArray | None = None, cos2_m: FloatArray | None = None) -> None:
         self.period_m = float(period_m)
         self.resolution_m = float(resolution_m)
         self.channels = [int(c) for c in channels]
         self.count_origin = np.asarray(count_origin, dtype=np.float64)
         self.sin_m = np.asarray(sin_m, dtype=np.float64)
         self.cos_m = np.asarray(cos_m, dtype=np.float64)
+        self.sin2_m = np.zeros(6) if sin2_m is None else np.asarray(sin2_m, dtype=np.float64)
+        self.cos2_m = np.zeros(6) if cos2_m is None else np.asarray(cos2_m, dtype=np.float64)
         self.calibration_counts = (None if calibration_counts is None else
                                    [np.sort(np.asarray(q, dtype=np.float64)) for q in calibration_counts])
         self.reset()
@@ -757,25 +762,31 @@ class CyclicErrorTerm(ModelTerm):
     @staticmethod
     def features(counts: FloatArray, channels: list[int], count_origin: FloatArray,
                  resolution_m: float, period_m: float,
-                 calibration_counts: list[FloatArray] | None = None) -> tuple[FloatArray, FloatArray]:
-        """Signatures per unit sine and cosine amplitude, each (N, 6). With the counts of each
-        bar's calibration points, the error as the calibrated bar reads it: the calibration
-        read the same scale, so each point's distance took the error at that count, and the
-        CDF's line through the points carries it between them (Eq. 10)."""
+                 calibration_counts: list[FloatArray] | None = None) -> list[FloatArray]:
+        """Signatures per unit sine and cosine amplitude of the fundamental and of the second
+        harmonic, [s, c, s2, c2], each (N, 6). With the counts of each bar's calibration
+        points, the error as the calibrated bar reads it: the calibration read the same scale,
+        so each point's distance took the error at that count, and the CDF's line through the
+        points carries it between them (Eq. 10)."""
         scale = resolution_m / period_m
         phase = 2 * np.pi * ((counts[:, channels] - count_origin) * scale)
-        s, c = -np.sin(phase), -np.cos(phase)
+        out = [-np.sin(phase), -np.cos(phase), -np.sin(2 * phase), -np.cos(2 * phase)]
         if calibration_counts is not None:
             for i, knots in enumerate(calibration_counts):
                 at = 2 * np.pi * ((knots - count_origin[i]) * scale)
-                s[:, i] += _through_points(counts[:, channels[i]], knots, np.sin(at))
-                c[:, i] += _through_points(counts[:, channels[i]], knots, np.cos(at))
-        return s, c
+                values = (np.sin(at), np.cos(at), np.sin(2 * at), np.cos(2 * at))
+                for sig, v in zip(out, values):
+                    sig[:, i] += _through_points(counts[:, channels[i]], knots, v)
+        return out
 
     def correction(self, ctx: TermContext) -> FloatArray:
-        s, c = self.features(ctx.counts, self.channels, self.count_origin, self.resolution_m,
-                             self.period_m, self.calibration_counts)
-        return self.sin_m * s + self.cos_m * c
+        s, c, s2, c2 = self.features(ctx.counts, self.channels, self.count_origin,
+                                     self.resolution_m, self.period_m, self.calibration_counts)
+        return self.sin_m * s + self.cos_m * c + self.sin2_m * s2 + self.cos2_m * c2
+
+    def mean_square_m2(self) -> FloatArray:
+        """Each bar's mean square of the error the term compensates, (6,) [m^2]."""
+        return 0.5 * (self.sin_m ** 2 + self.cos_m ** 2 + self.sin2_m ** 2 + self.cos2_m ** 2)
 
     @classmethod
     def from_params(cls, params: dict[str, Any], source: str) -> CyclicErrorTerm:
@@ -792,16 +803,19 @@ class CyclicErrorTerm(ModelTerm):
             if knots[0].size < 2 or not all(np.all(np.diff(np.sort(k)) > 0) for k in knots):
                 raise ConfigError(source, 'calibration_counts', 'must list at least two distinct '
                                   f'counts per bar, got {points!r}')
+        second = [six_values({key: params.get(key, 0.0)}, key, source) * M_PER_NM
+                  for key in ('sin2_nm', 'cos2_nm')]
         return cls(_number(params, 'period_um', source, positive=True) * M_PER_UM,
                    _number(params, 'resolution_nm', source, positive=True) * M_PER_NM, channels,
                    six_values(params, 'count_origin', source),
                    six_values(params, 'sin_nm', source) * M_PER_NM,
-                   six_values(params, 'cos_nm', source) * M_PER_NM, knots)
+                   six_values(params, 'cos_nm', source) * M_PER_NM, knots, *second)
 
     def params(self) -> dict[str, Any]:
         out = {'period_um': self.period_m / M_PER_UM, 'resolution_nm': self.resolution_m / M_PER_NM,
                'channels': self.channels, 'count_origin': self.count_origin.tolist(),
-               'sin_nm': (self.sin_m / M_PER_NM).tolist(), 'cos_nm': (self.cos_m / M_PER_NM).tolist()}
+               'sin_nm': (self.sin_m / M_PER_NM).tolist(), 'cos_nm': (self.cos_m / M_PER_NM).tolist(),
+               'sin2_nm': (self.sin2_m / M_PER_NM).tolist(), 'cos2_nm': (self.cos2_m / M_PER_NM).tolist()}
         if self.calibration_counts is not None:
             out['calibration_counts'] = [k.tolist() for k in self.calibration_counts]
         return out
