@@ -584,3 +584,22 @@ def test_a_reference_noise_the_log_does_not_state_is_read_from_the_data(tmp_path
     assert np.all(obs.sigma[:3] < 5e-9), obs.sigma
     assert 'which the log does not state, read from the data' in result.runs[0].reference
     assert result.model is None and not result.uncertainty_only, result.conclusion
+
+
+def test_counts_lost_at_one_instant_are_reported_as_a_step(tmp_path):
+    """Five counts lost on bar 3 half-way through a log: no effect has that shape, and the
+    analysis fitted the line through it as a drift without a word. The bars' residual is now
+    searched for steps: that one is reported (bar, time, size), and none on the clean log or on
+    a realistic twin's 60 s log."""
+    def lost(d, counts):
+        out = np.zeros((d.shape[0], 6))
+        out[d.shape[0] // 2:, 2] = -5 * DEVICE.encoder_resolution_m
+        return out
+
+    result = analyze(read_run(injected_log(tmp_path, 'lost.mcap', lost)))
+    assert [(log, s.bar) for log, s in result.glitches] == [('lost.mcap', 2)], result.glitches
+    step = result.glitches[0][1]
+    assert step.time_s == pytest.approx(20.0, abs=0.05) and step.counts == pytest.approx(-5.0, abs=1.0)
+    assert 'A step in a bar\'s reading: bar3 of lost.mcap' in result.conclusion
+    assert analyze(read_run(injected_log(tmp_path, 'clean.mcap', None))).glitches == []
+    assert bench_twin_analysis(5).glitches == []

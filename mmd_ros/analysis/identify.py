@@ -58,6 +58,7 @@ from mmd_ros.analysis.data import (
 )
 from mmd_ros.analysis.effects import CATALOGUE, Effect, Parameter, catalogue
 from mmd_ros.analysis.errors import AnalysisError
+from mmd_ros.analysis.glitches import Step, bar_residual, residual_steps
 from mmd_ros.analysis.uncertainty import (
     CLAIM_LEVEL, FittedEffect, ResidualRun, base_budget, beyond_claim, claimed_sigma,
     fitted_effects, measured_read_noise, calibration_constants, with_fit_uncertainty)
@@ -344,6 +345,8 @@ class Analysis:
     #: None), whether the data dispute it, and the sigma claimed with the model
     #: (:func:`_check_statement`); None when the analysis started from no statement
     stated_check: dict[str, Any] | None = None
+    #: steps in a bar's residual (counts lost or gained), per log: (log name, step)
+    glitches: list[tuple[str, Step]] = field(default_factory=list)
 
     @property
     def changed(self) -> bool:
@@ -382,6 +385,7 @@ class Analysis:
             'uncertainty_only': self.uncertainty_only or None,
             'stated': self.stated,
             'stated_check': self.stated_check,
+            'reading_steps': [{'log': log, **step.as_dict()} for log, step in self.glitches],
             'conclusion': self.conclusion,
             'seconds': self.seconds,
             'options': {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.options.__dict__.items()},
@@ -1967,8 +1971,9 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
         for f in found:
             contributions[f.effect] = (first.res_before - res_after_first if len(found) == 1
                                        else _contribution(sel, first, f))
+    glitches = _glitches(runs)
     conclusion = _conclusion(runs, summaries, found, not_claimed, unchecked, at_floor,
-                             structure_after, validation, uncertainty_only, stated_text)
+                             structure_after, validation, uncertainty_only, stated_text, glitches)
     return Analysis(first.name, o, first.obs, first.split, first.run.times_s, first.floor, first.ctx.base,
                     afters[0][0] if afters else None, first.res_before, res_after_first, steps, found,
                     not_claimed, first_summary.before, first_summary.after, stats_pred,
@@ -1976,7 +1981,7 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
                     conclusion, features, contributions, _per_bar(first.ctx, first.res_before, first.split.test_idx),
                     per_bar_after, time.perf_counter() - started, not_applicable, summaries, unchecked,
                     validation, next((s.log_problem for s in summaries if s.log_problem), None),
-                    uncertainty_only, stated_text, check)
+                    uncertainty_only, stated_text, check, glitches)
 
 
 #: How far (in its sigma) the data's estimate of a stated figure's error may lie from what the
@@ -2283,6 +2288,19 @@ def _per_bar(ctx: FitContext, residual: FloatArray, idx: IntArray) -> list[Compo
     return component_errors(bars, dd, np.arange(sel.size))
 
 
+def _glitches(runs: list[_Run]) -> list[tuple[str, Step]]:
+    """Steps in each log's bar residual before the fit (:mod:`mmd_ros.analysis.glitches`):
+    no effect has that shape, and a fit would take part of one into whatever follows time."""
+    out = []
+    for r in runs:
+        idx = np.flatnonzero(r.usable & np.all(np.isfinite(r.res_before), axis=1))
+        bars = bar_residual(r.run.device, r.ctx.base.poses, r.obs, r.res_before, idx)
+        if bars is not None:
+            out += [(r.run.path.name, step) for step in residual_steps(
+                r.run.times_s[idx], bars[0], bars[1], r.run.device.encoder_resolution_m)]
+    return out
+
+
 def _structure(weighted: FloatArray, idx: IntArray, features: dict[str, FloatArray]) -> list[tuple[str, float]]:
     """Features sorted by the share of the residual variance their binned means explain."""
     r = weighted[idx]
@@ -2304,7 +2322,7 @@ def _unit(unit: str) -> str:
 def _conclusion(runs: list[_Run], summaries: list[RunSummary], found: list[Found],
                 not_claimed: list[Found], unchecked: list[Found], at_floor: bool,
                 structure: list[tuple[str, float]], validation: str, uncertainty_only: str = '',
-                stated: list[str] | None = None) -> str:
+                stated: list[str] | None = None, glitches: list[tuple[str, Step]] = ()) -> str:
     parts = []
     if stated:
         parts.append(f'Started from {"; ".join(stated)}: the figures before include it (held-out '
@@ -2329,6 +2347,11 @@ def _conclusion(runs: list[_Run], summaries: list[RunSummary], found: list[Found
             parts.append(f'Found: {names}. Held-out RMS {_fmt(summaries[0].before)} → '
                          f'{_fmt(summaries[0].after)} (pipeline re-run with the extended model; '
                          f'within-run figure: time blocks {which} the model was fitted on).')
+    if glitches:
+        parts.append('A step in a bar\'s reading: ' + '; '.join(s.text(log) for log, s in glitches)
+                     + ' (counts lost or gained at that instant: a dirty scale, a signal that dropped '
+                     'out, a packet decoded wrong; no effect of the catalogue has that shape, and '
+                     'what follows time, a drift, takes part of it).')
     own = [f.title for f in found if not _lasting(f)]
     if own:
         parts.append(f'Not in the model\'s terms: {", ".join(own)} (it belongs to the run it was '
@@ -2349,8 +2372,9 @@ def _conclusion(runs: list[_Run], summaries: list[RunSummary], found: list[Found
         else:
             parts.append(f'What remains is at the noise floor ({floor_txt}).')
     else:
-        lead = ('No catalogued effect explains the residual; ' if not found and not unchecked else '')
-        parts.append(f'{lead}unexplained structure remains above the noise floor ({floor_txt})'
+        lead = ('No catalogued effect explains the residual; unexplained' if not found and not unchecked
+                else 'Unexplained')
+        parts.append(f'{lead} structure remains above the noise floor ({floor_txt})'
                      + (f', correlated with {features}' if features else '') + '.'
                      + (f' {unchanged}' if not found else ''))
     if not several:
