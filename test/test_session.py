@@ -603,3 +603,16 @@ def test_counts_lost_at_one_instant_are_reported_as_a_step(tmp_path):
     assert 'A step in a bar\'s reading: bar3 of lost.mcap' in result.conclusion
     assert analyze(read_run(injected_log(tmp_path, 'clean.mcap', None))).glitches == []
     assert bench_twin_analysis(5).glitches == []
+
+
+def test_mmd_process_reads_the_reference_noise_a_log_does_not_state(tmp_path, capsys):
+    """The same clean log through ``mmd process --covariance``: the reference's 0.1″ was not
+    added to the predicted sigma, and the coverage read 14.0 % (roll 0.22 times its error),
+    as if the MMD claimed far too little. It is read from the data now, and said."""
+    log = injected_log(tmp_path, 'clean.mcap', None)
+    assert main(['process', str(log), '--covariance', '--json', '--out', str(tmp_path / 'p.mcap')]) == 0
+    report = json.loads(capsys.readouterr().out)['uncertainty_coverage']
+    assert report['reference_sigma_estimated'] == ['x', 'y', 'z', 'roll', 'pitch', 'yaw']
+    rows = {r['name']: r for r in report['per_component']}
+    assert rows['roll']['reference_sigma'] == pytest.approx(0.1, rel=0.15), rows['roll']
+    assert report['ellipsoid_coverage'] > 0.93, report

@@ -22,6 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mmd_ros.analysis.errors import AnalysisError
+from mmd_ros.core.accuracy import white_noise
 from mmd_ros.core.calibration import Calibration
 from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.kinematics import jacobian
@@ -364,34 +365,12 @@ def reference_noise(obs: Observation, processed: Processed, residual: FloatArray
     """The reference's own white noise per observed component, (k,) [m, rad], for a log that
     does not state it: what the residual's white noise holds beyond the MMD's own in the same
     component, read from its own stream over the same samples (the two are independent;
-    :func:`white_noise`, which follows motion, so that the MMD's noise is read while it moves).
-    Unstated, the reference's 0.1″ of angle noise on a clean log was taken for the MMD's and
-    written as an uncertainty of roll 4.6 times the budget's."""
+    :func:`~mmd_ros.core.accuracy.white_noise`, which follows motion, so that the MMD's noise
+    is read while it moves). Unstated, the reference's 0.1″ of angle noise on a clean log was
+    taken for the MMD's and written as an uncertainty of roll 4.6 times the budget's."""
     own = processed.poses if obs.kind == 'pose' else processed.lengths_m
     mmd = white_noise(own[:, obs.components], idx)
     return np.sqrt(np.maximum(white_noise(residual, idx) ** 2 - mmd ** 2, 0.0))
-
-
-#: Savitzky-Golay smoothing weights, 5 samples, quadratic; the centre's own weight 17/35.
-_SMOOTH5 = np.array([-3.0, 12.0, 17.0, 12.0, -3.0]) / 35.0
-
-
-def white_noise(values: FloatArray, idx: NDArray[np.int64]) -> FloatArray:
-    """White noise of ``values`` (N, k), (k,): the robust standard deviation of each sample's
-    departure from the quadratic through it and its two neighbours either side (a
-    Savitzky-Golay fit: motion up to a constant acceleration leaves nothing), over the samples of
-    ``idx`` whose four neighbours are in ``idx`` too, divided by sqrt(1 - 17/35) (what the
-    fit takes of a white sample). Zero with fewer than 10 such samples."""
-    centre = idx[2:-2][(idx[4:] - idx[:-4]) == 4] if idx.size > 4 else idx[:0]
-    if centre.size < 10:
-        return np.zeros(values.shape[1])
-    window = centre[:, None] + np.arange(-2, 3)[None, :]
-    dev = values[centre] - np.einsum('w,nwk->nk', _SMOOTH5, values[window])
-    dev = dev[np.all(np.isfinite(dev), axis=1)]
-    if dev.shape[0] < 10:
-        return np.zeros(values.shape[1])
-    mad = np.median(np.abs(dev - np.median(dev, axis=0)), axis=0)
-    return 1.4826 * mad / np.sqrt(1.0 - _SMOOTH5[2])
 
 
 def binned_r2(values: FloatArray, feature: FloatArray, n_bins: int = 20) -> float:

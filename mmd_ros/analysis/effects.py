@@ -523,7 +523,9 @@ class CalibrationPoints(Effect):
 
     def interpret(self, ctx, hyper, theta, sigma):
         return [f'calibration point errors {np.min(theta) / M_PER_UM:+.2f} … {np.max(theta) / M_PER_UM:+.2f} µm '
-                '(minimum-norm in the identifiable directions); re-calibrating may remove them']
+                '(minimum-norm in the identifiable directions): errors of the points themselves, '
+                'which a new calibration removes, or an error along the bar between them that the '
+                'calibration did not read, which it does not']
 
 
 class CyclicError(Effect):

@@ -16,12 +16,91 @@ from mmd_ros.core.uncertainty import region_quantile
 from mmd_ros.core.units import arcsec, um
 
 __all__ = [
-    'ComponentStats', 'CoverageAccumulator', 'ErrorAccumulator', 'coverage', 'error_stats',
-    'format_coverage', 'format_stats', 'length_error', 'pose_error',
+    'ComponentStats', 'CoverageAccumulator', 'ErrorAccumulator', 'ReferenceNoise', 'coverage',
+    'error_stats', 'format_coverage', 'format_stats', 'length_error', 'pose_error',
+    'smoothing_departures', 'white_noise',
 ]
 
 FloatArray = NDArray[np.float64]
 POSE_NAMES = ['x', 'y', 'z', 'roll', 'pitch', 'yaw']
+
+
+#: Savitzky-Golay smoothing weights, 5 samples, quadratic; the centre's own weight 17/35.
+_SMOOTH5 = np.array([-3.0, 12.0, 17.0, 12.0, -3.0]) / 35.0
+
+
+def smoothing_departures(values: FloatArray, idx: NDArray[np.int64]) -> FloatArray:
+    """Each sample's departure from the quadratic through it and its two neighbours either
+    side (a Savitzky-Golay fit: motion up to a constant acceleration leaves nothing), at the
+    samples of ``idx`` whose four neighbours are in ``idx`` too, (m, k) for ``values`` (N, k);
+    rows with a non-finite value left out."""
+    idx = np.asarray(idx, dtype=np.int64)
+    centre = idx[2:-2][(idx[4:] - idx[:-4]) == 4] if idx.size > 4 else idx[:0]
+    window = centre[:, None] + np.arange(-2, 3)[None, :]
+    dev = values[centre] - np.einsum('w,nwk->nk', _SMOOTH5, values[window])
+    return dev[np.all(np.isfinite(dev), axis=1)]
+
+
+def _white_scale(departures: FloatArray, width: int) -> FloatArray:
+    """White noise from :func:`smoothing_departures`: their robust standard deviation over
+    sqrt(1 - 17/35), what the fit takes of a white sample; zeros below 10 rows."""
+    if departures.shape[0] < 10:
+        return np.zeros(width)
+    mad = np.median(np.abs(departures - np.median(departures, axis=0)), axis=0)
+    return 1.4826 * mad / np.sqrt(1.0 - _SMOOTH5[2])
+
+
+def white_noise(values: FloatArray, idx: NDArray[np.int64]) -> FloatArray:
+    """White noise of ``values`` (N, k) over the samples ``idx``, (k,): the robust spread of
+    :func:`smoothing_departures`, which follows motion (zero with fewer than 10 of them)."""
+    return _white_scale(smoothing_departures(values, idx), values.shape[1])
+
+
+class ReferenceNoise:
+    """The reference's own white noise per pose component, read from a run given block by
+    block: what the white noise of the error (MMD - reference) holds beyond the MMD's own in the
+    same component, read from its own poses at the same samples (the two are independent). The
+    departures are kept in bounded memory (every one up to ``max_samples``, then a stride that
+    doubles). For a log that does not state its reference's uncertainty; motion left in the
+    MMD's departures makes the estimate smaller, never larger."""
+
+    MAX_SAMPLES = 200_000
+
+    def __init__(self, max_samples: int = MAX_SAMPLES) -> None:
+        self.max_samples = max_samples
+        self._error: list[FloatArray] = []
+        self._own: list[FloatArray] = []
+        self._kept = 0
+
+    def add(self, errors: FloatArray, poses: FloatArray, valid: NDArray[np.bool_]) -> None:
+        """errors, poses (N, 6) [m, rad] of one block; valid (N,): the measurements"""
+        e, p = np.asarray(errors, dtype=np.float64), np.asarray(poses, dtype=np.float64)
+        known = np.isfinite(e).mean(axis=0) >= 0.5
+        if not known.any():
+            return
+        idx = np.flatnonzero(np.asarray(valid, dtype=bool) & np.all(np.isfinite(p), axis=1)
+                             & np.all(np.isfinite(e[:, known]), axis=1))
+        both = smoothing_departures(np.concatenate([e[:, known], p], axis=1), idx)
+        error = np.full((both.shape[0], 6), np.nan)
+        error[:, known] = both[:, :int(known.sum())]
+        self._error.append(error)
+        self._own.append(both[:, int(known.sum()):])
+        self._kept += both.shape[0]
+        while self._kept > self.max_samples:
+            self._error = [np.concatenate(self._error)[::2]]
+            self._own = [np.concatenate(self._own)[::2]]
+            self._kept = self._error[0].shape[0]
+
+    def sigma(self) -> FloatArray:
+        """(6,) [m, rad], NaN for a component the reference does not give."""
+        if not self._kept:
+            return np.full(6, np.nan)
+        e, p = np.concatenate(self._error), np.concatenate(self._own)
+        known = np.all(np.isfinite(e), axis=0)     # (a component some block lacked: not known)
+        out = np.full(6, np.nan)
+        ref = _white_scale(np.nan_to_num(e), 6) ** 2 - _white_scale(p, 6) ** 2
+        out[known] = np.sqrt(np.maximum(ref[known], 0.0))
+        return out
 
 
 @dataclass(frozen=True)
@@ -163,7 +242,7 @@ def coverage(errors: FloatArray, covariance: FloatArray, valid: NDArray[np.bool_
     - observed sigma of a component: the RMS of its error (``absolute`` reference), or its
       standard deviation (a reference zeroed at the start: its offset is unknown and removed);
     - predicted sigma: sqrt of the mean of the covariance's diagonal, plus the reference's own
-      variance when the log states it (``reference_sigma``);
+      variance (``reference_sigma``: as the log states it, or :class:`ReferenceNoise`);
     - coverage: the share of samples whose error lies in the ``level`` ellipsoid of the
       marginal covariance of the known components (Mahalanobis distance^2 <= chi^2_m(level),
       m known components), and per component in +-z sigma (z of ``level``, two-sided);
@@ -291,6 +370,12 @@ def format_coverage(report: dict[str, object]) -> str:
         ratio = f'{r["ratio"]:.2f}' if r['ratio'] is not None else '–'
         lines.append(f'  {r["name"]:<10} {r["unit"]:>7} {r["predicted_sigma"]:>10.4f} '
                      f'{r["observed_sigma"]:>10.4f} {ratio:>7} {100 * r["within_interval"]:>8.1f}%')
+    read = report.get('reference_sigma_estimated') or []
+    if read:
+        lines.append('  the reference\'s own noise, which the log does not state, read from the data '
+                     '(added to the predicted): ' + ', '.join(
+                         f'{r["name"]} {r["reference_sigma"]:.2g} {r["unit"]}'
+                         for r in report['per_component'] if r['name'] in read))  # type: ignore[attr-defined]
     share = float(report['ellipsoid_coverage'])  # type: ignore[arg-type]
     size = float(report['ellipsoid_quantile'])  # type: ignore[arg-type]
     lines.append(f'  {level:.0f} % ellipsoid of the known components covers {100 * share:.1f} % of '

@@ -24,7 +24,9 @@ from typing import IO, Any, Iterable, Iterator, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from mmd_ros.core.accuracy import CoverageAccumulator, ErrorAccumulator, length_error, pose_error
+from mmd_ros.core.accuracy import (
+    POSE_NAMES, CoverageAccumulator, ErrorAccumulator, ReferenceNoise, length_error, pose_error,
+)
 from mmd_ros.core.calibration import Calibration, load_calibration
 from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.errors import CalibrationError
@@ -192,6 +194,7 @@ class RunSummary:
         self.pose_error: ErrorAccumulator | None = None
         self.length_error: ErrorAccumulator | None = None
         self.coverage: CoverageAccumulator | None = None
+        self.reference_noise: ReferenceNoise | None = None
         self.covariance_every = covariance_every
         self.budget: dict[str, Any] | None = None
 
@@ -217,6 +220,8 @@ class RunSummary:
             if result.covariance is not None:
                 self.coverage = self.coverage or CoverageAccumulator()
                 self.coverage.add(errors, result.covariance, result.valid, result.tails)
+                self.reference_noise = self.reference_noise or ReferenceNoise()
+                self.reference_noise.add(errors, result.poses, result.valid)
         if result.budget is not None:
             self.budget = result.budget
         if part.reference_lengths is not None:
@@ -258,9 +263,16 @@ class RunSummary:
                 absolute = bool(metadata.get('reference_absolute', False))
             sigma = metadata.get('reference_sigma')
             ref_sigma = (np.array([np.nan if v is None else float(v) for v in sigma])
-                         if isinstance(sigma, list) and len(sigma) == 6 else None)
+                         if isinstance(sigma, list) and len(sigma) == 6 else np.full(6, np.nan))
+            # what the log does not state of its reference's noise, read from the data
+            estimated = ~np.isfinite(ref_sigma)
+            if self.reference_noise is not None:
+                ref_sigma = np.where(estimated, self.reference_noise.sigma(), ref_sigma)
             report = self.coverage.report(absolute=absolute, reference_sigma=ref_sigma)
             if report is not None:
+                report['reference_sigma_estimated'] = [
+                    r['name'] for r in report['per_component']
+                    if estimated[POSE_NAMES.index(r['name'])]]
                 report['every'] *= self.covariance_every
                 summary['uncertainty_coverage'] = report
         if self.budget is not None:
