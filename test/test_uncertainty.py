@@ -1178,6 +1178,7 @@ def test_a_constant_between_the_bars_is_read_from_the_pose_s_variation_and_the_c
     sigma of it, sigma a small share of the prior) and say nothing of its common mode, which
     keeps the prior; two logs, each zeroed on its own, know more than one."""
     from types import SimpleNamespace
+    from mmd_ros.analysis.data import Observation
     from mmd_ros.analysis.uncertainty import _unseen_constants
     from mmd_ros.core.kinematics import jacobian
     twin = TwinDevice(DEVICE, Effects.ideal(), seed=1)
@@ -1193,8 +1194,10 @@ def test_a_constant_between_the_bars_is_read_from_the_pose_s_variation_and_the_c
         poses = run.true_poses[np.all(np.isfinite(run.true_poses), axis=1)]
         dp = np.einsum('nij,j->ni', np.linalg.inv(jacobian(DEVICE.geometry, poses)), c)
         residual = dp - dp.mean(axis=0) + rng.normal(size=dp.shape) * noise
-        ctx = SimpleNamespace(obs=SimpleNamespace(kind='pose', components=tuple(range(6)), datum=True),
-                              device=DEVICE)
+        obs = Observation('pose', list(range(6)), ['x', 'y', 'z', 'roll', 'pitch', 'yaw'],
+                          ['um'] * 3 + ['arcsec'] * 3, np.zeros_like(poses),
+                          np.ones(poses.shape[0], bool), True)
+        ctx = SimpleNamespace(obs=obs, device=DEVICE)
         run = SimpleNamespace(ctx=ctx, after=SimpleNamespace(poses=poses), residual=residual)
         return run, np.arange(poses.shape[0]), None, None
 

@@ -165,6 +165,14 @@ class Observation:
             text += f'; its own noise, which the log does not state, read from the data: {noise}'
         return text
 
+    def length_map(self, device: DeviceDescription, poses: FloatArray) -> FloatArray:
+        """How a change of the six bar lengths moves the observed components at ``poses``
+        (n, 6), (n, k, 6) [m/m, rad/m]: the rows of the inverse Jacobian for a pose reference,
+        the bars themselves for a bar-length reference."""
+        if self.kind == 'lengths':
+            return np.broadcast_to(np.eye(6)[self.components], (poses.shape[0], len(self.components), 6))
+        return np.linalg.inv(jacobian(device.geometry, poses))[:, self.components, :]
+
     def residual(self, processed: Processed) -> FloatArray:
         """MMD minus reference, (N, k) [m, rad]; angles wrapped to (-pi, pi]."""
         if self.kind == 'lengths':

@@ -45,7 +45,6 @@ from mmd_ros.core.terms import (
     PlateScaleTerm, SamplingSkewTerm, ScaleNonlinearityTerm, ThermalGainTerm,
     ThermalInterpolationTerm, ema, leg_geometry,
 )
-from mmd_ros.core.kinematics import jacobian
 from mmd_ros.core.units import M_PER_UM
 
 __all__ = ['CATALOGUE', 'Effect', 'Parameter', 'catalogue']
@@ -756,14 +755,8 @@ def cyclic_periods(ctxs: list[FitContext], setup: Any) -> list[tuple[float, floa
         r = np.nan_to_num(ctx.residual[idx])
         channels, origin = setup(ctx)
         res_m = ctx.device.encoder_resolution_m
-        if ctx.obs.kind == 'pose':
-            jinv = np.linalg.inv(jacobian(ctx.device.geometry, ctx.base.poses[idx]))
-            cols = jinv[:, ctx.obs.components, :] / ctx.floor[None, :, None]   # (n, k, 6)
-            g = np.einsum('nk,nki->ni', r, cols)
-        else:
-            g = np.zeros((idx.size, 6))
-            for j, bar in enumerate(ctx.obs.components):
-                g[:, bar] = r[:, j] / ctx.floor[j]
+        cols = ctx.obs.length_map(ctx.device, ctx.base.poses[idx]) / ctx.floor[None, :, None]
+        g = np.einsum('nk,nki->ni', r, cols)                                   # (n, 6)
         q = np.rint(ctx.counts[np.ix_(idx, channels)] - origin).astype(np.int64)
         for i in np.flatnonzero(_moving_bars(ctx)):
             lo, span = int(q[:, i].min()), int(np.ptp(q[:, i])) + 1

@@ -678,10 +678,7 @@ def _unseen_constants(parts: list[tuple[ResidualRun, IntArray, FloatArray, Float
         w = np.where(var > 0, n_eff / idx.size / np.where(var > 0, var, 1.0), 0.0)
         # the sums over the run, from evenly spread samples (a long 1 kHz log has millions)
         pick = _spread(np.arange(idx.size))
-        if obs.kind == 'pose':
-            a = np.linalg.inv(jacobian(run.ctx.device.geometry, run.after.poses[idx[pick]]))[:, comp, :]
-        else:
-            a = np.broadcast_to(np.eye(6)[comp], (pick.size, len(comp), 6))
+        a = obs.length_map(run.ctx.device, run.after.poses[idx[pick]])
         if obs.datum:
             a = a - a.mean(axis=0)
         share = idx.size / pick.size
