@@ -400,10 +400,12 @@ def test_the_sag_is_fitted_along_the_vertical_the_log_s_description_states():
 
 # -- estimators on effects shaped otherwise ----------------------------------------------------
 def injected_log(tmp_path: Path, name: str, error_of, scenario: str = 'random_motion',
-                 params: tuple[str, ...] = ('duration_s=40',), reference: str = 'pose6') -> Path:
-    """A clean log of the ideal twin (by default 40 s of 6-DOF motion) whose measuring-bar
-    counts carry ``error_of(true_lengths, counts)`` (N, 6) [m] of reading error."""
-    twin = TwinDevice(DEVICE, Effects.ideal(), seed=2)
+                 params: tuple[str, ...] = ('duration_s=40',), reference: str = 'pose6',
+                 effects: Effects | None = None) -> Path:
+    """A clean log of the ideal twin (by default 40 s of 6-DOF motion; another twin with
+    ``effects``) whose measuring-bar counts carry ``error_of(true_lengths, counts)`` (N, 6) [m]
+    of reading error."""
+    twin = TwinDevice(DEVICE, effects or Effects.ideal(), seed=2)
     room = AmbientProfile.constant(21.0)
     calibration = twin.calibrate(0.0, room)
     run = twin.simulate(make_scenario(scenario, list(params)), room, start_s=600.0,
@@ -587,20 +589,22 @@ def test_a_reference_noise_the_log_does_not_state_is_read_from_the_data(tmp_path
 
 
 def test_counts_lost_at_one_instant_are_reported_as_a_step(tmp_path):
-    """Five counts lost on bar 3 half-way through a log: no effect has that shape, and the
-    analysis fitted the line through it as a drift without a word. The bars' residual is now
-    searched for steps: that one is reported (bar, time, size), and none on the clean log or on
-    a realistic twin's 60 s log."""
+    """Five counts lost on bar 3 half-way through a log (of the ideal twin, and of the
+    realistic one): no effect has that shape, and the analysis fitted the line through it as a
+    drift without a word. The bars' residual the fit leaves is now searched for steps: that one
+    is reported (bar, time, size: 4.6 and 4.4 counts), and none on the clean log or on a
+    realistic twin's 60 s log."""
     def lost(d, counts):
         out = np.zeros((d.shape[0], 6))
         out[d.shape[0] // 2:, 2] = -5 * DEVICE.encoder_resolution_m
         return out
 
-    result = analyze(read_run(injected_log(tmp_path, 'lost.mcap', lost)))
-    assert [(log, s.bar) for log, s in result.glitches] == [('lost.mcap', 2)], result.glitches
-    step = result.glitches[0][1]
-    assert step.time_s == pytest.approx(20.0, abs=0.05) and step.counts == pytest.approx(-5.0, abs=1.0)
-    assert 'A step in a bar\'s reading: bar3 of lost.mcap' in result.conclusion
+    for effects in (None, Effects.realistic()):
+        result = analyze(read_run(injected_log(tmp_path, 'lost.mcap', lost, effects=effects)))
+        assert [(log, s.bar) for log, s in result.glitches] == [('lost.mcap', 2)], result.glitches
+        step = result.glitches[0][1]
+        assert step.time_s == pytest.approx(20.0, abs=0.05) and step.counts == pytest.approx(-5.0, abs=1.0)
+        assert 'A step in a bar\'s reading: bar3 of lost.mcap' in result.conclusion
     assert analyze(read_run(injected_log(tmp_path, 'clean.mcap', None))).glitches == []
     assert bench_twin_analysis(5).glitches == []
 

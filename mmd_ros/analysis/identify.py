@@ -1974,7 +1974,7 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
         for f in found:
             contributions[f.effect] = (first.res_before - res_after_first if len(found) == 1
                                        else _contribution(sel, first, f))
-    glitches = _glitches(runs)
+    glitches = _glitches(runs, afters)
     conclusion = _conclusion(runs, summaries, found, not_claimed, unchecked, at_floor,
                              structure_after, validation, uncertainty_only, stated_text, glitches)
     return Analysis(first.name, o, first.obs, first.split, first.run.times_s, first.floor, first.ctx.base,
@@ -2312,16 +2312,22 @@ def _per_bar(ctx: FitContext, residual: FloatArray, idx: IntArray) -> list[Compo
     return component_errors(bars, dd, np.arange(sel.size))
 
 
-def _glitches(runs: list[_Run]) -> list[tuple[str, Step]]:
-    """Steps in each log's bar residual before the fit (:mod:`mmd_ros.analysis.glitches`):
-    no effect has that shape, and a fit would take part of one into whatever follows time."""
+def _glitches(runs: list[_Run], afters: list[tuple[Processed, FloatArray]] | None
+              ) -> list[tuple[str, Step]]:
+    """Steps in each log's bar residual (:mod:`mmd_ros.analysis.glitches`), as the fit leaves
+    it when it added terms (the effects it explains hide a step of a few counts: friction
+    turns over as sharply at each reversal), else the model's as given."""
     out = []
-    for r in runs:
-        idx = np.flatnonzero(r.usable & np.all(np.isfinite(r.res_before), axis=1))
-        bars = bar_residual(r.run.device, r.ctx.base.poses, r.obs, r.res_before, idx)
+    for k, r in enumerate(runs):
+        processed, residual = afters[k] if afters else (r.ctx.base, r.res_before)
+        ok = r.usable & np.all(np.isfinite(residual), axis=1)
+        if r.obs.kind == 'pose':
+            ok &= np.all(np.isfinite(processed.poses), axis=1)
+        idx = np.flatnonzero(ok)
+        bars = bar_residual(r.run.device, r.run.times_s, processed.poses, r.obs, residual, idx)
         if bars is not None:
             out += [(r.run.path.name, step) for step in residual_steps(
-                r.run.times_s[idx], bars[0], bars[1], r.run.device.encoder_resolution_m)]
+                *bars, r.run.device.encoder_resolution_m)]
     return out
 
 
@@ -2373,9 +2379,9 @@ def _conclusion(runs: list[_Run], summaries: list[RunSummary], found: list[Found
                          f'within-run figure: time blocks {which} the model was fitted on).')
     if glitches:
         parts.append('A step in a bar\'s reading: ' + '; '.join(s.text(log) for log, s in glitches)
-                     + ' (counts lost or gained at that instant: a dirty scale, a signal that dropped '
-                     'out, a packet decoded wrong; no effect of the catalogue has that shape, and '
-                     'what follows time, a drift, takes part of it).')
+                     + ' (counts lost or gained at that instant: a dirty scale, a signal that '
+                     'dropped out, a packet decoded wrong; no effect of the catalogue has that '
+                     'shape, and what follows time, a drift, takes part of it).')
     own = [f.title for f in found if not _lasting(f)]
     if own:
         parts.append(f'Not in the model\'s terms: {", ".join(own)} (it belongs to the run it was '
