@@ -37,14 +37,14 @@ IntArray = NDArray[np.int64]
 #: points, 4.4-8 with a twentieth of the log; realistic logs without a step peaked at 4.4-5.5
 #: with 10, up to 35 with a twentieth)
 WINDOW = 10
-#: A step stands this many robust standard deviations of the window difference above it.
+#: A step stands this many robust standard deviations of the window difference above it,
 STEP_SIGMAS = 7.0
-#: ... and the level stays over this many windows either side: longer, what a fit took of the
+#: ... is at least this many encoder counts,
+STEP_MIN_COUNTS = 2.0
+#: ... and its level stays over this many windows either side: longer, what a fit took of the
 #: step shows (five counts lost, 231 nm at the peak: 220 nm over 10 windows, 72 nm over 100
 #: with a drift and the CDF points fitted)
 LEVEL_WINDOWS = 10
-#: ... and is at least this many encoder counts.
-STEP_MIN_COUNTS = 2.0
 #: Steps looked for per bar and log.
 MAX_STEPS = 3
 
