@@ -1016,7 +1016,8 @@ class _Selector:
         for g in groups:
             rows = np.isin(blocks, g)
             xg, yg = x[rows], y[rows]
-            ests.append(np.linalg.solve(a - xg.T @ xg, xty - xg.T @ yg))
+            # (lstsq: a parameter only one group exercises leaves the rest singular)
+            ests.append(np.linalg.lstsq(a - xg.T @ xg, xty - xg.T @ yg, rcond=None)[0])
         ests = np.array(ests)
         n = len(groups)
         return (n - 1) / n * np.sum((ests - ests.mean(axis=0)) ** 2, axis=0)
