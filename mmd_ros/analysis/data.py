@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mmd_ros.analysis.errors import AnalysisError
-from mmd_ros.core.accuracy import white_noise
+from mmd_ros.core.accuracy import robust_std, white_noise
 from mmd_ros.core.calibration import Calibration
 from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.kinematics import jacobian
@@ -172,6 +172,17 @@ class Observation:
         if self.kind == 'lengths':
             return np.broadcast_to(np.eye(6)[self.components], (poses.shape[0], len(self.components), 6))
         return np.linalg.inv(jacobian(device.geometry, poses))[:, self.components, :]
+
+    def bar_residual(self, device: DeviceDescription, poses: FloatArray, residual: FloatArray
+                     ) -> tuple[FloatArray, list[int]] | None:
+        """The residual (n, k) as the bars see it at ``poses`` (n, 6), (n, b), and those bars:
+        J dp for a full pose, the bars themselves for a bar-length reference; None when the
+        reference does not determine the bars (some pose components only)."""
+        if self.kind == 'lengths':
+            return residual, list(self.components)
+        if len(self.components) != 6:
+            return None
+        return np.einsum('nij,nj->ni', jacobian(device.geometry, poses), residual), list(range(6))
 
     def residual(self, processed: Processed) -> FloatArray:
         """MMD minus reference, (N, k) [m, rad]; angles wrapped to (-pi, pi]."""
@@ -364,8 +375,7 @@ def sample_noise(values: FloatArray, processed: Processed, idx: NDArray[np.int64
     diff = diff[ok]
     if diff.shape[0] < 10:
         return np.zeros(values.shape[1])
-    mad = np.median(np.abs(diff - np.median(diff, axis=0)), axis=0)
-    return 1.4826 * mad / np.sqrt(2.0)
+    return robust_std(diff) / np.sqrt(2.0)
 
 
 def reference_noise(obs: Observation, processed: Processed, residual: FloatArray,

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from mmd_ros.core.kinematics import jacobian
+from mmd_ros.core.accuracy import robust_std
 
 __all__ = ['Step', 'residual_steps']
 
@@ -79,8 +79,6 @@ def bar_residual(device, times_s: FloatArray, poses: FloatArray, obs, residual: 
     groups of consecutive ones (at most ``MAX_POINTS``): their times (n,), the residual (n, b)
     and the bars (b of them): J dp for a full pose, the bars a bar-length reference gives;
     None when the reference does not determine the bars."""
-    if obs.kind != 'lengths' and len(obs.components) != 6:
-        return None
     size = -(-idx.size // MAX_POINTS) if idx.size else 1
     groups = np.arange(idx.size) // size
 
@@ -89,10 +87,8 @@ def bar_residual(device, times_s: FloatArray, poses: FloatArray, obs, residual: 
         np.add.at(sums, groups, values)
         return sums / np.bincount(groups).reshape((-1,) + (1,) * (values.ndim - 1))
 
-    t, r = mean(times_s[idx]), mean(residual[idx])
-    if obs.kind == 'lengths':
-        return t, r, list(obs.components)
-    return t, np.einsum('nij,nj->ni', jacobian(device.geometry, mean(poses[idx])), r), list(range(6))
+    seen = obs.bar_residual(device, mean(poses[idx]), mean(residual[idx]))
+    return None if seen is None else (mean(times_s[idx]), *seen)
 
 
 def residual_steps(times_s: FloatArray, values: FloatArray, bars: list[int],
@@ -109,7 +105,7 @@ def residual_steps(times_s: FloatArray, values: FloatArray, bars: list[int],
             c = np.concatenate(([0.0], np.cumsum(g)))
             t = np.arange(w, n - w + 1)
             s = (c[t + w] - c[t]) / w - (c[t] - c[t - w]) / w
-            scale = 1.4826 * float(np.median(np.abs(s - np.median(s))))
+            scale = float(robust_std(s))
             k = int(np.argmax(np.abs(s)))
             peak = float(s[k])
             if scale <= 0 or abs(peak) < STEP_SIGMAS * scale:

@@ -2306,8 +2306,7 @@ def _per_bar(ctx: FitContext, residual: FloatArray, idx: IntArray) -> list[Compo
     if obs.kind != 'pose' or len(obs.components) != 6:
         return None
     sel = idx[np.all(np.isfinite(residual[idx]), axis=1)]
-    jac = jacobian(ctx.device.geometry, ctx.base.poses[sel])
-    dd = np.einsum('nij,nj->ni', jac, residual[sel])
+    dd = obs.bar_residual(ctx.device, ctx.base.poses[sel], residual[sel])[0]
     bars = Observation('lengths', list(range(6)), [f'bar{i + 1}' for i in range(6)], ['um'] * 6,
                        np.zeros((sel.size, 6)), np.ones(sel.size, bool), False)
     return component_errors(bars, dd, np.arange(sel.size))

@@ -17,7 +17,7 @@ from mmd_ros.core.units import arcsec, um
 
 __all__ = [
     'ComponentStats', 'CoverageAccumulator', 'ErrorAccumulator', 'ReferenceNoise', 'coverage',
-    'error_stats', 'format_coverage', 'format_stats', 'length_error', 'pose_error',
+    'error_stats', 'format_coverage', 'format_stats', 'length_error', 'pose_error', 'robust_std',
     'smoothing_departures', 'white_noise',
 ]
 
@@ -41,13 +41,18 @@ def smoothing_departures(values: FloatArray, idx: NDArray[np.int64]) -> FloatArr
     return dev[np.all(np.isfinite(dev), axis=1)]
 
 
+def robust_std(values: FloatArray) -> FloatArray:
+    """Standard deviation of ``values`` along the first axis from their median absolute
+    deviation (1.4826 MAD: a Gaussian's sigma, unmoved by a few outliers)."""
+    return 1.4826 * np.median(np.abs(values - np.median(values, axis=0)), axis=0)
+
+
 def _white_scale(departures: FloatArray, width: int) -> FloatArray:
     """White noise from :func:`smoothing_departures`: their robust standard deviation over
     sqrt(1 - 17/35), what the fit takes of a white sample; zeros below 10 rows."""
     if departures.shape[0] < 10:
         return np.zeros(width)
-    mad = np.median(np.abs(departures - np.median(departures, axis=0)), axis=0)
-    return 1.4826 * mad / np.sqrt(1.0 - _SMOOTH5[2])
+    return robust_std(departures) / np.sqrt(1.0 - _SMOOTH5[2])
 
 
 def white_noise(values: FloatArray, idx: NDArray[np.int64]) -> FloatArray:
