@@ -1567,6 +1567,47 @@ def test_an_interference_seen_by_a_laser_is_carried_to_the_whole_pose():
     assert max(without) < 0.5 and min(covered) >= 0.93
 
 
+def test_a_bow_seen_by_a_laser_claims_the_bars_common_mode_as_large_as_what_it_showed():
+    """A quadratic bow of each bar's scale about the middle of its travel (0.25-0.35 µm from
+    middle to end, after the calibration: it did not see it), seen by an x-axis laser on 6-DOF
+    motion: the calibration points are found and not written (their effect on the other
+    components is not determined), and x shows 3-5 times the budget's claim. The budget's
+    sources, scaled on x, claim little of what the bars share, which x does not see and z does:
+    z was claimed 0.58-0.68 times its error, 92.4 % of new motion within the fitted lengths in
+    the 95 % ellipsoid (82.7 % on one twin). The common mode is now claimed as large as the whole
+    excess: measured z 1.31-1.61, 96.7 % (93.2-100 %), and the conclusion says it is a prior."""
+    from mmd_ros.twin import AmbientProfile
+    amplitude = np.array([0.30, 0.25, 0.35, 0.30, 0.28, 0.32]) * 1e-6
+    errors, covs = [], []
+    for k in range(4):
+        twin = TwinDevice(DEVICE, Effects.ideal(), seed=k + 1)
+        travel = twin.simulate(make_scenario('random_motion', ['duration_s=40', f'seed={100 + k}']),
+                               AmbientProfile.constant(21.0), start_s=600.0, reference='laser_x',
+                               sample_rate_hz=200.0).true_lengths
+        mid, half = 0.5 * (travel.max(0) + travel.min(0)), 0.5 * (travel.max(0) - travel.min(0))
+        mean = np.mean((travel - mid) ** 2, axis=0)
+        result, calibration, twin, run_of = _foreign_twin(
+            k, lambda d: amplitude / half ** 2 * ((d - mid) ** 2 - mean), 'offset',
+            fit=('random_motion', ['duration_s=40', 'seed={seed}'], 'laser_x'))
+        assert result.model.terms == [] and result.uncertainty_only, result.conclusion
+        assert 'a prior, not a measurement' in result.conclusion
+        assert result.model.uncertainty.fit.record['common_mode_visibility'] < 0.1
+        run, counts = run_of(['duration_s=20', f'seed={k}'], 700.0)
+        res = Pipeline(twin.documented_device, calibration, result.model).process(
+            run.times_s, counts, with_covariance=True)
+        seen = Validity.from_model(result.model).bar_range_m       # (the fit's lengths only)
+        cdf = res.compensated.cdf_lengths_m
+        inside = res.valid & np.all((cdf >= seen[:, 0]) & (cdf <= seen[:, 1]), axis=1)
+        errors.append(pose_error(res.poses, run.true_poses)[inside])
+        covs.append(res.covariance[inside])
+    e, c = np.concatenate(errors), np.concatenate(covs)
+    ratio = np.sqrt(np.mean(np.diagonal(c, axis1=1, axis2=2), axis=0) / np.mean(e ** 2, axis=0))
+    each = [float(np.mean(_d2(x, y) <= LIMIT)) for x, y in zip(errors, covs)]
+    print('coverage', np.round(each, 3), 'ratio', np.round(ratio, 2))
+    assert ratio[2] >= 0.8 and np.all(ratio >= 0.8)
+    assert np.mean(_d2(e, c) <= LIMIT) >= 0.93 and min(each) >= 0.88
+
+
 def test_an_interference_seen_at_standstill_is_carried_by_its_read_noise(tmp_path):
     """The 37 Hz interference above, seen on a C-axis ISO run with the rotary encoder as the
     reference: the run dwells, and where a bar stands still the stream's read-noise estimate

@@ -1978,6 +1978,15 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
     glitches = _glitches(runs, afters)
     conclusion = _conclusion(runs, summaries, found, not_claimed, unchecked, at_floor,
                              structure_after, validation, uncertainty_only, stated_text, glitches)
+    common = extended.uncertainty.fit.record.get('common_mode_nm') if extended is not None else None
+    if common:
+        seen = list(dict.fromkeys(n for r in runs for n in r.obs.names))
+        unseen = ', '.join(n for n in POSE_NAMES if n not in seen)
+        conclusion += (f' The references see {", ".join(seen)} only: what the bars\' error does to '
+                       f'{unseen} is claimed from the budget\'s shape scaled to what they showed, and '
+                       f'an error the six bars share (it moves z) as large as the whole excess '
+                       f'({common:.3g} nm): a prior, not a measurement; record a run that sees '
+                       f'{unseen}.')
     return Analysis(first.name, o, first.obs, first.split, first.run.times_s, first.floor, first.ctx.base,
                     afters[0][0] if afters else None, first.res_before, res_after_first, steps, found,
                     not_claimed, first_summary.before, first_summary.after, stats_pred,

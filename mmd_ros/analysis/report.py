@@ -97,6 +97,12 @@ def _uncertainty_section(a: Analysis) -> list[str]:
             if fit.replaces else '; the calibration-derived sources stay'
             + (f', scaled by {fit.systematic_scale:.3g}' if fit.systematic_scale != 1.0 else ''))
          + '. The pose covariance adds these per bar (`msg_docs/frames.md`).', '']
+    common = fit.record.get('common_mode_nm')
+    if common:
+        L += [f'The references see only some pose components, and none of them an error the six '
+              f'bars share (its visibility {fit.record.get("common_mode_visibility", 0):.2g} of an '
+              f'average direction\'s): the common mode is claimed at {common:.3g} nm, the whole '
+              'excess the components showed (a rule, not a measurement).', '']
     unseen = fit.record.get('unseen_constant_nm')
     if unseen is not None:
         L += ['The reference was zeroed: the residual holds, per bar, what the runs left unknown of '
