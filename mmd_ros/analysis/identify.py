@@ -788,6 +788,21 @@ class _Selector:
                 notes.append(note if len(self.runs) == 1 else f'{r.run.path.name}: {note}')
         return avail, '; '.join(notes) if not avail.all() else ''
 
+    def ties(self, effect: Effect, hyper: Any, avail: NDArray[np.bool_],
+             touched: NDArray[np.bool_]) -> FloatArray | None:
+        """How the parameters of all groups the data do not exercise follow the others
+        (:meth:`Effect.ties`, group by group, block-diagonal), or None."""
+        n_p = len(effect.parameters(self.ctx, hyper))
+        n_g = self.n_groups(effect)
+        out, changed = np.eye(n_p * n_g), False
+        for g in range(n_g):
+            ctx = next(r.ctx for r in self.runs if self.group_index(effect, r) == g)
+            part = slice(g * n_p, (g + 1) * n_p)
+            t = effect.ties(ctx, hyper, avail[part], touched[part])
+            if t is not None:
+                out[part, part], changed = t, True
+        return out if changed else None
+
     def columns(self, effect: Effect, hyper: Any, part: str, bar: int | None = None) -> FloatArray:
         """The effect's observation columns; with ``bar``, of its correction on that bar only
         (the six bars' columns are made together, from one signature per log)."""
@@ -883,8 +898,15 @@ class _Selector:
         avail, note = self.coverage(effect, hyper)
         c = self.columns(effect, hyper, 'train')
         norms = np.linalg.norm(c, axis=0)
+        tie = self.ties(effect, hyper, avail, norms > 0)
+        tied = np.zeros(len(names), dtype=bool) if tie is None else np.diag(tie) == 0.0
+        lost = [f'{names[j]} (not exercised: on the line of the points seen beside it)'
+                for j in np.flatnonzero(tied)]
+        if tie is not None:
+            c = c @ tie                       # (the columns of the tied ones fall to zero)
+            norms = np.linalg.norm(c, axis=0)
         usable = avail & (norms > 0)
-        lost = [f'{names[j]} (not exercised)' for j in np.flatnonzero(~usable)]
+        lost += [f'{names[j]} (not exercised)' for j in np.flatnonzero(~usable & ~tied)]
         out: dict[str, Any] = {'names': names, 'lost': lost, 'note': note,
                                'basis': np.zeros((len(names), 0)), 'norms': norms, 'weak': None}
         if not usable.any():
@@ -942,6 +964,8 @@ class _Selector:
         v = vt.T
         basis = np.zeros((len(names), v.shape[1]))
         basis[usable] = v / norms[usable, None]
+        if tie is not None:
+            basis = tie @ basis
         coef_b = (np.linalg.lstsq(t, qy - qtc @ v @ beta, rcond=None)[0] if t.size else np.zeros(0))
         out.update(basis=basis, beta=beta, e_train=e, coef_b=coef_b)
         return out
