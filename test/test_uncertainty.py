@@ -954,6 +954,23 @@ def _foreign_twin(k: int, length_error, datum: str,
     return analyze(log, options=AnalysisOptions(datum=datum, **options)), calibration, twin, run_of
 
 
+def _bowed_twin(k: int, reference: str):
+    """Twin k (ideal) analysed with a zeroed reference (``reference``) on 40 s of random motion,
+    its bars reading a quadratic bow of their scale about the middle of the travel that motion
+    covers: 0.25-0.35 µm from middle to end, zero mean over the run, after the calibration (it
+    did not see it). As :func:`_foreign_twin`."""
+    from mmd_ros.twin import AmbientProfile
+    amplitude = np.array([0.30, 0.25, 0.35, 0.30, 0.28, 0.32]) * 1e-6
+    twin = TwinDevice(DEVICE, Effects.ideal(), seed=k + 1)
+    travel = twin.simulate(make_scenario('random_motion', ['duration_s=40', f'seed={100 + k}']),
+                           AmbientProfile.constant(21.0), start_s=600.0, reference=reference,
+                           sample_rate_hz=200.0).true_lengths
+    mid, half = 0.5 * (travel.max(0) + travel.min(0)), 0.5 * (travel.max(0) - travel.min(0))
+    mean = np.mean((travel - mid) ** 2, axis=0)
+    return _foreign_twin(k, lambda d: amplitude / half ** 2 * ((d - mid) ** 2 - mean), 'offset',
+                         fit=('random_motion', ['duration_s=40', 'seed={seed}'], reference))
+
+
 def test_after_a_zeroed_fit_the_constant_it_could_not_see_is_claimed_from_the_pose_s_variation(tmp_path):
     """With ``mmd analyze``'s default zeroed reference (an offset per pose component removed)
     the calibration-derived sources used to stay whole after the fit: 5-7 times the error in
@@ -1505,19 +1522,9 @@ def test_a_zeroed_fit_of_a_bow_beyond_its_points_leaves_the_level_it_cannot_see(
     the data choose it (the setting 'line'): measured z
     mean moved at most 0.014 µm, and on new motion every component within its noise floor of
     the unchanged model or better (z 0.06-0.17 -> 0.01-0.07 µm)."""
-    from mmd_ros.twin import AmbientProfile
-    amplitude = np.array([0.30, 0.25, 0.35, 0.30, 0.28, 0.32]) * 1e-6
     to_report = np.array([1e6] * 3 + [1e6 * math.pi / (180 * 3600)] * 3)     # (floors: µm, ″)
     for k in range(4):
-        twin = TwinDevice(DEVICE, Effects.ideal(), seed=k + 1)
-        travel = twin.simulate(make_scenario('random_motion', ['duration_s=40', f'seed={100 + k}']),
-                               AmbientProfile.constant(21.0), start_s=600.0, reference='pose6',
-                               sample_rate_hz=200.0).true_lengths
-        mid, half = 0.5 * (travel.max(0) + travel.min(0)), 0.5 * (travel.max(0) - travel.min(0))
-        mean = np.mean((travel - mid) ** 2, axis=0)
-        result, calibration, twin, run_of = _foreign_twin(
-            k, lambda d: amplitude / half ** 2 * ((d - mid) ** 2 - mean), 'offset',
-            fit=('random_motion', ['duration_s=40', 'seed={seed}'], 'pose6'))
+        result, calibration, twin, run_of = _bowed_twin(k, 'pose6')
         assert [(f.effect, f.hyper) for f in result.found] == [('calibration_points', 'line')], \
             result.conclusion
         floor = np.array([result.runs[0].floor[n] for n in ('x', 'y', 'z', 'roll', 'pitch', 'yaw')])
@@ -1620,19 +1627,9 @@ def test_a_bow_seen_by_a_laser_claims_the_bars_common_mode_as_large_as_what_it_s
     z was claimed 0.58-0.68 times its error, 92.4 % of new motion within the fitted lengths in
     the 95 % ellipsoid (82.7 % on one twin). The common mode is now claimed as large as the whole
     excess: measured z 1.31-1.61, 96.7 % (93.2-100 %), and the conclusion says it is a prior."""
-    from mmd_ros.twin import AmbientProfile
-    amplitude = np.array([0.30, 0.25, 0.35, 0.30, 0.28, 0.32]) * 1e-6
     errors, covs = [], []
     for k in range(4):
-        twin = TwinDevice(DEVICE, Effects.ideal(), seed=k + 1)
-        travel = twin.simulate(make_scenario('random_motion', ['duration_s=40', f'seed={100 + k}']),
-                               AmbientProfile.constant(21.0), start_s=600.0, reference='laser_x',
-                               sample_rate_hz=200.0).true_lengths
-        mid, half = 0.5 * (travel.max(0) + travel.min(0)), 0.5 * (travel.max(0) - travel.min(0))
-        mean = np.mean((travel - mid) ** 2, axis=0)
-        result, calibration, twin, run_of = _foreign_twin(
-            k, lambda d: amplitude / half ** 2 * ((d - mid) ** 2 - mean), 'offset',
-            fit=('random_motion', ['duration_s=40', 'seed={seed}'], 'laser_x'))
+        result, calibration, twin, run_of = _bowed_twin(k, 'laser_x')
         assert result.model.terms == [] and result.uncertainty_only, result.conclusion
         assert 'a prior, not a measurement' in result.conclusion
         assert result.model.uncertainty.fit.record['common_mode_visibility'] < 0.1
