@@ -2269,6 +2269,9 @@ def _leave_one_out(runs: list[_Run], active: list[_Active], model: Model,
                 continue
             refit.append((a, theta))
         missing = [a.effect.name for a, _ in refit if sel.group_index(a.effect, r) is None]
+        # as the model written for other runs: without what belongs to the runs fitted (a
+        # drift), the lasting terms refitted without it (:func:`_lasting_fit`)
+        refit = _lasting_fit(sel, refit)
         trial = _build_model(model, _terms_for(sel, refit, r), {}, np.stack(_seen_lengths(others), axis=1))
         after = run_pipeline(r.run.device, r.calibration, trial, r.run.times_s, r.run.counts)
         every = np.flatnonzero(r.usable)
