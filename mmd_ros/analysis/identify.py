@@ -1662,6 +1662,9 @@ def _unchecked(sel: _Selector, a: _Active, theta: FloatArray, cov_beta: FloatArr
     beta = np.linalg.lstsq(basis, theta, rcond=None)[0]
     scale = float(np.sqrt(np.mean(beta ** 2))) if beta.size else 0.0
     n_p = theta.size // sel.n_groups(a.effect)
+    # parameters that follow others (Effect.ties) act through them, as the fit saw them
+    tie = sel.ties(a.effect, a.hyper, sel.coverage(a.effect, a.hyper)[0],
+                   np.linalg.norm(sel.columns(a.effect, a.hyper, 'train'), axis=0) > 0)
     for r in sel.runs:
         g = sel.group_index(a.effect, r)
         if g is None:
@@ -1672,6 +1675,8 @@ def _unchecked(sel: _Selector, a: _Active, theta: FloatArray, cov_beta: FloatArr
         sig = a.effect.signature(ctx, a.hyper, idx)                  # (n, 6, P)
         full = np.zeros(sig.shape[:2] + (theta.size,))
         full[:, :, g * n_p:(g + 1) * n_p] = sig
+        if tie is not None:
+            full = full @ tie
         if obs.kind == 'pose':
             jinv = np.linalg.inv(jacobian(ctx.device.geometry, ctx.base.poses[idx]))
             b = np.einsum('nij,njp->nip', jinv, full)                 # (n, 6, PG)
