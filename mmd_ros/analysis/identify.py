@@ -900,7 +900,7 @@ class _Selector:
         norms = np.linalg.norm(c, axis=0)
         tie = self.ties(effect, hyper, avail, norms > 0)
         tied = np.zeros(len(names), dtype=bool) if tie is None else np.diag(tie) == 0.0
-        lost = [f'{names[j]} (not exercised: on the line of the points seen beside it)'
+        lost = [f'{names[j]} (not exercised: follows those seen, {effect.hyper_label(hyper)})'
                 for j in np.flatnonzero(tied)]
         if tie is not None:
             c = c @ tie                       # (the columns of the tied ones fall to zero)
