@@ -328,11 +328,9 @@ def _common_mode_visibility(ctx: FitContext, processed: Processed, sub: IntArray
     over the components, of the variance a unit error along the common mode gives it over the
     variance a unit error spread evenly over all six bar directions gives it (1: as well as an
     average direction; z of a full pose about 6, x and a rotation about the axis near 0)."""
-    n = sub.size
-    common = np.broadcast_to(np.full((6, 6), 1.0 / 6.0), (n, 6, 6))
-    even = np.broadcast_to(np.eye(6) / 6.0, (n, 6, 6))
-    along = _component_var(ctx, processed, np.array(common), sub)
-    spread = _component_var(ctx, processed, np.array(even), sub)
+    shape = (sub.size, 6, 6)     # (read-only views: the propagation divides them anew)
+    along = _component_var(ctx, processed, np.broadcast_to(np.full((6, 6), 1.0 / 6.0), shape), sub)
+    spread = _component_var(ctx, processed, np.broadcast_to(np.eye(6) / 6.0, shape), sub)
     return float(np.max(along / np.maximum(spread, 1e-300)))
 
 
