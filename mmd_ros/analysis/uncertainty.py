@@ -12,9 +12,12 @@ claim in two ways (``msg_docs/frames.md``):
   per-sample sum and enter, with all others, as their mean over the fit's samples
   (``mean_terms_nm2``, for a stage without counts). Parameters that belong to the fitted run
   (a drift's offset and rate, ``Effect.scope == 'run'``) are not among the model's terms, and
-  on any other run the same drift would be an error no data checked: each bar's own correction
-  is one more direction, and its variance over the fitted run enters that bar's residual
-  (another run may drift of its own);
+  on any other run the same drift would be an error no data checked: the bars' correction
+  together is one more direction, and each bar's own, as far as it drifted apart from the
+  others (:func:`_apart`), one more, its variance over the fitted run entering that bar's
+  residual (another run may drift of its own); after a zeroed fit, which does not see where
+  the bars' common drift started, the residual also holds that common mode as large as the
+  drift's mean change over the fitted run;
 - **the residual**: with a reference that determines every bar (a full pose, or bar lengths)
   the bar-length residual, J dp, has a covariance R, the reference's own variance (the log's
   ``reference_sigma``) taken out. With several logs it is each log's error under the model
@@ -169,12 +172,16 @@ def _term_directions(ctx: FitContext, found: list[FittedEffect], idx: IntArray,
         # are not in the model's terms; on any other run such a drift is an error no data
         # checked: each bar's correction is claimed as uncertain as it is large, bar by bar (a
         # reading that settled over each run's first seconds, fitted as a drift on one run,
-        # left 7.7 % of another run's samples in the ellipsoid)
+        # left 7.7 % of another run's samples in the ellipsoid), as far as it drifted apart
+        # from the other bars (what they drifted together is claimed together, below: bar by
+        # bar as well, a settling of nearly the same size on every bar was claimed 4.8-7.1
+        # times its error in x, y and the rotations on new motion)
         sig = f.effect.signature(ctx, f.hyper, idx)                            # (n, 6, P)
         touches = np.any(sig != 0.0, axis=0)                                   # (6, P)
+        apart = _apart(f.theta, touches)
         for bar in range(6):
             mine = touches[bar] & ~np.any(np.delete(touches, bar, axis=0), axis=0)
-            theta = np.where(mine, f.theta, 0.0)
+            theta = np.where(mine, apart, 0.0)
             if not np.any(theta):
                 continue
             own = sig @ theta                                                  # (n, 6)
@@ -189,6 +196,14 @@ def _term_directions(ctx: FitContext, found: list[FittedEffect], idx: IntArray,
         whole = sig @ f.theta
         mean_total += whole.T @ whole / max(idx.size, 1)
         chosen.append(limited_to_seen(f.effect.make_terms(ctx, f.hyper, f.theta), seen_m))
+        if ctx.obs.datum:
+            # a zeroed reference does not see the bars' common offset, so not where their
+            # drift started: another run may start as far from where it ends as this one
+            # drifted over its course (a settling alike on every bar, fitted zeroed: 55 % of
+            # new motion in the ellipsoid, z claimed 0.6 times its error)
+            ends = f.effect.signature(ctx, f.hyper, np.array([0, ctx.times_s.size - 1]))
+            common = float(np.mean((ends[1] - ends[0]) @ f.theta)) * np.ones(6)
+            run_own += np.outer(common, common)
     forced = len(chosen)
     carried = 0.0
     rest = np.zeros((6, 6))
@@ -199,6 +214,20 @@ def _term_directions(ctx: FitContext, found: list[FittedEffect], idx: IntArray,
         chosen.append(terms)
         carried += size
     return chosen, mean_total, run_own, rest
+
+
+def _apart(theta: FloatArray, touches: NDArray[np.bool_]) -> FloatArray:
+    """``theta`` less, at each bar's own parameters, their mean over the bars (each bar's k-th
+    own parameter with the others' k-th): what each bar did apart from the others. ``theta``
+    as it is when the bars' own parameters do not line up (not as many each)."""
+    own = [np.flatnonzero(touches[bar] & ~np.any(np.delete(touches, bar, axis=0), axis=0))
+           for bar in range(touches.shape[0])]
+    if len({i.size for i in own}) != 1 or own[0].size == 0:
+        return theta
+    rows = np.array(own)                                                   # (6, k)
+    out = theta.copy()
+    out[rows] = theta[rows] - theta[rows].mean(axis=0)
+    return out
 
 
 def _change_to(ctx: FitContext, f: FittedEffect, hyper: Any, theta: FloatArray, idx: IntArray,
