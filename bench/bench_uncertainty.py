@@ -62,7 +62,8 @@ SCENARIOS = {   # name: (scenario, parameters, sample rate)
 }
 
 
-def judge(errors: list[np.ndarray], covs: list[np.ndarray], tails: list[np.ndarray]) -> dict:
+def judge(errors: list[np.ndarray], covs: list[np.ndarray], tails: list[np.ndarray | None]
+          ) -> dict:
     """Ratios and coverage pooled over the runs, and their 95 % intervals over the runs: the
     runs drawn again with replacement (a run's samples share its calibration's constant error,
     so the runs, not the samples, are the independent draws). Coverage of the ellipsoid a
@@ -75,8 +76,9 @@ def judge(errors: list[np.ndarray], covs: list[np.ndarray], tails: list[np.ndarr
     d2 = [np.einsum('ni,ni->n', e, np.linalg.solve(c, e[:, :, None])[:, :, 0])
           for e, c in zip(errors, covs)]
     hits = np.array([np.sum(d <= LIMIT) for d in d2], dtype=np.float64)
-    region = np.array([np.sum(d <= region_quantile(c, t)) for d, c, t in zip(d2, covs, tails)],
-                      dtype=np.float64)
+    region = (hits if tails[0] is None else   # (the bars' lengths: no region of their own)
+              np.array([np.sum(d <= region_quantile(c, t)) for d, c, t in zip(d2, covs, tails)],
+                       dtype=np.float64))
     pick = np.random.default_rng(0).integers(0, len(n), (BOOTSTRAP, len(n)))
     counts = np.stack([np.bincount(row, minlength=len(n)) for row in pick]).astype(np.float64)
     with np.errstate(divide='ignore', invalid='ignore'):
@@ -99,7 +101,8 @@ def judge(errors: list[np.ndarray], covs: list[np.ndarray], tails: list[np.ndarr
 
 
 def run_case(device, name: str, scenario: str, runs: int, seconds: float, after: bool,
-             approaches: int = 2, datum: str = 'none', stated_sag: bool = True) -> dict:
+             approaches: int = 2, datum: str = 'none', stated_sag: bool = True,
+             lengths: bool = False) -> dict:
     preset, effect_params, ambient = CASES[name]
     kind, params, rate = SCENARIOS[scenario]
     room = ambient_profile(ambient)
@@ -117,18 +120,25 @@ def run_case(device, name: str, scenario: str, runs: int, seconds: float, after:
         run = twin.simulate(make_scenario(kind, p), room, start_s=start, reference='pose6',
                             sample_rate_hz=rate)
         pipeline = Pipeline(twin.documented_device, calibration, model)
-        res = pipeline.process(run.times_s, run.counts, with_covariance=True, tails_every=1)
+        res = pipeline.process(run.times_s, run.counts, with_covariance=True, tails_every=1,
+                               with_length_covariance=lengths)
         ok = res.valid & np.all(np.isfinite(run.true_poses), axis=1)
-        errors.append(pose_error(res.poses, run.true_poses)[ok])
-        covs.append(res.covariance[ok])
-        tails.append(res.tails[ok])
+        if lengths:   # the bars' lengths and their covariance against the twin's true ones
+            errors.append((res.compensated.lengths_m - run.true_lengths)[ok])
+            covs.append(res.length_covariance[ok])
+            tails.append(None)
+        else:
+            errors.append(pose_error(res.poses, run.true_poses)[ok])
+            covs.append(res.covariance[ok])
+            tails.append(res.tails[ok])
         validity = Validity.from_model(model)
         cdf = res.compensated.cdf_lengths_m[ok]
         inside.append(np.ones(cdf.shape[0], dtype=bool) if validity is None else np.all(
             (cdf >= validity.bar_range_m[:, 0]) & (cdf <= validity.bar_range_m[:, 1]), axis=1))
         flank.append(inside[-1] & np.any(pipeline.budget.flank(cdf), axis=1))
     out = {'case': name, 'scenario': scenario, 'runs': runs, 'after_analysis': after,
-           'calibration_approaches': approaches, **judge(errors, covs, tails)}
+           'calibration_approaches': approaches, 'judged': 'lengths' if lengths else 'pose',
+           **judge(errors, covs, tails)}
     if notes:
         out['analysis'] = '; '.join(notes)
         out['datum'] = datum
@@ -138,7 +148,7 @@ def run_case(device, name: str, scenario: str, runs: int, seconds: float, after:
         groups = (('inside_fit_range', inside, True), ('outside_fit_range', inside, False),
                   ('in_a_segment_s_flank', flank, True))
         for key, masks, want in groups:
-            parts = [(e[m == want], c[m == want], t[m == want])
+            parts = [(e[m == want], c[m == want], None if t is None else t[m == want])
                      for e, c, t, m in zip(errors, covs, tails, masks)]
             parts = [p for p in parts if p[0].shape[0]]
             if parts:
@@ -207,6 +217,9 @@ def main() -> None:
     parser.add_argument('--no-stated-sag', action='store_true', dest='no_stated_sag',
                         help='with --after: the analysis starts from the model as given, not from '
                         'the bars\' stated gravity sag')
+    parser.add_argument('--lengths', action='store_true',
+                        help='judge the six bars\' length covariance against their true lengths '
+                        '(what a log with reference bar lengths reports) instead of the pose')
     parser.add_argument('--build', type=int, default=0, metavar='N',
                         help='time a budget\'s construction N times, its interpolation fit anew '
                         'and kept (instead of the coverage cases)')
@@ -222,7 +235,7 @@ def main() -> None:
     for name in args.cases.split(','):
         t0 = time.perf_counter()
         r = run_case(device, name, args.scenario, args.runs, args.seconds, args.after, args.approaches,
-                     args.datum, not args.no_stated_sag)
+                     args.datum, not args.no_stated_sag, args.lengths)
         r['seconds'] = round(time.perf_counter() - t0, 1)
         results.append(r)
         print(f'{name:17s} {args.scenario:8s} ratio ' + ' '.join(f'{v:.2f}' for v in r['ratio'])

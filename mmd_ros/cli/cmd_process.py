@@ -82,6 +82,9 @@ def run_command(args: argparse.Namespace) -> int:
         from mmd_ros.core.accuracy import ComponentStats
         print(format_stats([ComponentStats(**s) for s in summary['length_error']],
                            'bar length error against the reference:'))
+    if 'length_uncertainty_coverage' in summary:
+        from mmd_ros.core.accuracy import format_coverage
+        print(format_coverage(summary['length_uncertainty_coverage']))
     return 0
 
 

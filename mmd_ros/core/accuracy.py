@@ -239,7 +239,8 @@ def format_stats(stats: list[ComponentStats], title: str) -> str:
 
 def coverage(errors: FloatArray, covariance: FloatArray, valid: NDArray[np.bool_], *,
              absolute: bool, reference_sigma: FloatArray | None = None,
-             level: float = 0.95, tails: FloatArray | None = None) -> dict[str, object] | None:
+             level: float = 0.95, tails: FloatArray | None = None,
+             kind: str = 'pose') -> dict[str, object] | None:
     """Does the pose covariance cover the error against a reference? (msg_docs/frames.md)
 
     Over the samples that are measurements and where the reference knows the components:
@@ -260,8 +261,14 @@ def coverage(errors: FloatArray, covariance: FloatArray, valid: NDArray[np.bool_
     covariance : (N, 6, 6) [m, rad]^2
     reference_sigma : (6,) the reference's standard uncertainty [m, rad], NaN or None unknown
     tails : (N, 6, K) the covariance's light-tailed directions (``ProcessResult.tails``), or None
+    kind : 'pose', or 'lengths': the six measuring bars' lengths [m] and their covariance
+        Sigma_d (``ProcessResult.length_covariance``), against reference bar lengths
     returns : a JSON-ready mapping, or None when no sample has a known component
     """
+    if kind == 'lengths':
+        names, in_um = [f'bar{k + 1}' for k in range(6)], [True] * 6
+    else:
+        names, in_um = list(POSE_NAMES), [k < 3 for k in range(6)]
     e = np.asarray(errors, dtype=np.float64)
     known = [k for k in range(6) if np.isfinite(e[:, k]).mean() >= 0.5]
     if not known:
@@ -285,14 +292,14 @@ def coverage(errors: FloatArray, covariance: FloatArray, valid: NDArray[np.bool_
     per = np.mean(np.abs(err) <= z * np.sqrt(np.diagonal(cov, axis1=1, axis2=2)), axis=0)
     rows = []
     for j, k in enumerate(known):
-        to = um if k < 3 else arcsec
-        rows.append({'name': POSE_NAMES[k], 'unit': 'um' if k < 3 else 'arcsec',
+        to = um if in_um[k] else arcsec
+        rows.append({'name': names[k], 'unit': 'um' if in_um[k] else 'arcsec',
                      'predicted_sigma': float(to(predicted[j])),
                      'observed_sigma': float(to(observed[j])),
                      'ratio': float(predicted[j] / observed[j]) if observed[j] > 0 else None,
                      'reference_sigma': float(to(np.sqrt(ref[j]))),
                      'within_interval': float(per[j])})
-    out = {'samples': int(use.sum()), 'components': [POSE_NAMES[k] for k in known],
+    out = {'kind': kind, 'samples': int(use.sum()), 'components': [names[k] for k in known],
            'offset_removed': not absolute, 'level': level,
            'ellipsoid_coverage': float(np.mean(d2 <= chi2.ppf(level, len(known)))),
            'ellipsoid_quantile': float(chi2.ppf(level, len(known))),
@@ -350,15 +357,17 @@ class CoverageAccumulator:
             self._kept = self._errors[0].shape[0]
 
     def report(self, *, absolute: bool, reference_sigma: FloatArray | None = None,
-               level: float = 0.95) -> dict[str, object] | None:
-        """What :func:`coverage` says of the kept samples, with ``every``."""
+               level: float = 0.95, kind: str = 'pose') -> dict[str, object] | None:
+        """What :func:`coverage` says of the kept samples (``kind`` as there), with
+        ``every``."""
         if not self._kept:
             return None
         e, c = np.concatenate(self._errors), np.concatenate(self._cov)
         tails = np.concatenate(self._tails) if self._tails else None
         out = coverage(e, c, np.ones(e.shape[0], dtype=bool), absolute=absolute,
                        reference_sigma=reference_sigma, level=level,
-                       tails=tails if tails is not None and len(tails) == len(e) else None)
+                       tails=tails if tails is not None and len(tails) == len(e) else None,
+                       kind=kind)
         if out is not None:
             out['every'] = self.every
         return out
@@ -367,7 +376,8 @@ class CoverageAccumulator:
 def format_coverage(report: dict[str, object]) -> str:
     """A fixed-width table of :func:`coverage`."""
     level = 100 * float(report['level'])  # type: ignore[arg-type]
-    lines = [f'pose uncertainty against the reference ({report["samples"]} samples'
+    what = 'bar length' if report.get('kind') == 'lengths' else 'pose'
+    lines = [f'{what} uncertainty against the reference ({report["samples"]} samples'
              + (', offset removed' if report['offset_removed'] else '') + '):',
              f'  {"component":<10} {"unit":>7} {"predicted":>10} {"observed":>10} {"ratio":>7} '
              f'{"in ±" + format(level, ".0f") + "%":>9}']

@@ -80,6 +80,8 @@ class ProcessResult:
     tails : ndarray, shape (N, 6, 7), or None — with ``tails_every``, where the covariance's
         error is lighter-tailed than a Gaussian (:func:`~mmd_ros.core.uncertainty.tail_columns`:
         the size of its coverage regions)
+    length_covariance : ndarray, shape (N, 6, 6), or None — with ``with_length_covariance``,
+        the six measuring bars' length covariance Sigma_d the pose covariance propagates [m^2]
     """
 
     times_s: FloatArray
@@ -94,6 +96,7 @@ class ProcessResult:
     covariance: FloatArray | None
     no_signal: NDArray[np.bool_] | None = None
     tails: FloatArray | None = None
+    length_covariance: FloatArray | None = None
 
 
 @dataclass(frozen=True)
@@ -231,7 +234,8 @@ class Pipeline:
     def process(self, times_s: FloatArray, counts: FloatArray, *,
                 with_covariance: bool = False, covariance_every: int = 1,
                 compiled: bool | None = None,
-                status: NDArray[np.uint8] | None = None, tails_every: int = 0) -> ProcessResult:
+                status: NDArray[np.uint8] | None = None, tails_every: int = 0,
+                with_length_covariance: bool = False) -> ProcessResult:
         """Poses of N consecutive samples (one run, in time order).
 
         covariance_every : with the covariance, that of every k-th sample only (the others NaN):
@@ -247,6 +251,9 @@ class Pipeline:
         tails_every : with the covariance, where its error is lighter-tailed than a Gaussian
             (``ProcessResult.tails``, for the size of its coverage regions) at every k-th
             sample (k a multiple of ``covariance_every``; NaN elsewhere); 0: none
+        with_length_covariance : with the covariance, also the bars' length covariance it
+            propagates (``ProcessResult.length_covariance``, at the same samples): what a
+            reference of bar lengths judges
         """
         times_s = np.asarray(times_s, dtype=np.float64)
         lost = None if status is None else bars_without_signal(self.device, status)
@@ -265,20 +272,25 @@ class Pipeline:
         unsolved = out_of_range if no_signal is None else out_of_range | no_signal
         valid = sol.converged & ~unsolved
         fk_status = np.where(unsolved, np.int8(FkStatus.OUT_OF_SPAN), sol.status)
-        cov = tails = None
+        cov = tails = sigma_d = None
         if with_covariance and sol.jacobian_inverse is not None:
             observed = self.budget.observe(comp.cdf_lengths_m, comp.thermal.reference_error_m,
                                            times_s, sol.poses)
             rows = slice(None, None, covariance_every)
             cov = np.full((times_s.size, 6, 6), np.nan)
-            cov[rows] = self.covariance(sol.jacobian_inverse, measured, observed, rows=rows,
-                                        compiled=compiled)
+            lengths = self.length_covariance(measured, observed, rows=rows)
+            cov[rows] = pose_covariance(sol.jacobian_inverse[rows], lengths,
+                                        measured.thermal.plate_scale[rows], compiled=compiled)
+            if with_length_covariance:
+                sigma_d = np.full((times_s.size, 6, 6), np.nan)
+                sigma_d[rows] = lengths
             if tails_every:
                 rows = slice(None, None, tails_every)
                 tails = np.full((times_s.size, 6, 7), np.nan)
                 tails[rows] = self.tails(sol.jacobian_inverse, measured, observed, rows=rows)
         return ProcessResult(times_s, comp, sol.poses, sol.converged, valid, fk_status,
-                             sol.iterations, sol.residual_m, sol.condition, cov, no_signal, tails)
+                             sol.iterations, sol.residual_m, sol.condition, cov, no_signal, tails,
+                             sigma_d)
 
     def _solve_batch(self, comp: Compensated, with_inverse: bool, compiled: bool | None):
         """FK of d / s with the nominal joints, translations times s (the module docstring)."""
@@ -298,12 +310,19 @@ class Pipeline:
         rows : only these samples (default all)
         """
         r = slice(None) if rows is None else rows
+        return pose_covariance(jinv[r], self.length_covariance(comp, observed, rows=rows),
+                               comp.thermal.plate_scale[r], compiled=compiled)
+
+    def length_covariance(self, comp: Compensated, observed: Observed | None = None,
+                          *, rows: slice | None = None) -> FloatArray:
+        """Sigma_d of N samples, (N, 6, 6) [m^2]: the budget's covariance of the six measuring
+        bars' lengths (what :meth:`covariance` propagates); arguments as there."""
+        r = slice(None) if rows is None else rows
         th = comp.thermal
-        sigma_d = self.budget.covariance(
+        return self.budget.covariance(
             comp.lengths_m[r], th.reference_error_m[r], th.temp_change_c[r], th.bar_error_m[r],
             None if comp.fit_columns_m is None else comp.fit_columns_m[r],
             None if observed is None else observed[r])
-        return pose_covariance(jinv[r], sigma_d, th.plate_scale[r], compiled=compiled)
 
     def tails(self, jinv: FloatArray, comp: Compensated, observed: Observed | None = None,
               *, rows: slice | None = None) -> FloatArray:

@@ -176,6 +176,10 @@ class RunLog:
     def has_reference_pose(self) -> bool:
         return self.reference_pose is not None
 
+    @property
+    def has_reference_lengths(self) -> bool:
+        return self.reference_lengths is not None
+
     def blocks(self, size: int) -> Iterator[RunBlock]:
         """The run in blocks of ``size`` samples, in time order."""
         for start in range(0, self.n_samples, size):
@@ -351,6 +355,11 @@ class RunStream:
     def has_reference_pose(self) -> bool:
         """The log has a reference pose (its blocks carry one)."""
         return self._reader.has_topic(TOPIC_REF_POSE)
+
+    @property
+    def has_reference_lengths(self) -> bool:
+        """The log has reference bar lengths (its blocks carry them)."""
+        return self._reader.has_topic(TOPIC_REF_LENGTHS)
 
     def close(self) -> None:
         self._reader.close()

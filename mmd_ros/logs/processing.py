@@ -71,6 +71,9 @@ class RunSource(Protocol):
     @property
     def has_reference_pose(self) -> bool: ...
 
+    @property
+    def has_reference_lengths(self) -> bool: ...
+
     def blocks(self, size: int) -> Iterator[RunBlock]: ...
 
 
@@ -97,6 +100,9 @@ class ProcessedRun:
     no_signal: NDArray[np.bool_] | None = None
     #: (N, 6, 7) where the covariance's error is lighter-tailed than a Gaussian (``tails_every``)
     tails: NDArray[np.float64] | None = None
+    #: (N, 6, 6) the bars' length covariance [m^2] (with the covariance, a block with reference
+    #: bar lengths: what they judge)
+    length_covariance: NDArray[np.float64] | None = None
 
     @classmethod
     def concatenate(cls, parts: list[ProcessedRun]) -> ProcessedRun:
@@ -147,7 +153,8 @@ def process_blocks(source: RunSource, model: Model, *, calibration: Calibration 
         times = (part.stamps_ns - t0).astype(np.float64) * 1e-9
         res = pipeline.process(times, part.counts, with_covariance=with_covariance,
                                covariance_every=covariance_every, compiled=compiled,
-                               status=part.status, tails_every=tails_every)
+                               status=part.status, tails_every=tails_every,
+                               with_length_covariance=part.reference_lengths is not None)
         comp = res.compensated
         yield part, ProcessedRun(
             part.stamps_ns, comp.lengths_m, res.poses, res.converged, res.valid, res.status,
@@ -155,7 +162,7 @@ def process_blocks(source: RunSource, model: Model, *, calibration: Calibration 
             comp.thermal.reference_error_m, comp.thermal.temp_change_c, res.covariance,
             pipeline.budget.summary() if with_covariance else None,
             res.no_signal if res.no_signal is not None else np.zeros(part.stamps_ns.size, bool),
-            res.tails)
+            res.tails, res.length_covariance)
 
 
 def process_run(run: RunLog, model: Model, *, calibration_path: str | None = None,
@@ -195,6 +202,8 @@ class RunSummary:
         self.length_error: ErrorAccumulator | None = None
         self.coverage: CoverageAccumulator | None = None
         self.reference_noise: ReferenceNoise | None = None
+        self.length_coverage: CoverageAccumulator | None = None
+        self.length_noise: ReferenceNoise | None = None
         self.covariance_every = covariance_every
         self.budget: dict[str, Any] | None = None
 
@@ -226,8 +235,15 @@ class RunSummary:
             self.budget = result.budget
         if part.reference_lengths is not None:
             self.length_error = self.length_error or ErrorAccumulator('lengths')
-            self.length_error.add(length_error(result.lengths_m, part.reference_lengths),
-                                  result.valid)
+            errors = length_error(result.lengths_m, part.reference_lengths)
+            self.length_error.add(errors, result.valid)
+            if result.length_covariance is not None:
+                # a bar's length is a measurement wherever the sample has one (FK need not agree)
+                measured = np.all(np.isfinite(result.lengths_m), axis=1)
+                self.length_coverage = self.length_coverage or CoverageAccumulator()
+                self.length_coverage.add(errors, result.length_covariance, measured)
+                self.length_noise = self.length_noise or ReferenceNoise()
+                self.length_noise.add(errors, result.lengths_m, measured)
 
     def as_dict(self, source: RunSource, *, absolute_reference: bool | None = None
                 ) -> dict[str, Any]:
@@ -279,6 +295,17 @@ class RunSummary:
             summary['uncertainty_budget'] = self.budget
         if self.length_error is not None:
             summary['length_error'] = [s.as_dict() for s in self.length_error.stats()]
+        if self.length_coverage is not None:
+            # reference bar lengths are absolute (a bar resting on a known pair); their own
+            # noise is not stated in a log: read from the data as for a pose
+            sigma = (self.length_noise.sigma() if self.length_noise is not None
+                     else np.full(6, np.nan))
+            report = self.length_coverage.report(absolute=True, reference_sigma=sigma,
+                                                 kind='lengths')
+            if report is not None:
+                report['reference_sigma_estimated'] = [r['name'] for r in report['per_component']]
+                report['every'] *= self.covariance_every
+                summary['length_uncertainty_coverage'] = report
         return summary
 
 
@@ -374,18 +401,20 @@ def process_log(source: RunSource, out: Path, model: Model, *,
     (:func:`~mmd_ros.logs.outputs.replacing`): a failure leaves none. An output that is the
     log being read is refused.
 
-    with_covariance : write the poses with their covariance. With a reference pose in the log
-        the covariance is computed anyway, to report how well it covers the error (of about
-        :attr:`CoverageAccumulator.MAX_SAMPLES` samples spread over the run).
+    with_covariance : write the poses with their covariance. With a reference pose or
+        reference bar lengths in the log the covariance is computed anyway, to report how well
+        it covers the error (of about :attr:`CoverageAccumulator.MAX_SAMPLES` samples spread
+        over the run).
     absolute_reference : see :meth:`RunSummary.as_dict`
-    coverage : False: no covariance for the coverage report (with a reference pose and without
+    coverage : False: no covariance for the coverage report (with a reference and without
         ``with_covariance``, the budget's covariance costs a few µs per sample)
     """
     check_outputs([('out', out), ('csv', csv)], [source.path], force=True)
     if isinstance(calibration, str):
         calibration = load_calibration(calibration)
     # a covariance wanted only for its coverage is computed for the samples the summary keeps
-    coverage_only = coverage and source.has_reference_pose and not with_covariance
+    referenced = source.has_reference_pose or source.has_reference_lengths
+    coverage_only = coverage and referenced and not with_covariance
     every = max(1, source.n_samples // CoverageAccumulator.MAX_SAMPLES) if coverage_only else 1
     # and the size of its coverage region, from where the budget's error is light-tailed
     tails_every = (max(1, source.n_samples // CoverageAccumulator.MAX_SAMPLES)
