@@ -1725,9 +1725,9 @@ def test_a_drift_fitted_on_one_run_is_claimed_on_another(datum):
     ellipsoid. Each bar's drift correction (as far as it drifted apart from the others), and
     the bars' together, is now claimed as uncertain as it is large, and as much again as it
     varied over the fitted run (another run may drift of its own), and the model's terms leave
-    the drift out: measured 100 % and 100 % (conservative, pooled over the four twins: 1.9-4.2
-    and 1.7-2.3 times the error; the fit cannot tell a drift that goes on from one that starts
-    again with each run)."""
+    the drift out: measured 100 % and 100 % (conservative, pooled over the four twins: 1.7-4.1
+    and 1.4-1.8 times the error, fitted as settlings; the fit cannot tell a drift that goes on
+    from one that starts again with each run)."""
     errors, covs = [], []
     for k in range(4):
         g = np.random.default_rng(100 + k)
@@ -1743,30 +1743,39 @@ def test_a_drift_fitted_on_one_run_is_claimed_on_another(datum):
     assert covered >= 0.93
 
 
-def test_a_settling_alike_on_every_bar_fitted_zeroed_is_claimed_on_another_run():
+@pytest.mark.parametrize('datum', ['offset', 'none'])
+def test_a_settling_alike_on_every_bar_is_fitted_as_one_and_claimed_on_another_run(datum, tmp_path):
     """A reading that settles on every bar alike, 0.3 µm +- 15 % decaying over 15 s from each
-    run's start (the bars warming together), fitted as a drift with a zeroed reference, which
-    does not see where the bars' common drift started: new motion had 55 % of its samples in
-    the 95 % ellipsoid (z claimed 0.60 times its error, pooled over four twins) and x, y and
-    the rotations were claimed 4.4-7.0 times theirs, each bar's drift claimed as if it were its
-    own. Now the common mode is claimed as large as the drift's change over the fitted run, and
-    each bar only as far as it drifted apart from the others: measured 100 %, z 1.22, the
-    others 2.0-4.6 (the fit cannot tell a drift that goes on from one that starts again)."""
+    run's start (the bars warming together). A rate over the run does not explain it: fitted
+    absolute, nothing was found on 3 of 4 twins (the residual carried as an uncertainty only)
+    and a new 8 s run, all of it in the settling's first seconds, was 58-68 % covered (71.5 %
+    pooled, z claimed 0.54 times its error). The drift's settling, its time constant estimated
+    from the data, is found on every twin: measured 97.7 %, ratios 0.99-1.19. Zeroed, the
+    reference does not see where the bars' common drift started: 55 % while each bar's whole
+    drift was claimed as its own and the common start was not (z 0.60, the rest 4.4-7.0);
+    now 98.9 %, 1.30-2.52 (the fit cannot tell a drift that goes on from one that starts
+    again)."""
     errors, covs = [], []
     for k in range(4):
         size = 0.3e-6 * (1 + 0.15 * np.random.default_rng(100 + k).uniform(-1, 1, 6))
         result, calibration, twin, run_of = _foreign_twin(k, lambda d: size * np.exp(
-            -np.arange(d.shape[0])[:, None] / 200.0 / 15.0), 'offset')
+            -np.arange(d.shape[0])[:, None] / 200.0 / 15.0), datum)
         assert [f.effect for f in result.found] == ['drift'], result.conclusion
+        tau = result.found[0].hyper
+        assert tau is not None and 5.0 < tau < 45.0, tau            # (the truth: 15 s)
+        if k == 0:    # the directions that claim it on other runs are written and read back
+            model = load_model(result.model.save(tmp_path / 'model.yaml'))
+            assert any(t.type_name == 'drift' and t.settling_s == pytest.approx(tau)
+                       for d in model.uncertainty.fit.directions for t in d)
         _, e, c = _new_motion(k, result.model, calibration, twin, run_of)
         errors.append(e)
         covs.append(c)
     e, c = np.concatenate(errors), np.concatenate(covs)
     ratio = np.sqrt(np.mean(np.diagonal(c, axis1=1, axis2=2), axis=0) / np.mean(e * e, axis=0))
     covered = np.mean(_d2(e, c) <= LIMIT)
-    print('coverage', covered, 'ratios', np.round(ratio, 2))
-    assert covered >= 0.93 and ratio[2] >= 0.8
-    assert np.all(ratio[[0, 1, 3, 4, 5]] < 5.0), ratio      # (7.0 claimed bar by bar)
+    print(datum, 'coverage', covered, 'ratios', np.round(ratio, 2))
+    assert covered >= 0.93 and np.all(ratio >= 0.8), ratio
+    assert np.all(ratio < (1.3 if datum == 'none' else 3.0)), ratio
 
 
 def test_a_cyclic_error_s_period_fitted_on_a_c_axis_run_is_claimed_on_6dof_motion():

@@ -760,30 +760,58 @@ class GravitySag(Effect):
                 f'± {1.96 * sigma[0] / M_PER_UM:.2f} µm long']
 
 
+#: Time constants of a settling tried [s] (refined between the neighbours of the best one), of
+#: those no longer than half the shortest run (a longer one is a rate over the run)
+SETTLING_S = (3.0, 10.0, 30.0, 100.0, 300.0)
+
+
 class Drift(Effect):
     scope = 'run'
     free_mean = True
+    continuous_setting = True
     name = 'drift'
     term_type = 'drift'
     title = 'slow drift'
     physics = ('a bar\'s reading drifts slowly since its calibration: an offset at the start of '
-               'the run and a rate')
+               'the run and a rate, or a settling from the run\'s start (a bar and its joints '
+               'warming or relaxing after handling) whose time constant is estimated from the data')
+
+    def hypers(self, ctxs):
+        shortest = min(float(np.ptp(c.times_s)) for c in ctxs) if ctxs else 0.0
+        return [None] + [tau for tau in SETTLING_S if tau <= 0.5 * shortest]
+
+    def refine_bounds(self, hyper, tried, ctxs):
+        if hyper is None:
+            return None
+        taus = sorted(t for t in tried if t is not None)
+        k = taus.index(hyper)
+        return taus[max(k - 1, 0)], taus[min(k + 1, len(taus) - 1)]
+
+    def hyper_label(self, hyper: Any) -> str:
+        return 'a rate' if hyper is None else f'a settling, time constant {hyper:.3g} s'
 
     def parameters(self, ctx, hyper):
+        if hyper is not None:
+            return (_bar_names('offset', 'µm', 1 / M_PER_UM, 50e-6)
+                    + _bar_names('settling', 'µm', 1 / M_PER_UM, 50e-6))
         return (_bar_names('offset', 'µm', 1 / M_PER_UM, 50e-6)
                 + _bar_names('rate', 'µm/h', 3600 / M_PER_UM, 100e-6 / 3600))
 
     def signature(self, ctx, hyper, idx):
-        c, r, _ = DriftTerm.features(ctx.times_s, None)
+        c, r, _ = DriftTerm.features(ctx.times_s, None, hyper)
         return _per_bar([c[idx], r[idx]])
 
     def make_term(self, ctx, hyper, theta):
-        return DriftTerm(theta[:6], theta[6:])
+        return DriftTerm(theta[:6], theta[6:], hyper)
 
     def diagnostics(self, ctx, hyper):
         return {'time': ctx.times_s}
 
     def interpret(self, ctx, hyper, theta, sigma):
+        if hyper is not None:
+            amp = theta[6:] / M_PER_UM
+            return [f'settling {np.min(amp):+.3f} … {np.max(amp):+.3f} µm from the run\'s '
+                    f'start, time constant {hyper:.3g} s']
         rates = theta[6:] * 3600 / M_PER_UM
         return [f'rates {np.min(rates):+.2f} … {np.max(rates):+.2f} µm/h']
 

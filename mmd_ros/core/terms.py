@@ -878,37 +878,51 @@ class SamplingSkewTerm(_Replayable):
 @register_term
 class DriftTerm(_Replayable):
     """Slow drift of each bar's reading since its calibration: over a run it is an offset at the
-    run's first sample plus a rate, c_i + v_i (t - t_first). Correction: minus that. The offset
-    belongs to the run analysed (it grows with the time since calibration); the rate carries
-    over.
+    run's first sample plus a rate, c_i + v_i (t - t_first), or, with ``settling_s`` tau, plus a
+    settling, c_i + a_i exp(-(t - t_first) / tau) (a reading that settles after handling, as a
+    bar and its joints warm or relax). Correction: minus that. The offset belongs to the run
+    analysed (it grows with the time since calibration); the rate carries over.
     """
 
     type_name = 'drift'
 
-    def __init__(self, offset_m: FloatArray, rate_m_per_s: FloatArray) -> None:
+    def __init__(self, offset_m: FloatArray, rate_m_per_s: FloatArray,
+                 settling_s: float | None = None) -> None:
         self.offset_m = np.asarray(offset_m, dtype=np.float64)
-        self.rate_m_per_s = np.asarray(rate_m_per_s, dtype=np.float64)
+        self.rate_m_per_s = np.asarray(rate_m_per_s, dtype=np.float64)   # (a_i with settling_s)
+        self.settling_s = None if settling_s is None else float(settling_s)
         self.reset()
 
     @staticmethod
-    def features(times_s: FloatArray, state: Any) -> tuple[FloatArray, FloatArray, Any]:
-        """Signatures per unit offset and per unit rate, (N, 6) each [1, s]; state: t_first."""
+    def features(times_s: FloatArray, state: Any, settling_s: float | None = None
+                 ) -> tuple[FloatArray, FloatArray, Any]:
+        """Signatures per unit offset and per unit rate (per unit settling amplitude with
+        ``settling_s``), (N, 6) each [1, s (1)]; state: t_first."""
         if times_s.shape[0] == 0:
             return np.zeros((0, 6)), np.zeros((0, 6)), state
         t0 = float(times_s[0]) if state is None else state
         elapsed = np.repeat((times_s - t0)[:, None], 6, axis=1)
-        return -np.ones_like(elapsed), -elapsed, t0
+        shape = elapsed if settling_s is None else np.exp(-elapsed / settling_s)
+        return -np.ones_like(elapsed), -shape, t0
 
     def correction(self, ctx: TermContext) -> FloatArray:
         self._begin(ctx)
-        c, r, self._state = self.features(ctx.times_s, self._state)
+        c, r, self._state = self.features(ctx.times_s, self._state, self.settling_s)
         return self.offset_m * c + self.rate_m_per_s * r
 
     @classmethod
     def from_params(cls, params: dict[str, Any], source: str) -> DriftTerm:
-        return cls(six_values({'offset_um': params.get('offset_um', 0.0)}, 'offset_um', source) * M_PER_UM,
-                   six_values(params, 'rate_um_per_h', source) * M_PER_UM / 3600.0)
+        offset = six_values({'offset_um': params.get('offset_um', 0.0)}, 'offset_um', source)
+        if 'settling_s' in params:
+            return cls(offset * M_PER_UM, six_values(params, 'settling_um', source) * M_PER_UM,
+                       _number(params, 'settling_s', source, positive=True))
+        rate = six_values(params, 'rate_um_per_h', source) * M_PER_UM / 3600.0
+        return cls(offset * M_PER_UM, rate)
 
     def params(self) -> dict[str, Any]:
+        if self.settling_s is not None:
+            return {'offset_um': (self.offset_m / M_PER_UM).tolist(),
+                    'settling_um': (self.rate_m_per_s / M_PER_UM).tolist(),
+                    'settling_s': self.settling_s}
         return {'offset_um': (self.offset_m / M_PER_UM).tolist(),
                 'rate_um_per_h': (self.rate_m_per_s * 3600.0 / M_PER_UM).tolist()}
