@@ -781,9 +781,9 @@ class Drift(Effect):
         return [None] + [tau for tau in SETTLING_S if tau <= 0.5 * shortest]
 
     def refine_bounds(self, hyper, tried, ctxs):
-        if hyper is None:
-            return None
         taus = sorted(t for t in tried if t is not None)
+        if hyper is None or len(taus) < 2:
+            return None
         k = taus.index(hyper)
         return taus[max(k - 1, 0)], taus[min(k + 1, len(taus) - 1)]
 
