@@ -178,9 +178,9 @@ def _term_directions(ctx: FitContext, found: list[FittedEffect], idx: IntArray,
         # times its error in x, y and the rotations on new motion)
         sig = f.effect.signature(ctx, f.hyper, idx)                            # (n, 6, P)
         touches = np.any(sig != 0.0, axis=0)                                   # (6, P)
-        apart = _apart(f.theta, touches)
-        for bar in range(6):
-            mine = touches[bar] & ~np.any(np.delete(touches, bar, axis=0), axis=0)
+        own = _own_parameters(touches)
+        apart = _apart(f.theta, own)
+        for bar, mine in enumerate(own):
             theta = np.where(mine, apart, 0.0)
             if not np.any(theta):
                 continue
@@ -216,15 +216,22 @@ def _term_directions(ctx: FitContext, found: list[FittedEffect], idx: IntArray,
     return chosen, mean_total, run_own, rest
 
 
-def _apart(theta: FloatArray, touches: NDArray[np.bool_]) -> FloatArray:
-    """``theta`` less, at each bar's own parameters, their mean over the bars (each bar's k-th
-    own parameter with the others' k-th): what each bar did apart from the others. ``theta``
-    as it is when the bars' own parameters do not line up (not as many each)."""
-    own = [np.flatnonzero(touches[bar] & ~np.any(np.delete(touches, bar, axis=0), axis=0))
-           for bar in range(touches.shape[0])]
-    if len({i.size for i in own}) != 1 or own[0].size == 0:
+def _own_parameters(touches: NDArray[np.bool_]) -> list[NDArray[np.bool_]]:
+    """Per bar, which parameters touch that bar alone, (P,) each (``touches``: (6, P), which
+    parameters' columns are non-zero on each bar)."""
+    return [touches[bar] & ~np.any(np.delete(touches, bar, axis=0), axis=0)
+            for bar in range(touches.shape[0])]
+
+
+def _apart(theta: FloatArray, own: list[NDArray[np.bool_]]) -> FloatArray:
+    """``theta`` less, at each bar's own parameters (:func:`_own_parameters`), their mean over
+    the bars (each bar's k-th own parameter with the others' k-th): what each bar did apart
+    from the others. ``theta`` as it is when the bars' own parameters do not line up (not as
+    many each)."""
+    index = [np.flatnonzero(mine) for mine in own]
+    if len({i.size for i in index}) != 1 or index[0].size == 0:
         return theta
-    rows = np.array(own)                                                   # (6, k)
+    rows = np.array(index)                                                 # (6, k)
     out = theta.copy()
     out[rows] = theta[rows] - theta[rows].mean(axis=0)
     return out

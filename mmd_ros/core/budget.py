@@ -808,12 +808,13 @@ class LengthBudget:
         n = 201
         lengths, ok = lengths_within(range_m, self.knots_m, n)     # the terms' span: the CDF's
         ctx = TermContext(np.zeros(n), np.zeros((n, 8)), lengths, lengths, np.zeros((n, 1)), np.zeros(n))
-        c = sum(term.correction(ctx) for term in self._length_terms)
+        each = [(term.type_name in POINT_TERMS, term.correction(ctx))
+                for term in self._length_terms]
+        c = sum(correction for _, correction in each)
         s = np.linspace(-1.0, 1.0, n)
         a = np.column_stack([np.ones(n), s])
         rest = c - a @ np.linalg.lstsq(a, c, rcond=None)[0]
-        points = sum((term.correction(ctx) for term in self._length_terms
-                      if term.type_name in POINT_TERMS), np.zeros((n, 6)))
+        points = sum((correction for point, correction in each if point), np.zeros((n, 6)))
         quadratic = np.linalg.lstsq(np.column_stack([a, s * s]), points, rcond=None)[0]
         # as much of it as the points' own errors (independent from point to point) cannot
         # explain: a trend beyond them is an error of the bar's
