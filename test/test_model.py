@@ -50,6 +50,16 @@ def test_model_file_round_trip(tmp_path):
     ('format_version: 1\nuncertainty: {fit: {rest_terms_nm2: ' + str((-np.eye(6)).tolist()) + '}}\n',
      'uncertainty.fit.rest_terms_nm2'),
     ('format_version: 1\nuncertainty: {sigma_um: 0.4}\n', 'uncertainty.sigma_um'),
+    ('format_version: 1\nuncertainty: {fit: {profile: {excess_nm2: ' + str(np.eye(6).tolist())
+     + ', lengths_mm: [[300, 301]], factor: [[1, 1]]}}}\n', 'uncertainty.fit.profile.lengths_mm'),
+    ('format_version: 1\nuncertainty: {fit: {profile: {excess_nm2: ' + str(np.eye(6).tolist())
+     + ', lengths_mm: [[301, 300], [], [], [], [], []], factor: [[1, 1], [], [], [], [], []]}}}\n',
+     'uncertainty.fit.profile.factor[0]'),
+    ('format_version: 1\nuncertainty: {fit: {profile: {excess_nm2: ' + str(np.eye(6).tolist())
+     + ', lengths_mm: [[300, 301], [], [], [], [], []], factor: [[1, -1], [], [], [], [], []]}}}\n',
+     'uncertainty.fit.profile.factor[0]'),
+    ('format_version: 1\nuncertainty: {fit: {profile: {lengths_mm: [], factor: []}}}\n',
+     'uncertainty.fit.profile.excess_nm2'),
 ])
 def test_bad_model_files_name_the_key(tmp_path, text, key):
     path = tmp_path / 'model.yaml'

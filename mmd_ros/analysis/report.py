@@ -120,6 +120,12 @@ def _uncertainty_section(a: Analysis) -> list[str]:
         L.append(f'| bar{i + 1} | {math.sqrt(max(float(fit.residual_m2[i, i]), 0.0)) * 1e9:.1f} | '
                  + (f'{float(unseen[i]):.1f} | ' if unseen is not None else '– | ')
                  + (f'{flank:.1f} |' if flank > 0 else '– |'))
+    widths = fit.record.get('residual_profile_width_mm')
+    if fit.profile is not None and widths:
+        read = ', '.join(f'bar{i + 1} {w:g} mm' for i, w in enumerate(widths) if w is not None)
+        L += ['', 'The residual depended on where along a bar it was read: its claim follows it '
+              f'there (`uncertainty.fit.profile`, read over {read}; the other bars alike at '
+              'every length).']
     return L + ['']
 
 

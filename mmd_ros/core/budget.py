@@ -539,6 +539,8 @@ class LengthBudget:
         self._has_hysteresis = bool(np.any(self.hysteresis_m > 0))
         self._has_mean_terms = bool(np.any(self.mean_terms_m2))
         self._has_residual = bool(np.any(self.residual_m2))
+        # (where along each bar the residual lay: the same claim, on average, where it was seen)
+        self._profile = fit.profile if fit is not None and self._has_residual else None
         self._cross_key: tuple[float, ...] | None = None
         self._tab: dict[str, FloatArray] | None = None
         self._unchecked_points: NDArray[np.bool_] | None = None
@@ -700,7 +702,10 @@ class LengthBudget:
         elif self._has_mean_terms:
             t.constant['fitted_terms'] = self.mean_terms_m2
         if self._has_residual:
-            t.constant['residual'] = self.residual_m2
+            if self._profile is None:
+                t.constant['residual'] = self.residual_m2
+            else:
+                t.full['residual'] = self.residual_m2 + self._profile.added(x + bar_error_m)
         return t
 
     def _tables(self) -> dict[str, FloatArray]:
@@ -1086,6 +1091,9 @@ class LengthBudget:
             total += self.mean_terms_m2
         if self._has_residual:
             total += self.residual_m2
+            if self._profile is not None:
+                bar = self.bar_error(x, eps) if bar_error_m is None else bar_error_m
+                total += self._profile.added(x + bar)
         return total
 
     def _fast(self) -> dict[str, Any]:

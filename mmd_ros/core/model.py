@@ -44,7 +44,7 @@ from mmd_ros.core.units import M_PER_UM
 from mmd_ros.core.yamlio import atomic_write_text, parse_yaml, read_yaml
 
 __all__ = [
-    'FIT_REPLACEABLE', 'FitUncertainty', 'HysteresisTerm', 'Model', 'ModelTerm',
+    'FIT_REPLACEABLE', 'FitUncertainty', 'HysteresisTerm', 'LengthProfile', 'Model', 'ModelTerm',
     'ModelUncertainty', 'TERM_TYPES', 'TermContext', 'load_model', 'play_operator',
     'register_term', 'six_values', 'term_from_dict',
 ]
@@ -227,7 +227,9 @@ FIT_REPLACEABLE = ('calibration_points', 'calibration_drift', 'reference_distanc
                    'subdivision', 'hysteresis', 'gravity_sag')
 #: Keys of a model file's ``uncertainty.fit`` section.
 FIT_KEYS = ('residual_nm2', 'replaces', 'systematic_scale', 'mean_terms_nm2', 'directions', 'from',
-            'read_noise_nm', 'flank_nm2', 'rest_terms_nm2')
+            'read_noise_nm', 'flank_nm2', 'rest_terms_nm2', 'profile')
+#: Most lengths per bar of a residual's length profile in a model file.
+PROFILE_POINTS = 1000
 
 
 def _matrix6(value: Any, source: str, key: str) -> FloatArray:
@@ -239,6 +241,76 @@ def _matrix6(value: Any, source: str, key: str) -> FloatArray:
     if np.max(np.abs(arr - arr.T)) > 1e-6 * size or np.min(np.linalg.eigvalsh(0.5 * (arr + arr.T))) < -1e-4 * size:
         raise ConfigError(source, key, f'must be {what}, got {value!r}')
     return 0.5 * (arr + arr.T)
+
+
+@dataclass
+class LengthProfile:
+    """Where along each bar's length the residual a fit measured lay: the part of that
+    residual it redistributes and, per bar, a factor over lengths.
+
+    excess_m2 : (6, 6) — the part of ``FitUncertainty.residual_m2`` the factors redistribute
+        (what the references showed beyond the budget's per-sample sources) [m^2]
+    lengths_m : per bar, increasing CDF lengths (G_b,) [m], empty where the bar's residual
+        showed no dependence on its length
+    factor : per bar, the factor f_b >= 0 at those lengths (G_b,) [1]: its mean over the fit's
+        samples 1 where the residual was read as a function of the length, else 1 but where
+        the residual stood out; 1 beyond the first and the last length and without lengths
+
+    At a sample, the residual claims ``residual_m2 + E * (sqrt(f f^T) - 1)``, E ``excess_m2``
+    and f each bar's factor at its CDF length (linear between the lengths): E is claimed where
+    along each bar it was seen.
+    """
+
+    excess_m2: FloatArray
+    lengths_m: list[FloatArray]
+    factor: list[FloatArray]
+
+    def factors(self, cdf_lengths_m: FloatArray) -> FloatArray:
+        """Each bar's factor at CDF lengths (N, 6), (N, 6) [1]."""
+        x = np.asarray(cdf_lengths_m, dtype=np.float64)
+        out = np.ones(x.shape)
+        for b in range(6):
+            if self.lengths_m[b].size:
+                out[:, b] = np.interp(x[:, b], self.lengths_m[b], self.factor[b],
+                                      left=1.0, right=1.0)
+        return np.where(np.isfinite(out), out, 1.0)
+
+    def added(self, cdf_lengths_m: FloatArray) -> FloatArray:
+        """What the profile adds to the residual at CDF lengths (N, 6), (N, 6, 6) [m^2]
+        (negative where a bar's factor is below 1)."""
+        root = np.sqrt(self.factors(cdf_lengths_m))
+        return self.excess_m2 * (root[:, :, None] * root[:, None, :] - 1.0)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {'excess_nm2': (self.excess_m2 * 1e18).tolist(),
+                'lengths_mm': [[round(float(v) * 1e3, 4) for v in x] for x in self.lengths_m],
+                'factor': [[round(float(v), 4) for v in f] for f in self.factor]}
+
+    @classmethod
+    def from_dict(cls, data: Any, source: str, path: str) -> LengthProfile:
+        data = validate.mapping(data, source, path)
+        validate.known_keys(data, ('excess_nm2', 'lengths_mm', 'factor'), source, f'{path}.')
+        excess = _matrix6(data.get('excess_nm2'), source, f'{path}.excess_nm2') * 1e-18
+        lengths, factor = data.get('lengths_mm'), data.get('factor')
+        what = 'six lists, one per measuring bar'
+        for key, value in (('lengths_mm', lengths), ('factor', factor)):
+            if not isinstance(value, list) or len(value) != 6:
+                raise ConfigError(source, f'{path}.{key}', f'must be {what}, got {value!r}')
+        xs, fs = [], []
+        for b in range(6):
+            x = validate.floats(lengths[b], source, f'{path}.lengths_mm[{b}]', (-1,),
+                                what='increasing lengths in mm')
+            f = validate.floats(factor[b], source, f'{path}.factor[{b}]', (-1,),
+                                what='factors >= 0')
+            if (x.size != f.size or x.size > PROFILE_POINTS or np.any(np.diff(x) <= 0)
+                    or np.any((f < 0) | (f > 1e6))):
+                raise ConfigError(source, f'{path}.factor[{b}]',
+                                  f'must be at most {PROFILE_POINTS} factors in 0 … 1e6, one per '
+                                  f'length of lengths_mm[{b}] (increasing), got {f.size} for '
+                                  f'{x.size} lengths')
+            xs.append(x * 1e-3)
+            fs.append(f)
+        return cls(excess, xs, fs)
 
 
 @dataclass
@@ -269,6 +341,8 @@ class FitUncertainty:
         directions not written in ``directions`` (a stage evaluates a few per sample): added to
         every sample whose directions are evaluated, so that the fitted terms' whole covariance
         is claimed [m^2]
+    profile : where along each bar's length the residual lay (:class:`LengthProfile`), or None:
+        the residual claimed alike at every length
     """
 
     residual_m2: FloatArray = field(default_factory=lambda: np.zeros((6, 6)))
@@ -280,6 +354,7 @@ class FitUncertainty:
     read_noise_m: FloatArray | None = None
     flank_m2: FloatArray = field(default_factory=lambda: np.zeros(6))
     rest_terms_m2: FloatArray = field(default_factory=lambda: np.zeros((6, 6)))
+    profile: LengthProfile | None = None
 
     def reset(self) -> None:
         for group in self.directions:
@@ -302,6 +377,7 @@ class FitUncertainty:
                {'flank_nm2': [round(float(v) * 1e18, 3) for v in self.flank_m2]}),
             **({} if not np.any(self.rest_terms_m2) else
                {'rest_terms_nm2': (self.rest_terms_m2 * nm2).tolist()}),
+            **({} if self.profile is None else {'profile': self.profile.to_dict()}),
         }
 
     @classmethod
@@ -341,8 +417,10 @@ class FitUncertainty:
             flank = flank * 1e-18
         rest = _matrix6(data.get('rest_terms_nm2', np.zeros((6, 6)).tolist()), source,
                         f'{path}.rest_terms_nm2') * 1e-18
+        profile = (None if data.get('profile') is None
+                   else LengthProfile.from_dict(data['profile'], source, f'{path}.profile'))
         return cls(residual, tuple(replaces), scale, directions, mean_terms,
-                   dict(record) if isinstance(record, dict) else {}, noise, flank, rest)
+                   dict(record) if isinstance(record, dict) else {}, noise, flank, rest, profile)
 
 
 @dataclass
