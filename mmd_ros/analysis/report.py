@@ -124,8 +124,8 @@ def _uncertainty_section(a: Analysis) -> list[str]:
     if fit.profile is not None and widths:
         read = ', '.join(f'bar{i + 1} {w:g} mm' for i, w in enumerate(widths) if w is not None)
         L += ['', 'The residual depended on where along a bar it was read: its claim follows it '
-              f'there (`uncertainty.fit.profile`, read over {read}; the other bars alike at '
-              'every length).']
+              f'there (`uncertainty.fit.profile`, read with a kernel of {read}; the other bars '
+              'alike at every length).']
     return L + ['']
 
 
