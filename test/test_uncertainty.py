@@ -1658,8 +1658,8 @@ def test_a_local_error_along_a_bar_is_claimed_where_it_lies(datum, tmp_path):
             report = write_report(result, tmp_path, figures=False)['report'].read_text()
             assert 'uncertainty.fit.profile' in report and 'bar2 ' in report
             sigma = [np.sqrt(np.diagonal(Pipeline(twin.documented_device, calibration, m).process(
-                run.times_s[:400], counts[:400], with_covariance=True).covariance, axis1=1, axis2=2))
-                for m in (result.model, back, flat)]
+                run.times_s[:400], counts[:400], with_covariance=True).covariance,
+                axis1=1, axis2=2)) for m in (result.model, back, flat)]
             assert np.allclose(sigma[0], sigma[1], rtol=2e-3)    # (the file's rounding)
             assert not np.allclose(sigma[0], sigma[2], rtol=2e-2)
         near = np.any(np.abs(run.true_lengths - centre) < 2.0 * BUMP_SIGMA_M, axis=1)

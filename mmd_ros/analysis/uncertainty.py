@@ -29,9 +29,10 @@ claim in two ways (``msg_docs/frames.md``):
   lengths the fit saw: the budget brings them back for a bar outside the model's
   ``validity.bar_range_mm``. Where a bar's residual depended on its length (a local defect of
   its scale), the part the references showed beyond the per-sample sources is claimed where
-  along the bar it lay (:func:`_length_profile`). When the fit removed an offset per component (a zeroed
-  reference, ``--datum offset``, the default for a pose) the residual lacks the constant part
-  of the error; what the runs leave unknown of a constant error per bar is claimed with it:
+  along the bar it lay (:func:`_length_profile`). When the fit removed an offset per
+  component (a zeroed reference, ``--datum offset``, the default for a pose) the residual
+  lacks the constant part of the error; what the runs leave unknown of a constant error per
+  bar is claimed with it:
   a posterior whose prior is those sources (scaled by k, ``systematic_scale``, never below 1,
   so that they claim per observed component as much as the terms with free constants,
   ``Effect.free_mean``, corrected over the log: an error the calibration may not know of,
@@ -64,8 +65,8 @@ from scipy.stats import chi2
 from mmd_ros.analysis.data import FitContext, Observation, Processed
 from mmd_ros.core.budget import LengthBudget, Observed
 from mmd_ros.core.kinematics import jacobian
-from mmd_ros.core.model import (FIT_REPLACEABLE, PROFILE_POINTS, FitUncertainty, LengthProfile, Model,
-                                ModelTerm, ModelUncertainty)
+from mmd_ros.core.model import (FIT_REPLACEABLE, PROFILE_POINTS, FitUncertainty, LengthProfile,
+                                Model, ModelTerm, ModelUncertainty)
 from mmd_ros.core.terms import limited_to_seen
 from mmd_ros.core.uncertainty import hat_weights, pose_covariance
 from mmd_ros.core.validity import Validity
@@ -636,7 +637,7 @@ def _sized_from(fit: FitUncertainty, ctx: FitContext, found: list[FittedEffect],
             predicted += np.sum(kept if replace else kept + replaceable, axis=0) * (idx.size / sub.size)
             n += idx.size
             # (the residual along each bar's length, at a few of the samples)
-            step = max(1, -(-idx.size // sub.size))
+            step = max(1, -(-idx.size // PREDICTED_SAMPLES))      # (sub's, :func:`_spread`)
             few = _spread(np.arange(sub.size), PROFILE_SAMPLES)
             claim = np.diagonal(kept if replace else kept + replaceable, axis1=1, axis2=2)[few]
             bars_along.append(_AlongBars(run.after.cdf_lengths_m[sub[few]], dd[few * step],
