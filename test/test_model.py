@@ -131,15 +131,28 @@ def test_two_pipelines_of_one_model_keep_their_own_term_state():
     assert model.terms[0]._play is None   # the model's own terms never ran
 
 
-def test_node_stages_transfer_by_transfer_give_the_batch_result():
+@pytest.mark.parametrize('profiled', [False, True])
+def test_node_stages_transfer_by_transfer_give_the_batch_result(profiled):
     """What compensation_node, fk_node and pose_node compute, 8 samples per transfer, is what
-    ``Pipeline.process`` gives for the whole run, covariance included."""
+    ``Pipeline.process`` gives for the whole run, covariance included (also with a fit's
+    residual claimed where along the bars it lay, ``uncertainty.fit.profile``)."""
+    from mmd_ros.core.model import FitUncertainty, LengthProfile
     from mmd_ros.core.streaming import Compensator, Kinematics
     twin = TwinDevice(DEVICE, Effects.realistic(), seed=6)
     room = AmbientProfile.constant(20.5)
     calibration = twin.calibrate(0.0, room)
     run = twin.simulate(make_scenario('random_motion', ['duration_s=1']), room, start_s=300.0)
     model = Model()
+    if profiled:      # a residual of 50 nm per bar, ten times its variance over bar 1's middle
+        excess = np.diag(np.full(6, 50e-9)) ** 2
+        lo, hi = run.true_lengths[:, 0].min(), run.true_lengths[:, 0].max()
+        at = np.linspace(lo, hi, 9)
+        profile = LengthProfile(excess, [at] + [np.zeros(0)] * 5,
+                                [np.where(np.abs(at - at[4]) < 0.3 * (hi - lo), 10.0, 0.5)]
+                                + [np.zeros(0)] * 5)
+        model = Model(uncertainty=ModelUncertainty(fit=FitUncertainty(excess, profile=profile)))
+        flat = Pipeline(DEVICE, calibration, Model(uncertainty=ModelUncertainty(
+            fit=FitUncertainty(excess)))).process(run.times_s, run.counts, with_covariance=True)
     batch = Pipeline(DEVICE, calibration, model).process(run.times_s, run.counts, with_covariance=True)
     compensator = Compensator(DEVICE, model)
     compensator.set_calibration(calibration, 'test')
@@ -164,6 +177,9 @@ def test_node_stages_transfer_by_transfer_give_the_batch_result():
     scale = np.max(np.diagonal(cov, axis1=1, axis2=2))
     np.testing.assert_allclose(cov, batch.covariance[valid], rtol=1e-6, atol=1e-5 * scale)
     assert np.all(np.diagonal(cov, axis1=1, axis2=2) > 0)
+    if profiled:      # (the profile changed the claim: it is applied, the same way, by both)
+        assert not np.allclose(np.diagonal(flat.covariance[valid], axis1=1, axis2=2),
+                               np.diagonal(cov, axis1=1, axis2=2), rtol=1e-2, atol=0.0)
     without = Kinematics(DEVICE, compensator.budget, with_covariance=False)
     assert without.solve(comp.lengths_m, comp.plate_scale).covariance is None
     assert Kinematics(DEVICE).solve(comp.lengths_m, comp.plate_scale).covariance is None
