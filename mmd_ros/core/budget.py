@@ -539,7 +539,7 @@ class LengthBudget:
         self._has_hysteresis = bool(np.any(self.hysteresis_m > 0))
         self._has_mean_terms = bool(np.any(self.mean_terms_m2))
         self._has_residual = bool(np.any(self.residual_m2))
-        # (where along each bar the residual lay: the same claim, on average, where it was seen)
+        # (where along each bar the residual lay: claimed there, :class:`LengthProfile`)
         self._profile = fit.profile if fit is not None and self._has_residual else None
         self._cross_key: tuple[float, ...] | None = None
         self._tab: dict[str, FloatArray] | None = None
