@@ -685,8 +685,6 @@ def _sized_from(fit: FitUncertainty, ctx: FitContext, found: list[FittedEffect],
             between = float(np.trace(unseen)) - along          # the five other directions
             fit.record['unseen_common_mode_nm'] = round(math.sqrt(max(along, 0.0)) * 1e9, 1)
             fit.record['unseen_differential_nm'] = round(math.sqrt(max(between, 0.0) / 5.0) * 1e9, 1)
-        excess[~seen, :] = 0.0
-        excess[:, ~seen] = 0.0
         fit.residual_m2 = excess + fit.residual_m2     # (what another run may drift: run_own)
         fit.replaces = tuple(FIT_REPLACEABLE) if replace else ()
         if replace:
@@ -846,8 +844,8 @@ def _length_profile(along: list[_AlongBars], excess: FloatArray
                     total -= 0.5 * float(np.sum(w[t] * (np.log(var) + q[t] / var)))
             return total
 
-        best, best_score = None, score(None)
-        flat = best_score
+        flat = score(None)
+        best, best_score = None, flat
         for h in PROFILE_WIDTHS_M:
             got = score(h)
             if got > best_score:

@@ -1026,6 +1026,8 @@ class LengthBudget:
             return self._covariance_by_sources(x, reference_error_m, temp_change_c, bar_error_m,
                                                fit_columns_m, observed)
         eps = np.asarray(reference_error_m, dtype=np.float64).reshape(n, -1)
+        if bar_error_m is None and (self._fitted_range_m is not None or self._profile is not None):
+            bar_error_m = self.bar_error(x, eps)      # (the CDF lengths those sources follow)
         noise = (np.broadcast_to(self.read_noise_m(), (n, self.noise.columns))
                  if observed is None else observed.read_noise_m)
         fast = self._fast()
@@ -1062,8 +1064,7 @@ class LengthBudget:
                 bias += hysteresis[0]
             diag += hysteresis[1]
         if self._fitted_range_m is not None:
-            diag += self._unchecked(x, self.bar_error(x, eps) if bar_error_m is None else bar_error_m,
-                                    eps, temp_change_c)
+            diag += self._unchecked(x, bar_error_m, eps, temp_change_c)
         if self.latch_skew_s and observed is not None and observed.velocity_m_s is not None:
             v = observed.velocity_m_s
             bias += (0.5 * self.latch_skew_s) * v
@@ -1092,8 +1093,7 @@ class LengthBudget:
         if self._has_residual:
             total += self.residual_m2
             if self._profile is not None:
-                bar = self.bar_error(x, eps) if bar_error_m is None else bar_error_m
-                total += self._profile.added(x + bar)
+                total += self._profile.added(x + bar_error_m)
         return total
 
     def _fast(self) -> dict[str, Any]:
