@@ -11,6 +11,7 @@ which adds its own noise).
 from __future__ import annotations
 
 import copy
+import functools
 import json
 import math
 
@@ -19,6 +20,7 @@ import pytest
 from scipy.stats import chi2
 
 from foreign_effects import sech_friction
+from test_session import bench_twin_analysis
 from mmd_ros.core.accuracy import coverage, pose_error
 from mmd_ros.core.budget import LengthBudget, segments_seen
 from mmd_ros.core.calibration import Calibration
@@ -802,12 +804,28 @@ def _cross_bias(bias: dict) -> np.ndarray:
             - total[:, :, None] * total[:, None, :])
 
 
+#: :func:`_after_the_loop`'s last four cases (tests judge some alike; each holds ~60 MB).
+_LOOPS: dict = {}
+
+
 def _after_the_loop(tmp_path, seed: int, fit_s: float = 60.0, datum: str = 'none',
                     calibrate_at_s: float = 0.0, **options):
     """mmd analyze on a log of a realistic twin with its full pose (the log's own reference
     noise stated; ``datum`` 'none' absolute, 'offset' zeroed; the twin calibrated at
     ``calibrate_at_s`` of the room's day; ``options`` further AnalysisOptions), then that
-    twin's model judged against its true pose on three new runs."""
+    twin's model judged against its true pose on three new runs. A case asked for again is
+    not computed again: its log stays in the ``tmp_path`` of the first test that asked for it."""
+    from mmd_ros.analysis.identify import AnalysisOptions
+    key = (seed, fit_s, calibrate_at_s, repr(AnalysisOptions(datum=datum, **options)))
+    if key not in _LOOPS:
+        _LOOPS[key] = _loop(tmp_path, seed, fit_s, datum, calibrate_at_s, **options)
+        if len(_LOOPS) > 4:
+            del _LOOPS[next(iter(_LOOPS))]
+    return _LOOPS[key]
+
+
+def _loop(tmp_path, seed: int, fit_s: float, datum: str, calibrate_at_s: float, **options):
+    """:func:`_after_the_loop`, computed."""
     from mmd_ros.analysis.identify import AnalysisOptions, analyze
     from mmd_ros.logs.layout import read_run
     from mmd_ros.twin.recording import SimulationSpec, simulate_to_log
@@ -909,16 +927,10 @@ def test_the_fitted_parameters_intervals_cover_the_twin_s_true_values():
     interval (RMS 1.75 sigma) and the sag 6-13 sigma from the truth; with those constants propagated
     through the fit, and the sag (one figure for six bars) scaled by how far the bars agree
     on it, 22 of 24 (RMS 1.18; 8 twins 91.7 %, zeroed 89.6 %) and the sag within 0.9 sigma."""
-    from mmd_ros.analysis.identify import AnalysisOptions, analyze
-    room = ambient_profile('section_4_1')
     skew_z, sag_z = [], []
     for k in (2, 3, 4, 5):
         twin = TwinDevice(DEVICE, Effects.realistic(), seed=k + 1)
-        calibration = twin.calibrate(-211.0 * k, room, approaches=2)
-        run = twin.simulate(make_scenario('random_motion', ['duration_s=60', f'seed={100 + k}']),
-                            room, start_s=600.0, reference='pose6')
-        result = analyze(run_log(twin, calibration, run, 600.0),
-                         options=AnalysisOptions(datum='none'))
+        result = bench_twin_analysis(k)     # its analysis on 60 s of motion (k = 5: test_session's)
         for f in result.found:
             rows = f.parameter_rows()
             value = np.array([r['value'] for r in rows])
@@ -986,11 +998,12 @@ def _travel(k: int, reference: str) -> np.ndarray:
                          sample_rate_hz=200.0).true_lengths
 
 
+@functools.lru_cache(maxsize=4)
 def _bowed_twin(k: int, reference: str):
     """Twin k (ideal) analysed with a zeroed reference (``reference``) on 40 s of random motion,
     its bars reading a quadratic bow of their scale about the middle of the travel that motion
     covers: 0.25-0.35 µm from middle to end, zero mean over the run, after the calibration (it
-    did not see it). As :func:`_foreign_twin`."""
+    did not see it). As :func:`_foreign_twin`; made once for the tests that judge it."""
     amplitude = FOREIGN_AMPLITUDE_M
     travel = _travel(k, reference)
     mid, half = 0.5 * (travel.max(0) + travel.min(0)), 0.5 * (travel.max(0) - travel.min(0))
@@ -1434,8 +1447,10 @@ def test_what_a_fit_left_where_it_saw_only_a_segment_s_flank_is_measured_and_cla
 
     figures = {}
     for size in (0.0, 0.4e-6):
-        result = analyze(run_log(twin, calibration, fitted, 600.0, counts_of(fitted, size)),
-                         options=AnalysisOptions(datum='none'))
+        # (without the bump, the analysis of test_session's bench_twin_analysis(7): the same log)
+        result = bench_twin_analysis(k) if not size else analyze(
+            run_log(twin, calibration, fitted, 600.0, counts_of(fitted, size)),
+            options=AnalysisOptions(datum='none'))
         model = result.model
         flank = model.uncertainty.fit.flank_m2
         without = Model.from_dict(model.to_dict())
@@ -1502,6 +1517,16 @@ def test_after_the_loop_a_scale_error_of_another_shape_is_covered_where_the_fit_
         assert np.mean(d2[~out] <= LIMIT) >= 0.95 and np.all((ratio >= 0.8) & (ratio <= 4.0)), ratio
 
 
+@functools.lru_cache(maxsize=4)
+def _bumped_twin(k: int):
+    """Twin k (ideal) analysed zeroed on 60 s of random motion, its bars reading a localised
+    length error (a 4 mm Gaussian bump of up to 0.5 µm, a shape no term has), as
+    :func:`_foreign_twin`; made once for the tests that judge it."""
+    g = np.random.default_rng(100 + k)
+    centre, size = g.uniform(0.30, 0.36, 6), g.uniform(-1, 1, 6) * 0.5e-6
+    return _foreign_twin(k, lambda d: size * np.exp(-0.5 * ((d - centre) / 0.004) ** 2), 'offset')
+
+
 def test_a_zeroed_fit_of_a_localised_length_error_moves_no_mean_it_cannot_see():
     """A zeroed reference (``--datum offset``, the default for a pose) sees how each component
     varies, not its mean. A localised length error (a 4 mm Gaussian bump of up to 0.5 µm on
@@ -1516,10 +1541,7 @@ def test_a_zeroed_fit_of_a_localised_length_error_moves_no_mean_it_cannot_see():
     are refitted without it (written as fitted with it, yaw's mean moved 48 times the claim)."""
     errors, covs = [], []
     for k in (0, 1):
-        g = np.random.default_rng(100 + k)
-        centre, size = g.uniform(0.30, 0.36, 6), g.uniform(-1, 1, 6) * 0.5e-6
-        result, calibration, twin, run_of = _foreign_twin(
-            k, lambda d: size * np.exp(-0.5 * ((d - centre) / 0.004) ** 2), 'offset')
+        result, calibration, twin, run_of = _bumped_twin(k)
         assert result.model is not None, result.conclusion
         fit, counts = run_of(['duration_s=60', f'seed={100 + k}'], 600.0)
         means, claimed = [], None
@@ -1550,10 +1572,7 @@ def test_a_local_error_a_fit_run_crossed_rarely_is_claimed_where_it_was_seen():
     all four's samples). What stood out of the mean where it was seen is now claimed there."""
     errors, covs, flats = [], [], []
     for k in range(4):
-        g = np.random.default_rng(100 + k)
-        centre, size = g.uniform(0.30, 0.36, 6), g.uniform(-1, 1, 6) * 0.5e-6
-        result, calibration, twin, run_of = _foreign_twin(
-            k, lambda d: size * np.exp(-0.5 * ((d - centre) / 0.004) ** 2), 'offset')
+        result, calibration, twin, run_of = _bumped_twin(k)
         flat = copy.deepcopy(result.model)
         flat.uncertainty.fit.profile = None
         run, counts = run_of(['duration_s=8', f'seed={k}'], 700.0)
@@ -1872,6 +1891,17 @@ def test_a_settling_alike_on_every_bar_is_fitted_as_one_and_claimed_on_another_r
     assert np.all(ratio < (1.3 if datum == 'none' else 3.0)), ratio
 
 
+@functools.lru_cache(maxsize=2)
+def _c_axis_cyclic(k: int):
+    """Twin k (ideal) analysed zeroed on a C-axis ISO run (rotary encoder reference), its
+    counts carrying an encoder cyclic error of 13 µm period and 80 nm (twin k's phase per bar),
+    as :func:`_foreign_twin`; made once for the tests that judge it."""
+    phase = np.random.default_rng(100 + k).uniform(0, 2 * np.pi, 6)
+    return _foreign_twin(
+        k, lambda q: 80e-9 * np.sin(2 * np.pi * q * RES / 13e-6 + phase), 'offset',
+        fit=('iso_rotary', ['axis=psi', 'n_cycles=3'], 'rotary_psi'), of_counts=True)
+
+
 def test_a_cyclic_error_s_period_fitted_on_a_c_axis_run_is_claimed_on_6dof_motion():
     """An encoder cyclic error of 13 µm period and 80 nm (twin k's phase per bar), fitted from
     a C-axis ISO run alone (rotary encoder reference) and applied to new 6-DOF motion. The run
@@ -1886,10 +1916,7 @@ def test_a_cyclic_error_s_period_fitted_on_a_c_axis_run_is_claimed_on_6dof_motio
     sigma scaled by the bars' Birge ratio; the test below checks it over ten twins)."""
     covered, z = [], []
     for k in range(2):
-        phase = np.random.default_rng(100 + k).uniform(0, 2 * np.pi, 6)
-        result, calibration, twin, run_of = _foreign_twin(
-            k, lambda q: 80e-9 * np.sin(2 * np.pi * q * RES / 13e-6 + phase), 'offset',
-            fit=('iso_rotary', ['axis=psi', 'n_cycles=3'], 'rotary_psi'), of_counts=True)
+        result, calibration, twin, run_of = _c_axis_cyclic(k)
         assert [f.effect for f in result.found] == ['cyclic_error'], result.conclusion
         found = result.found[0]
         assert found.setting_shift is not None
@@ -1913,11 +1940,8 @@ def test_a_cyclic_error_s_period_is_within_its_claimed_sigma_over_ten_twins():
     the Birge ratio of those estimates: measured RMS 1.11, nine of ten within 2 sigma; 1.41,
     nine of ten, with the rows of the components the calibrator does not see (axis_motion)."""
     z = []
-    for k in range(10):
-        phase = np.random.default_rng(100 + k).uniform(0, 2 * np.pi, 6)
-        result, *_ = _foreign_twin(
-            k, lambda q: 80e-9 * np.sin(2 * np.pi * q * RES / 13e-6 + phase), 'offset',
-            fit=('iso_rotary', ['axis=psi', 'n_cycles=3'], 'rotary_psi'), of_counts=True)
+    for k in range(10):      # (the first two are the twins of the test above)
+        result, *_ = _c_axis_cyclic(k)
         found = [f for f in result.found if f.effect == 'cyclic_error']
         assert found and found[0].setting_shift is not None, result.conclusion
         period = found[0].hyper[0]
