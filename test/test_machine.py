@@ -606,3 +606,27 @@ def test_bad_input_is_refused_with_one_line(tmp_path, capsys):
     assert '--rotary-components' in err and len(err.strip().splitlines()) == 1
     assert main(['machine', 'tables', str(log), '--out', str(tmp_path)]) == 2
     assert 'Traceback' not in capsys.readouterr().err
+
+
+@pytest.mark.parametrize('option,value', [
+    ('--draws', '0'), ('--draws', '-3'), ('--draws', '1'), ('--limit-um', 'nan'),
+    ('--limit-um', '-1'), ('--limit-arcsec', '0'), ('--mmd-accuracy-um', 'nan'),
+    ('--mmd-accuracy-um', '-1'), ('--mmd-accuracy-arcsec', 'inf'),
+    ('--rotary-components', 'nan')])
+def test_numeric_options_the_analysis_cannot_use_are_refused(tmp_path, capsys, option, value):
+    """--draws below 2 (every uncertainty is the spread of the draws: 0 crashed, 1 gave NaN
+    reported as "exceeds the limit"), a NaN or negative limit or stated accuracy: refused in one
+    line naming the option and the value, before any log is read; so is the API's option."""
+    extra = [value, '1'] if option == '--rotary-components' else [value]
+    argv = ['machine', 'analyze', str(tmp_path / 'none.mcap'), '--machine', 'machine_xyzac.yaml',
+            '--quiet', option] + extra
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert option in err and 'Traceback' not in err and len(err.strip().splitlines()) == 1, err
+    key = {'--draws': 'draws', '--limit-um': 'limit_m', '--limit-arcsec': 'limit_rad',
+           '--mmd-accuracy-um': 'mmd_bound_m', '--mmd-accuracy-arcsec': 'mmd_bound_rad',
+           '--rotary-components': 'component_m'}[option]
+    number = int(value) if option == '--draws' else float(value)
+    with pytest.raises(MachineAnalysisError, match=key):
+        identify([], load_machine('machine_xyzac.yaml'),
+                 options=replace(IdentifyOptions(), **{key: number}))

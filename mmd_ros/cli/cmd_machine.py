@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -40,11 +41,26 @@ def _progress(enabled: bool):
     return tick
 
 
-def _analyze(args: argparse.Namespace) -> int:
-    machine = load_machine(args.machine)
-    if min(args.rotary_components) < 0:
+def _check_numbers(args: argparse.Namespace) -> None:
+    """Refuse numeric options the analysis cannot use, naming the option and its value."""
+    if args.draws < 2:
+        raise MachineAnalysisError(f'--draws must be >= 2, got {args.draws}: every uncertainty is '
+                                   'the spread of the Monte Carlo draws, which needs at least two')
+    for option, value, zero in (('--limit-um', args.limit_um, False),
+                                ('--limit-arcsec', args.limit_arcsec, False),
+                                ('--mmd-accuracy-um', args.mmd_accuracy_um, True),
+                                ('--mmd-accuracy-arcsec', args.mmd_accuracy_arcsec, True)):
+        if not (math.isfinite(value) and (value >= 0 if zero else value > 0)):
+            raise MachineAnalysisError(f'{option} must be a finite number '
+                                       f'{">=" if zero else ">"} 0, got {value:g}')
+    if not all(math.isfinite(v) and v >= 0 for v in args.rotary_components):
         raise MachineAnalysisError(f'--rotary-components must be two numbers >= 0 (µm, arc-seconds), '
                                    f'got {args.rotary_components}')
+
+
+def _analyze(args: argparse.Namespace) -> int:
+    _check_numbers(args)
+    machine = load_machine(args.machine)
     quiet = args.json or args.quiet
     options = SessionOptions(
         model=load_model(args.model) if args.model else None, model_path=args.model,
@@ -162,7 +178,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     a.add_argument('--instrument', choices=['mmd', 'reference'], default='mmd',
                    help='the MMD (default), or the log\'s six-dimensional reference instrument')
     a.add_argument('--calibration', help='calibration file instead of the one in each log')
-    a.add_argument('--draws', type=int, default=200, help='Monte Carlo draws (default 200)')
+    a.add_argument('--draws', type=int, default=200,
+                   help='Monte Carlo draws, at least 2 (default 200)')
     a.add_argument('--limit-um', type=float, default=2.0, dest='limit_um',
                    help='a length error whose standard uncertainty exceeds this is "not determined" (default 2)')
     a.add_argument('--limit-arcsec', type=float, default=2.0, dest='limit_arcsec',

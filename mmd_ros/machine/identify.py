@@ -667,6 +667,7 @@ def identify(runs: list[AxisRun], machine: MachineDescription, *,
              progress: Callable[[str, int, int], None] | None = None) -> MachineResult:
     """All errors a session determines, with their uncertainty (module docstring)."""
     started = time.perf_counter()
+    _check_options(options)
     if not runs:
         raise MachineAnalysisError('no axis runs found in the logs')
     seen: dict[str, AxisRun] = {}
@@ -680,9 +681,6 @@ def identify(runs: list[AxisRun], machine: MachineDescription, *,
         bound = np.diag([options.mmd_bound_m ** 2 / 3.0] * 3 + [options.mmd_bound_rad ** 2 / 3.0] * 3)
         for mean in means.values():
             mean.cov_mmd = mean.cov_mmd + bound
-    if not (options.component_m >= 0 and options.component_rad >= 0):
-        raise MachineAnalysisError('the rotary component error size must be >= 0, got '
-                                   f'{options.component_m} m, {options.component_rad} rad')
     session = _Session(machine, means, (options.component_m, options.component_rad))
     zero = np.zeros(3)
     p0, r0 = {n: m.p for n, m in means.items()}, {n: m.r for n, m in means.items()}
@@ -710,6 +708,22 @@ def identify(runs: list[AxisRun], machine: MachineDescription, *,
     result.seconds = {'evaluate': t1 - started, 'monte_carlo': t2 - t1,
                       'total': time.perf_counter() - started}
     return result
+
+
+def _check_options(options: IdentifyOptions) -> None:
+    """Refuse options the identification cannot use, naming the option and its value."""
+    if not (isinstance(options.draws, (int, np.integer)) and options.draws >= 2):
+        raise MachineAnalysisError(
+            f'draws must be an integer >= 2, got {options.draws!r}: every uncertainty is the '
+            'spread (standard deviation) of the Monte Carlo draws, which needs at least two')
+    checks = (('limit_m', 'm', False), ('limit_rad', 'rad', False),
+              ('mmd_bound_m', 'm', True), ('mmd_bound_rad', 'rad', True),
+              ('component_m', 'm', True), ('component_rad', 'rad', True))
+    for key, unit, zero in checks:
+        v = float(getattr(options, key))
+        if not (math.isfinite(v) and (v >= 0 if zero else v > 0)):
+            raise MachineAnalysisError(f'{key} must be a finite number {">=" if zero else ">"} 0, '
+                                       f'got {v:g} {unit}')
 
 
 def _coverage(u: Any, u_stat: Any, n: int) -> FloatArray:
