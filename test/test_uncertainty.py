@@ -1181,8 +1181,9 @@ def test_a_statement_the_data_do_not_check_is_claimed_whole():
     sag), the stated figure is not checked and the model claims its stated uncertainty, or
     without one the whole figure; where they do, sqrt(d^2 + s^2) without a stated uncertainty,
     and with one sigma_p the posterior's sqrt(m^2 + v), unless d lies beyond 3 sqrt(s^2 +
-    sigma_p^2) (the data dispute the statement); a sag the fit added itself, or no statement,
-    claims nothing here."""
+    sigma_p^2) (the data dispute the statement), or unless s is no smaller than the figure (the
+    data do not determine the sag to its own size: not checked); a sag the fit added itself,
+    or no statement, claims nothing here."""
     from types import SimpleNamespace
     from mmd_ros.analysis.identify import _check_statement
     from mmd_ros.core.terms import GravitySagTerm
@@ -1215,6 +1216,14 @@ def test_a_statement_the_data_do_not_check_is_claimed_whole():
     effects, check = _check_statement(selector((np.array([1.6e-7]), np.array([4e-8]))), stated,
                                       30e-9)
     assert check['disputed'] and check['claimed_nm'] == pytest.approx(math.hypot(160.0, 40.0))
+    # s = 1.3 µm, no better than the 100 nm figure: not a check, however far d lies
+    for prior, whole in ((None, 100.0), (15e-9, 15.0)):
+        effects, check = _check_statement(selector((np.array([7e-6]), np.array([1.3e-6]))),
+                                          stated, prior)
+        assert check['undetermined'] and not check['disputed'], check
+        assert check['claimed_nm'] == pytest.approx(whole) and check['error_nm'] > 0
+    assert not _check_statement(selector((np.array([3e-8]), np.array([4e-8]))), stated
+                                )[1]['undetermined']
     fitted = SimpleNamespace(effect=SimpleNamespace(name='gravity_sag'))
     assert _check_statement(SimpleNamespace(active=[fitted], check=None), stated) == ([], None)
     assert _check_statement(SimpleNamespace(active=[], check=None), []) == ([], None)

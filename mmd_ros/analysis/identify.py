@@ -2053,22 +2053,32 @@ def _check_statement(sel: _Selector, stated: list[ModelTerm], prior_m: float | N
     m is claimed, not applied), unless the data dispute the statement (|d| beyond
     DISPUTE_SIGMAS sqrt(s^2 + sigma_p^2)): then, as without a stated uncertainty, sqrt(d^2 + s^2),
     what an error estimated d +- s with nothing known of it beforehand leaves. Where the data
-    do not exercise the bars' inclination, the statement is not checked: sigma_p is claimed, or
-    without it the whole figure. None and no effect when there is no statement, or a fitted sag
+    do not exercise the bars' inclination, or determine the sag no better than the figure
+    itself (s >= the figure: ``undetermined``), the statement is not checked: sigma_p is
+    claimed, or without it the whole figure. None and no effect when there is no statement, or a fitted sag
     in its place."""
     if not stated or any(a.effect.name == 'gravity_sag' for a in sel.active):
         return [], None
     effect, points = catalogue(['gravity_sag', 'calibration_points'])
     got = sel.check(effect, ((points, _point_sd(sel, points), None), *_undetermined(sel, points)))
     check: dict[str, Any] = {'error_nm': None, 'sigma_nm': None, 'disputed': False,
+                             'undetermined': False,
                              'prior_nm': None if prior_m is None else prior_m * 1e9}
+    figure = float(np.max(np.abs(stated[0].params()['sag_um']))) * M_PER_UM
+    unchecked = prior_m if prior_m is not None else figure
     if got is None or not np.all(np.isfinite(got[0])) or not float(got[1][0]) > 0.0:
-        claimed = (prior_m if prior_m is not None
-                   else float(np.max(np.abs(stated[0].params()['sag_um']))) * M_PER_UM)
+        claimed = unchecked
     else:
         d, s = float(got[0][0]), float(got[1][0])
         check.update(error_nm=d * 1e9, sigma_nm=s * 1e9)
-        if prior_m is not None and abs(d) <= DISPUTE_SIGMAS * math.hypot(s, prior_m):
+        if s >= figure:
+            # the data do not determine the sag to its own size: what they put it at is what
+            # the fit's other effects and the points' errors leave along the inclination, not
+            # a check (an x-axis laser and an A-axis run put an exact 100 nm statement's error
+            # at +7.0 +- 2.6 µm; claimed, the roll of that A run was 32 times its error)
+            check['undetermined'] = True
+            claimed = unchecked
+        elif prior_m is not None and abs(d) <= DISPUTE_SIGMAS * math.hypot(s, prior_m):
             p2, s2 = prior_m * prior_m, s * s
             claimed = math.sqrt((d * p2 / (p2 + s2)) ** 2 + p2 * s2 / (p2 + s2)) if p2 else 0.0
         else:
@@ -2120,6 +2130,8 @@ def _check_text(check: dict[str, Any]) -> str:
                 + claim)
     said = (f'; the data put its error at {check["error_nm"]:+.0f} ± '
             f'{1.96 * check["sigma_nm"]:.0f} nm (95 %, with every calibration point\'s error)')
+    if check['undetermined']:
+        return (said + f', no better than the figure itself: not checked{known}, ' + claim)
     if check['disputed']:
         return said + f', which disputes the statement{known}: {claim}'
     if prior is not None:
