@@ -237,6 +237,11 @@ class _Session:
         lin = {a.component: a.name for a in machine.linear_axes}
         self.frame_axes = (lin[0], lin[1])
         self.frame_measured = lin[0] in means and lin[1] in means
+        #: machine direction (0 x, 1 y, 2 z) -> the run that would fix the frame's rotation about
+        #: it, for the rotations this session leaves open: the X line fixes the rotation about y
+        #: and z, the Y line (in the plane with X's) the rotation about x
+        self.frame_open = {j: need for j, need in ((0, lin[1]), (1, lin[0]), (2, lin[0]))
+                           if need not in means}
         self.nominal_ml = rotation_matrix(machine.lower_rotation)
         self.component_prior = component_prior
         #: rotary axis -> (location, normalised Jacobian, its pseudo-inverse) of the nominal fit;
@@ -836,10 +841,7 @@ def _build(machine: MachineDescription, session: _Session, base: dict[str, Any],
                                        options, None, n_cyc, usl[2 + i]))
             for i, v in enumerate(location):
                 v.u_turn = float(math.sqrt(leak[i, i]))
-            if not session.frame_measured:
-                for v in location[2:]:
-                    v.determined = False
-                    v.note = 'orientation relative to {L}, not to the machine\'s axes (no frame)'
+            _flag_open_frame(location, axis, perp, session)
         axes[name] = AxisResult(name, axis.rotary, mean.run.log, mean.run.source, mean.targets,
                                 int(mean.n.min()), mean.run.following, motions, location,
                                 base[f'{name}/chi2'] if axis.rotary else 1.0)
@@ -849,6 +851,38 @@ def _build(machine: MachineDescription, session: _Session, base: dict[str, Any],
     return MachineResult(machine, axes, squareness, base['frame'],
                          'measured (X run and Y run)' if session.frame_measured else 'nominal',
                          instrument, model_text, logs, options.draws, notes, play=_play_notes(session))
+
+
+#: A pivot at least this far [m] off the functional point across an open rotation of the frame
+#: moves with that rotation (a setup misalignment of a few degrees moves it by a few % of this)
+LEVER_M = 1e-6
+
+
+def _flag_open_frame(location: list[Value], axis: MachineAxis, perp: list[int],
+                     session: _Session) -> None:
+    """Flag, as not determined, the location errors (EX0C, EY0C, EA0C, EB0C order) of a rotary
+    axis that depend on a rotation of the machine frame the session does not fix
+    (:attr:`_Session.frame_open`; it is then {L}'s setup misalignment, not the machine's): the
+    tilt about that direction, and the position across it. The frame turns {L} into machine axes
+    about the functional point, where the motion is measured; turned by ε about e, it moves the
+    axis line at its pivot by ε e × (pivot − functional point): with the X run alone, the C
+    table's EY0C moves with EA0C, 300 mm below the functional point."""
+    arm = axis.pivot - session.machine.functional_point
+    for a, need in session.frame_open.items():
+        shift = np.cross(np.eye(3)[a], arm)
+        for i, j in enumerate(perp):
+            if j == a:
+                notes = [(location[2 + i], 'orientation relative to {L}, not to the machine\'s '
+                          f'axes (no frame: needs the {need} run)')]
+            else:
+                notes = []
+            if abs(shift[j]) >= LEVER_M:
+                notes.append((location[i], f'moves {abs(shift[j]) * 1e3:.3g} µm per mrad of the '
+                              f'frame\'s rotation about {"xyz"[a]} (no frame: needs the {need} '
+                              f'run), {abs(shift[j]) * 1e3:.3g} mm from the functional point'))
+            for v, note in notes:
+                v.note = note if v.determined else f'{v.note}; {note}'
+                v.determined = False
 
 
 def _play_notes(session: _Session) -> list[str]:
