@@ -147,7 +147,7 @@ def test_a_session_with_a_6dof_run_improves_every_component_of_another(session):
     assert judged['ellipsoid_coverage'] >= 0.93
 
 
-def test_leave_one_run_out_figures_in_the_json(session, capsys):
+def test_leave_one_run_out_figures_in_the_json(session, tmp_path, capsys):
     assert main(['analyze', str(session['pose_a']), str(session['x']), '--json', '--quiet',
                  '--effects', 'hysteresis,sampling_skew']) == 0
     data = json.loads(capsys.readouterr().out)
@@ -157,6 +157,17 @@ def test_leave_one_run_out_figures_in_the_json(session, capsys):
         assert r['leave_one_run_out_before'] and r['leave_one_run_out_after']
         assert r['held_out_before'] and r['noise_floor']
     assert data['model_file'] is None
+    # the model's uncertainty is read on the last log's context with that log's samples (with
+    # the first log's, a last log shorter than it was indexed past its end: IndexError)
+    short = tmp_path / 'short_a.mcap'
+    simulate_to_log(SimulationSpec(scenario='iso_rotary', scenario_params=(
+        'axis=phi', 'n_targets=3', 'n_cycles=1'), effects='realistic', seed=1,
+        ambient='constant:22', sample_rate_hz=RATE, start_s=3400.0), short, progress=False)
+    assert read_run(short).times_s.size < 4000 < read_run(session['x']).times_s.size
+    assert main(['analyze', str(session['x']), str(short), '--json', '--quiet',
+                 '--effects', 'hysteresis,sampling_skew']) == 0
+    data = json.loads(capsys.readouterr().out)
+    assert [Path(r['log']).name for r in data['runs']] == ['x.mcap', 'short_a.mcap']
     assert main(['analyze', str(session['x']), '--json', '--quiet', '--effects', 'hysteresis']) == 0
     single = json.loads(capsys.readouterr().out)
     assert single['validation'].startswith('within-run')
