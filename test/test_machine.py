@@ -665,3 +665,22 @@ def test_without_the_y_run_the_c_line_position_that_follows_the_open_frame_is_no
     loc = yaml.safe_load(write_location_yaml(part, tmp_path / 'loc.yaml').read_text(encoding='utf-8'))
     errors = loc['rotary_axes']['C']['location_errors']
     assert errors['EY0C']['determined'] is False and errors['EB0C']['determined'] is True
+
+
+def test_repeated_time_stamps_are_refused_naming_the_log():
+    """Stamps that repeat (a logger stamping samples in pairs) made the median time step zero
+    and the dwell detection divide by it (ZeroDivisionError): refused, naming the log, how
+    many steps and where, on the joint-state path and the test-program path."""
+    from types import SimpleNamespace
+    from mmd_ros.machine.session import LogPoses, ProgramRun, _still, extract_runs
+    times = np.repeat(np.arange(200) * 0.01, 2)
+    values = np.where(times < 1.0, 0.0, 0.01)
+    assert _still(np.arange(400) * 0.005, values, 0.15).any()
+    with pytest.raises(MachineAnalysisError, match=r'x\.mcap: time stamps must increase, but 200 '
+                       r'of 399 steps repeat or go back \(first at sample 1, t = 0\.000000 s'):
+        _still(times, values, 0.15, 'x.mcap')
+    poses = LogPoses('p.mcap', times, np.zeros((400, 6)), np.ones(400, dtype=bool))
+    run = SimpleNamespace(path='p.mcap', times_s=times)
+    plan = ProgramRun('X', np.array([-0.1, 0.0, 0.1]), False)
+    with pytest.raises(MachineAnalysisError, match=r'p\.mcap: time stamps must increase'):
+        extract_runs(run, load_machine('machine_xyzac.yaml'), poses, program_run=plan)

@@ -262,8 +262,23 @@ def log_poses(run: RunLog, model: Model | None, *, instrument: str = 'mmd',
 
 
 # -- dwells -----------------------------------------------------------------------------------
-def _still(times: FloatArray, values: FloatArray, min_dwell_s: float) -> NDArray[np.bool_]:
+def _check_times(times: FloatArray, log: str) -> None:
+    """Refuse time stamps that repeat or go back: a dwell is timed by them (detect_dwells takes
+    its window from the median time step, which repeated stamps make zero)."""
+    step = np.diff(np.asarray(times, dtype=np.float64))
+    bad = np.flatnonzero(~(step > 0))
+    if bad.size:
+        i = int(bad[0]) + 1
+        raise MachineAnalysisError(
+            f'{log}: time stamps must increase, but {bad.size} of {step.size} steps repeat or go '
+            f'back (first at sample {i}, t = {float(times[i]):.6f} s after the first): '
+            'record with one stamp per sample, or drop the repeated samples')
+
+
+def _still(times: FloatArray, values: FloatArray, min_dwell_s: float, log: str = 'the log'
+           ) -> NDArray[np.bool_]:
     """Samples where ``values`` stands still (detect_dwells' stretches)."""
+    _check_times(times, log)
     mask = np.zeros(values.size, dtype=bool)
     for d in detect_dwells(times, values, min_dwell_s=min_dwell_s):
         mask[d.start:d.stop] = True
@@ -346,7 +361,7 @@ def _runs_from_joints(run: RunLog, machine: MachineDescription, poses: LogPoses,
     q = _joint_values(run, machine, times)
     still = np.ones(times.size, dtype=bool)
     for k in range(q.shape[1]):
-        still &= _still(times, q[:, k], min_dwell_s)
+        still &= _still(times, q[:, k], min_dwell_s, str(run.path))
     segments = _segments(still, times, min_dwell_s)
     if len(segments) < 3:
         raise MachineAnalysisError(f'{run.path}: the machine stood still only {len(segments)} '
@@ -420,6 +435,7 @@ def _runs_from_program(run: RunLog, machine: MachineDescription, poses: LogPoses
     k = machine.index(plan.axis)
     comp = axis.component + (3 if axis.rotary else 0)
     coord = np.where(poses.valid, poses.poses[:, comp], np.nan)
+    _check_times(poses.times_s, str(run.path))
     dwells = detect_dwells(poses.times_s, coord, min_dwell_s=min_dwell_s)
     moving = [d for d in dwells if d.direction != 0]
     found_values = _cluster(np.array([d.value for d in moving]),
