@@ -172,6 +172,32 @@ def test_mmd_analyze_leaves_them_out_and_says_so(logs, capsys):
     assert '32 sample(s) the terminal flagged' in captured.err
 
 
+def test_counts_that_are_not_numbers_are_left_out_of_mmd_analyze(logs, tmp_path, capsys):
+    """A log written by other software may mark a missing reading with NaN or inf: those
+    samples are not measurements (every signature that follows the motion would carry them
+    on: the least-squares fit failed to converge)."""
+    from mmd_ros.analysis import analyze
+    from mmd_ros.analysis.errors import AnalysisError
+    run = read_run(logs['clean'])
+    counts = run.counts.copy()
+    counts[100:150, 2] = np.nan
+    counts[300, 4] = np.inf
+    path = tmp_path / 'nan.mcap'
+    write_run(path, run.device, run.calibration, run.stamps_ns, counts,
+              reference_pose=run.reference_pose, metadata=run.metadata)
+    damaged = read_run(path)
+    assert int(damaged.unreadable.sum()) == 51
+    with pytest.raises(AnalysisError, match='51 sample.s. with a count that is not a number'):
+        analyze(damaged)
+    kept, n = damaged.without_flagged()
+    assert n == 51 and kept.n_samples == run.n_samples - 51 and not kept.unreadable.any()
+    assert main(['analyze', str(path), '--json', '--effects', 'drift']) == 0
+    captured = capsys.readouterr()
+    assert json.loads(captured.out)['flagged_samples_left_out'] == {str(path): 51}
+    assert '51 sample(s) with a count that is not a number' in captured.err
+    assert 'the terminal flagged' not in captured.err
+
+
 @needs_ros
 def test_replay_publishes_them_with_their_codes(logs):
     """replay_node's rows: the flagged samples with their codes in ``effort``, read back by the

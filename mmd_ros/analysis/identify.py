@@ -449,6 +449,11 @@ def _prepare(index: int, run: RunLog, model: Model, calibration: Calibration | N
         raise AnalysisError(f'{run.path} carries no calibration; pass --calibration FILE')
     if run.counts.shape[0] == 0:
         raise AnalysisError(f'{run.path} has no samples')
+    unreadable = int(run.unreadable.sum())
+    if unreadable:     # (they poison every signature that follows the motion)
+        raise AnalysisError(f'{run.path}: {unreadable} sample(s) with a count that is not a '
+                            'number; leave them out first (RunLog.without_flagged, as mmd '
+                            'analyze does)')
     try:
         obs = make_observation(run.reference_pose, run.reference_lengths, o.datum,
                                run.metadata.get('reference_sigma'))

@@ -56,11 +56,16 @@ def run_command(args: argparse.Namespace) -> int:
         run = read_run(path, segment=args.segment)
         if run.problem:
             print(f'warning: {path}: {run.problem}', file=sys.stderr)
+        unreadable = int(run.unreadable.sum())
         run, flagged = run.without_flagged()
         flagged_samples[str(path)] = flagged
-        if flagged:
-            print(f'warning: {path}: {flagged} sample(s) the terminal flagged (encoder signal '
-                  'lost) are not measurements: left out of the analysis', file=sys.stderr)
+        if flagged - unreadable:
+            print(f'warning: {path}: {flagged - unreadable} sample(s) the terminal flagged '
+                  '(encoder signal lost) are not measurements: left out of the analysis',
+                  file=sys.stderr)
+        if unreadable:
+            print(f'warning: {path}: {unreadable} sample(s) with a count that is not a number '
+                  'are not measurements: left out of the analysis', file=sys.stderr)
         runs.append(run)
     model = load_model(args.model) if args.model else (runs[0].model or Model())
     calibration = load_calibration(args.calibration) if args.calibration else None

@@ -145,12 +145,19 @@ class RunLog:
         h.update(np.ascontiguousarray(self.counts, dtype=np.float64).tobytes())
         return h.hexdigest()[:16]
 
+    @property
+    def unreadable(self) -> NDArray[np.bool_]:
+        """(N,) — samples with a count that is not a finite number (a log written by other
+        software that marks a missing reading so): not measurements either."""
+        return ~np.all(np.isfinite(self.counts), axis=1)
+
     def without_flagged(self) -> tuple[RunLog, int]:
-        """The run without the samples the terminal flagged (:attr:`no_signal`: not
-        measurements), and how many were left out; the run itself when there are none. For
-        the analyses that take whole arrays of counts (``mmd analyze``): a flagged sample is
-        then a gap in the record, as a lost message would be."""
-        drop = self.no_signal
+        """The run without the samples the terminal flagged (:attr:`no_signal`) or with a
+        count that is not a number (:attr:`unreadable`): not measurements, and how many were
+        left out; the run itself when there are none. For the analyses that take whole arrays
+        of counts (``mmd analyze``): such a sample is then a gap in the record, as a lost
+        message would be."""
+        drop = self.no_signal | self.unreadable
         n = int(drop.sum())
         if n == 0:
             return self, 0
