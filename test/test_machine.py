@@ -684,3 +684,47 @@ def test_repeated_time_stamps_are_refused_naming_the_log():
     plan = ProgramRun('X', np.array([-0.1, 0.0, 0.1]), False)
     with pytest.raises(MachineAnalysisError, match=r'p\.mcap: time stamps must increase'):
         extract_runs(run, load_machine('machine_xyzac.yaml'), poses, program_run=plan)
+
+
+def _x_joint_log(targets_runs: list[list[float]], overrun: float = 0.005, rate: float = 100.0):
+    """A log of X runs one after the other (ISO cycles through each list of targets [m]), its
+    joint states and an exact MMD seeing X's motion: (run, machine, poses) for extract_runs."""
+    from types import SimpleNamespace
+    from mmd_ros.logs.layout import MachineJoints
+    from mmd_ros.machine.session import LogPoses
+    points = []
+    for t in targets_runs:
+        points += [t[0] - overrun] + t + [t[-1] + overrun] + t[::-1] + [t[0] - overrun]
+    q, x = [], 0.0
+    for p in points:
+        q += list(np.linspace(x, p, int(0.3 * rate)))[1:] + [p] * int(0.4 * rate)
+        x = p
+    q = np.array(q)
+    times = np.arange(q.size) / rate
+    machine = load_machine('machine_xyzac.yaml')
+    values = np.tile(machine.reference, (q.size, 1))
+    values[:, 0] = q
+    stamps = (times * 1e9).astype(np.int64) + 10 ** 18
+    run = SimpleNamespace(path='xx.mcap', times_s=times, stamps_ns=stamps,
+                          machine_joints=MachineJoints(stamps, machine.axis_names, values))
+    poses = np.zeros((q.size, 6))
+    poses[:, 0] = q
+    return run, machine, LogPoses('xx.mcap', times, poses, np.ones(q.size, dtype=bool))
+
+
+def test_x_runs_one_after_the_other_are_one_run_only_with_the_same_targets():
+    """runs=[X, X]: nothing but X moves between the two runs, so they make one stretch of X
+    moves. With the same targets that is one run with the cycles added (the simulated [X, X]
+    session analyses exactly as [X] with n_cycles=2). With other targets the second run's passes
+    skip the first's targets: they were dropped silently (or its targets left without an
+    approach and refused as not bidirectional); now refused, saying so."""
+    from mmd_ros.machine.session import extract_runs
+    t = [-0.1, 0.0, 0.1]
+    runs = extract_runs(*_x_joint_log([t, t]))
+    assert [r.axis for r in runs] == ['X'] and runs[0].targets == pytest.approx(t)
+    assert sorted((a.target, a.direction, a.cycle) for a in runs[0].approaches) == \
+        sorted((i, d, c) for i in range(3) for d in (1, -1) for c in range(2))
+    for second in ([-0.1, -0.05, 0.0, 0.05, 0.1], [-0.05, 0.0, 0.05]):
+        with pytest.raises(MachineAnalysisError, match=r'xx\.mcap: the X moves from .* s to .* s '
+                           r'are not one ISO 230-2 run.*Give one run per axis'):
+            extract_runs(*_x_joint_log([t, second]))

@@ -676,10 +676,16 @@ def identify(runs: list[AxisRun], machine: MachineDescription, *,
     if not runs:
         raise MachineAnalysisError('no axis runs found in the logs')
     seen: dict[str, AxisRun] = {}
+
+    def where(r: AxisRun) -> str:
+        spans = [a.span_s for a in r.approaches] or [(math.nan, math.nan)]
+        return f'{r.log} {min(s[0] for s in spans):.1f}–{max(s[1] for s in spans):.1f} s'
     for run in runs:
         if run.axis in seen:
-            raise MachineAnalysisError(f'the {run.axis} axis was run twice ({seen[run.axis].log} and '
-                                       f'{run.log}); give one run per axis')
+            raise MachineAnalysisError(
+                f'the {run.axis} axis was run twice ({where(seen[run.axis])} and {where(run)}): '
+                'give one run per axis (runs with the same targets one after the other, no other '
+                'axis moving between them, count as one, their cycles added)')
         seen[run.axis] = run
     means = {run.axis: aggregate(run, machine) for run in runs}
     if options.mmd_bound_m > 0 or options.mmd_bound_rad > 0:

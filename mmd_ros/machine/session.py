@@ -404,11 +404,40 @@ def _runs_from_joints(run: RunLog, machine: MachineDescription, poses: LogPoses,
                                tol[k])
             if targets.size >= 3:
                 tg, found = approaches(dwells, targets)
+                _check_one_run(str(run.path), axis.rotary, axis.name, dwells, tg, found, times)
                 out.append(_axis_run(run, axis.name, axis.rotary, tg, found, poses,
                                      {d.start: n for n, d in zip(idx, dwells)}, values, last,
                                      followers, 'joint states'))
         i = j + 1
     return [r for r in out if r.approaches]
+
+
+def _check_one_run(log: str, rotary: bool, name: str, dwells: list[Dwell], targets: FloatArray,
+                   found: list, times: FloatArray) -> None:
+    """Refuse a stretch of one axis' moves that is not one ISO 230-2 run: runs of an axis one
+    after the other (no other axis moving between them) make one stretch; with the same targets
+    they are one run with their cycles added, with different targets the passes of one of them
+    skip targets of the other and :func:`approaches` drops them (or leaves targets without an
+    approach). Such a pass: two dwells in a row at targets, in one direction, neither kept."""
+    kept = {a.dwell.start for a in found}
+    tol = 0.25 * float(np.min(np.diff(targets)))
+
+    def stray(d: Dwell) -> bool:
+        return d.direction != 0 and d.start not in kept and \
+            float(np.min(np.abs(targets - d.value))) <= tol
+    approached = {(a.target, a.direction) for a in found}
+    skipped = any(stray(a) and stray(b) and a.direction == b.direction
+                  for a, b in zip(dwells, dwells[1:]))
+    if not skipped and len(approached) == 2 * targets.size:
+        return
+    scale, unit = (180.0 / math.pi, '°') if rotary else (1e3, ' mm')
+    shown = ', '.join(f'{v * scale:g}' for v in targets)
+    raise MachineAnalysisError(
+        f'{log}: the {name} moves from {times[dwells[0].start]:.1f} s to '
+        f'{times[dwells[-1].stop - 1]:.1f} s are not one ISO 230-2 run: passes through the targets '
+        f'found there ({shown}{unit}) skip some of them. Two runs of {name} one after the other '
+        'with different targets? Give one run per axis (runs with the same targets one after the '
+        'other count as one, their cycles added)')
 
 
 def _axis_run(run: RunLog, name: str, rotary: bool, targets: FloatArray, found: list,
