@@ -10,6 +10,7 @@ over along a sech² curve, a cyclic error at 13 µm.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import math
@@ -26,7 +27,8 @@ from mmd_ros.core.accuracy import coverage, pose_error
 from mmd_ros.core.device import find_config, load_device
 from mmd_ros.core.model import Model
 from mmd_ros.core.pipeline import Pipeline
-from mmd_ros.core.validity import Validity
+from mmd_ros.core.terms import CdfOffsetsTerm
+from mmd_ros.core.validity import CALIBRATION_TERMS, Validity, other_calibration
 from mmd_ros.logs.layout import read_run, write_run
 from mmd_ros.twin import AmbientProfile, Effects, TwinDevice, make_scenario
 from mmd_ros.twin.recording import SimulationSpec, ambient_profile, run_log, simulate_to_log
@@ -202,10 +204,38 @@ def test_the_model_file_says_what_it_was_validated_on(session, tmp_path, capsys)
         run.calibration.bars['bar1'].counts[-1] - run.calibration.bars['bar1'].counts[0])
     comp.process(np.arange(50, 100, dtype=np.int64), far)
     assert comp.stats.period_outside_bars[0] > 0
+    # the model names its calibration: with another one (the device calibrated again, another
+    # device of the same description), the live compensation and mmd process say so
+    assert comp.model_mismatch is None and other_calibration(model, run.calibration) is None
+    bar = run.calibration.bars['bar1']
+    again = dataclasses.replace(run.calibration, bars={**run.calibration.bars, 'bar1': (
+        dataclasses.replace(bar, counts=(bar.counts[0] + 3.0, *bar.counts[1:])))})
+    comp.set_calibration(again, 'again')
+    assert comp.model_mismatch and again.key() in comp.model_mismatch
+    assert run.calibration.key() in comp.model_mismatch
+    again.save(tmp_path / 'again.yaml')
+    capsys.readouterr()
+    assert main(['process', str(session['pose_a']), '--model', str(out / 'model.yaml'),
+                 '--calibration', str(tmp_path / 'again.yaml'), '--out',
+                 str(tmp_path / 'p.mcap'), '--no-coverage', '--json']) == 0
+    captured = capsys.readouterr()
+    assert 'warning: the model was fitted with calibration' in captured.err
+    assert again.key() in json.loads(captured.out)['model_calibration']
+    terms = Model(terms=[CdfOffsetsTerm(np.tile(np.linspace(0.25, 0.376, 7), (6, 1)),
+                                        np.zeros((6, 7)))], extra=model.extra)
+    assert 'its cdf_offsets term(s) correct' in other_calibration(terms, again)
     # ISO 230-2 "after" on the run the model was fitted on says it is in-sample, on another not
     capsys.readouterr()
     assert main(['iso230-2', str(session['x']), '--after', str(out / 'model.yaml'), '--json']) == 0
     assert json.loads(capsys.readouterr().out)['in_sample'] == {'MMD before': False, 'MMD after': False}
+
+
+def test_the_terms_a_model_holds_of_its_calibration_are_the_catalogue_s():
+    """core.validity names the term types of a calibration (the analysis is above it): the
+    effects of scope 'calibration' in the catalogue."""
+    from mmd_ros.analysis.effects import CATALOGUE
+    scoped = {e.term_type for e in CATALOGUE.values() if e.scope == 'calibration'}
+    assert scoped == set(CALIBRATION_TERMS)
 
 
 def test_logs_of_two_devices_are_refused(session, tmp_path, capsys):

@@ -39,7 +39,6 @@ datum offsets and its own calibration.
 from __future__ import annotations
 
 import copy
-import hashlib
 import math
 import time
 from dataclasses import dataclass, field, replace
@@ -425,7 +424,7 @@ class _Run:
 
 def calibration_key(calibration: Calibration) -> str:
     """Identity of a calibration: a hash of its file contents (12 hex digits)."""
-    return hashlib.sha256(calibration.to_yaml().encode()).hexdigest()[:12]
+    return calibration.key()
 
 
 def _check_one_device(runs: list[RunLog]) -> None:

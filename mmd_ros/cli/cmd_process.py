@@ -55,6 +55,8 @@ def run_command(args: argparse.Namespace) -> int:
     model = chosen or run.model or Model()
     if summary.get('log_problem'):
         print(f'warning: {summary["log_problem"]["message"]}', file=sys.stderr)
+    if summary.get('model_calibration'):
+        print(f'warning: {summary["model_calibration"]}', file=sys.stderr)
     elapsed = time.perf_counter() - started
     summary.update(output=str(out), csv=args.csv, seconds=elapsed,
                    samples_per_s=summary['samples'] / elapsed if elapsed > 0 else None,

@@ -13,6 +13,7 @@ another one.
 
 from __future__ import annotations
 
+import hashlib
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -263,6 +264,11 @@ class Calibration:
 
     def to_yaml(self) -> str:
         return yaml.safe_dump(self.to_dict(), sort_keys=False)
+
+    def key(self) -> str:
+        """Identity of the calibration: a hash of its file contents (12 hex digits), as a
+        model file names the calibration its per-calibration parameters were fitted with."""
+        return hashlib.sha256(self.to_yaml().encode()).hexdigest()[:12]
 
     @classmethod
     def from_dict(cls, data: Any, source: str = '<calibration>') -> Calibration:

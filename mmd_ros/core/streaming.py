@@ -35,7 +35,7 @@ from mmd_ros.core.kinematics import FkStatus, ForwardKinematics
 from mmd_ros.core.model import Model
 from mmd_ros.core.pipeline import Pipeline, bars_without_signal
 from mmd_ros.core.uncertainty import pose_covariance
-from mmd_ros.core.validity import Validity
+from mmd_ros.core.validity import Validity, other_calibration
 
 __all__ = ['CompensationOut', 'Compensator', 'Kinematics', 'KinematicsOut', 'calibration_created_ns']
 
@@ -119,6 +119,8 @@ class Compensator:
         self.calibration: Calibration | None = None
         self.calibration_source = ''
         self.problem = 'no calibration yet'
+        #: why the model does not fit the calibration in use, or None (:func:`other_calibration`)
+        self.model_mismatch: str | None = None
         self.hold_from_ns: int | None = None
         self.stats = _CompStats()
 
@@ -142,10 +144,12 @@ class Compensator:
                 pipeline = Pipeline(self.device, calibration, self.model)
             except MmdError as exc:
                 problem = f'calibration from {source} cannot be used: {exc}'
+        mismatch = other_calibration(self.model, calibration) if calibration is not None else None
         with self._lock:
             self.calibration = calibration
             self.calibration_source = source
             self.problem = problem
+            self.model_mismatch = mismatch
             self._pipeline = pipeline
             self._fk = ForwardKinematics.for_device(self.device) if pipeline is not None else None
             self._t0 = None

@@ -23,10 +23,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from mmd_ros.core.calibration import Calibration
 from mmd_ros.core.model import Model
 from mmd_ros.core.units import M_PER_MM
 
-__all__ = ['BAR_MARGIN_M', 'TEMP_MARGIN_C', 'Validity']
+__all__ = ['BAR_MARGIN_M', 'CALIBRATION_TERMS', 'TEMP_MARGIN_C', 'Validity', 'other_calibration']
 
 FloatArray = NDArray[np.float64]
 
@@ -34,6 +35,36 @@ FloatArray = NDArray[np.float64]
 BAR_MARGIN_M = 1e-3
 #: A temperature this far outside the validated span counts as outside [°C].
 TEMP_MARGIN_C = 0.5
+#: Term types whose parameters belong to the calibration they were fitted with: the errors of
+#: its CDF points, and an encoder cyclic error as its points read it (the analysis' effects of
+#: scope ``calibration``).
+CALIBRATION_TERMS = ('cdf_offsets', 'cyclic_error')
+
+
+def other_calibration(model: Model, calibration: Calibration) -> str | None:
+    """Why ``model`` does not fit ``calibration``, or None: a model ``mmd analyze`` wrote
+    names the calibration its per-calibration parameters were fitted with
+    (``per_calibration_parameters_of`` of its last ``analysis`` entry). Its terms of
+    :data:`CALIBRATION_TERMS` correct that calibration's points, and the residual it
+    measured stands for that calibration's errors: applied with another calibration (the
+    device calibrated again, another device of the same description) the first are wrong and
+    the second is not this calibration's (a model of one twin on another twin's log: its
+    95 % ellipsoid held none of the samples). None for a model without that record."""
+    analysis: Any = model.extra.get('analysis')
+    if isinstance(analysis, list):
+        analysis = analysis[-1] if analysis else None
+    fitted = analysis.get('per_calibration_parameters_of') if isinstance(analysis, dict) else None
+    if not isinstance(fitted, str) or not fitted:
+        return None
+    mine = calibration.key()
+    if mine == fitted:
+        return None
+    terms = sorted({t.type_name for t in model.terms if t.type_name in CALIBRATION_TERMS})
+    what = (f'its {", ".join(terms)} term(s) correct that calibration\'s points, not this '
+            'one\'s, and ' if terms else '')
+    return (f'the model was fitted with calibration {fitted} and this calibration is {mine}: '
+            f'{what}the uncertainty it measured stands for that calibration\'s errors; run mmd '
+            'analyze on a log of this calibration')
 
 
 @dataclass(frozen=True)

@@ -34,6 +34,7 @@ from mmd_ros.core.kinematics import FkStatus
 from mmd_ros.core.model import Model
 from mmd_ros.core.pipeline import Pipeline
 from mmd_ros.core.progress import Progress
+from mmd_ros.core.validity import other_calibration
 from mmd_ros.logs.layout import (
     BAR_NAMES, FK_STATUS_NAMES, FRAME_LOWER, TOPIC_BAR_LENGTHS, TOPIC_CALIBRATION, TOPIC_DEVICE,
     TOPIC_FK_STATUS, TOPIC_MODEL, TOPIC_POSE, TOPIC_POSE_COV, TOPIC_THERMAL, RunBlock, RunLog,
@@ -455,7 +456,11 @@ def process_log(source: RunSource, out: Path, model: Model, *,
             pending.result()
     if summary.samples == 0:
         raise CalibrationError(f'{source.path} has no samples')
-    return summary.as_dict(source, absolute_reference=absolute_reference)
+    out_summary = summary.as_dict(source, absolute_reference=absolute_reference)
+    mismatch = other_calibration(model, _resolve_calibration(source, calibration))
+    if mismatch:
+        out_summary['model_calibration'] = mismatch
+    return out_summary
 
 
 def _masked(poses: NDArray[np.float64], valid: NDArray[np.bool_]) -> NDArray[np.float64]:

@@ -45,6 +45,8 @@ def compensation_report(comp: Compensator, thermal_warn_c: float, model_source: 
                     'with bar length (Eq. 12); fit a second reference bar or set a new thermal zero')
         else:
             r.worse(OK, f'thermal drift {dt:+.2f} °C since the thermal zero (Eq. 12)')
+    if comp.model_mismatch:
+        r.worse(WARN, comp.model_mismatch)
     if comp.validity is not None:
         text = comp.validity.describe(st.period_outside_bars, st.period_outside_temp)
         if text:
