@@ -728,3 +728,38 @@ def test_x_runs_one_after_the_other_are_one_run_only_with_the_same_targets():
         with pytest.raises(MachineAnalysisError, match=r'xx\.mcap: the X moves from .* s to .* s '
                            r'are not one ISO 230-2 run.*Give one run per axis'):
             extract_runs(*_x_joint_log([t, second]))
+
+
+def test_the_csv_gives_the_mmd_part_for_every_direction(tmp_path):
+    """error_motions.csv had u_mmd = nan on every up, down and reversal row: the Monte Carlo
+    gives the MMD's part of those too. It is there now, at most u, through machine.json and
+    back; a machine.json written before (no such part kept) gives an empty cell, not nan."""
+    from mmd_ros.machine import write_csv
+    machine = load_machine('machine_xyzac.yaml')
+    twin = TwinMachine(machine, zero_truth(machine), MmdSetup.draw(machine, 2))
+    plans = [p for p in _plans(machine) if p.axis in 'XC']
+    runs = exact_runs(twin, plans, sigma=0.1 * UM, rng=np.random.default_rng(3))
+    result = identify(runs, machine, options=IdentifyOptions(draws=4))
+    lines = write_csv(result, tmp_path / 'a.csv').read_text().splitlines()
+    head = lines[0].split(',')
+    rows = [dict(zip(head, line.split(','))) for line in lines[1:]]
+    assert {r['direction'] for r in rows} == {'up', 'down', 'mean', 'reversal'}
+    assert all(r['u_mmd'] not in ('', 'nan') for r in rows)
+    for r in rows:   # the standard uncertainty's MMD part of that direction, in µm or ″
+        m = result.axes[r['axis']].motion(r['error'])
+        i = int(np.argmin(np.abs(m.positions * (1e3 if r['axis'] == 'X' else 180 / np.pi)
+                                 - float(r['position']))))
+        scale = 1 / UM if m.unit == 'm' else 1 / ARCSEC
+        assert float(r['u_mmd']) == pytest.approx(m.u_mmd(r['direction'])[i] * scale, abs=1e-5)
+        assert float(r['u_mmd']) >= 0, r
+    data = json.loads(json.dumps(result.as_dict()))
+    back = load_result(data, machine)
+    again = write_csv(back, tmp_path / 'b.csv').read_text().splitlines()
+    assert [line.split(',')[8] for line in again] == [line.split(',')[8] for line in lines]
+    for a in data['axes'].values():
+        for m in a['motions']:
+            for key in ('u_mmd_up', 'u_mmd_down', 'u_mmd_reversal'):
+                del m[key]
+    old = write_csv(load_result(data, machine), tmp_path / 'c.csv').read_text().splitlines()
+    cells = [dict(zip(head, line.split(','))) for line in old[1:]]
+    assert all((c['u_mmd'] == '') == (c['direction'] != 'mean') for c in cells)

@@ -79,7 +79,9 @@ def write_compensation(result: MachineResult, out: Path, units: str = 'mm') -> l
 
 
 def write_csv(result: MachineResult, path: Path) -> Path:
-    """Every error motion at every target: one row per axis, error, target and direction."""
+    """Every error motion at every target: one row per axis, error, target and direction;
+    u_mmd (the MMD's part of u, not expanded) empty where not known (a machine.json written
+    before it was kept for up, down and reversal)."""
     rows = ['axis,error,kind,position,position_unit,direction,value,U95,u_mmd,unit,determined']
     for a in result.axes.values():
         ps, punit = a.position_scale
@@ -89,10 +91,11 @@ def write_csv(result: MachineResult, path: Path) -> Path:
             for i, q in enumerate(a.targets):
                 for label, v, big_u in (('up', m.up, m.U_up), ('down', m.down, m.U_down),
                                         ('mean', m.mean, m.U_mean), ('reversal', m.reversal, m.U_reversal)):
-                    um = m.u_mmd_mean[i] if label == 'mean' else math.nan
+                    um = m.u_mmd(label)
+                    um = '' if um is None or not math.isfinite(um[i]) else f'{um[i] * scale:.5f}'
                     rows.append(f'{a.axis},{m.name},{m.kind},{q * ps:.6f},{punit},{label},'
                                 f'{v[i] * scale:.5f},{big_u[i] * scale:.5f},'
-                                f'{um * scale:.5f},{unit},{int(m.determined)}')
+                                f'{um},{unit},{int(m.determined)}')
     return atomic_write_text(path, '\n'.join(rows) + '\n')
 
 

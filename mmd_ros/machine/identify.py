@@ -831,7 +831,8 @@ def _build(machine: MachineDescription, session: _Session, base: dict[str, Any],
                 tname, name, kind, unit, mean.targets, col('up'), col('down'), col('mean'),
                 col('reversal'), unc['up'], unc['down'], unc['mean'], unc['reversal'],
                 np.asarray(um[f'{name}/mean'])[:, j], fig, deviation, u_dev, iso, True,
-                ks['up'], ks['down'], ks['mean'], ks['reversal']))
+                ks['up'], ks['down'], ks['mean'], ks['reversal'],
+                *(np.asarray(um[f'{name}/{key}'])[:, j] for key in ('up', 'down', 'reversal'))))
         location = []
         if axis.rotary:
             perp = [j for j in range(3) if j != axis.component]

@@ -113,6 +113,15 @@ class ErrorMotion:
     k_down: FloatArray | None = None
     k_mean: FloatArray | None = None
     k_reversal: FloatArray | None = None
+    #: the MMD's part of u_up, u_down, u_reversal (None: not known, a result written before)
+    u_mmd_up: FloatArray | None = None
+    u_mmd_down: FloatArray | None = None
+    u_mmd_reversal: FloatArray | None = None
+
+    def u_mmd(self, direction: str) -> FloatArray | None:
+        """The MMD's part of the uncertainty of ``direction`` ('up', 'down', 'mean',
+        'reversal'), or None where it is not known."""
+        return getattr(self, f'u_mmd_{direction}')
 
     def _k(self, k: FloatArray | None) -> FloatArray:
         return np.full(self.positions.shape, COVERAGE_K) if k is None else k
@@ -144,6 +153,9 @@ class ErrorMotion:
                'U_up': _arr(self.U_up, scale), 'U_down': _arr(self.U_down, scale),
                'U_mean': _arr(self.U_mean, scale), 'U_reversal': _arr(self.U_reversal, scale),
                'figure': self.figure.as_dict(), 'determined': bool(self.determined)}
+        for key in ('up', 'down', 'reversal'):
+            if self.u_mmd(key) is not None:
+                out[f'u_mmd_{key}'] = _arr(self.u_mmd(key), scale)
         if self.deviation is not None:
             out['deviation'] = _arr(self.deviation, scale)
             out['u_deviation'] = _arr(self.u_deviation, scale)
@@ -300,7 +312,9 @@ def load_result(data: dict[str, Any], machine: MachineDescription) -> MachineRes
                     arr('u_mmd_mean'), value(m['figure'], unit),
                     arr('deviation') if 'deviation' in m else None,
                     arr('u_deviation') if 'deviation' in m else None, None, bool(m['determined']),
-                    ks['up'], ks['down'], ks['mean'], ks['reversal']))
+                    ks['up'], ks['down'], ks['mean'], ks['reversal'],
+                    *(arr(f'u_mmd_{key}') if f'u_mmd_{key}' in m else None
+                      for key in ('up', 'down', 'reversal'))))
             location = [value(v, 'm' if v['unit'] == 'µm' else 'rad') for v in a['location']]
             axes[name] = AxisResult(name, bool(a['rotary']), a['log'], a['source'], targets,
                                     int(a['n_cycles']), list(a['following']), motions, location,
