@@ -107,6 +107,16 @@ def test_dwells_and_approaches_recover_the_known_deviations():
     assert res.figures['B'] / UM == pytest.approx(4.0, abs=1.2)   # +-2 µm per direction
 
 
+def test_dwells_need_increasing_times():
+    """Every other stamp repeated (median step 0) used to divide by zero."""
+    t, x, _, _ = synthetic_run()
+    t[1::2] = t[::2][:t[1::2].size]
+    with pytest.raises(AnalysisError, match='median step is 0 s'):
+        detect_dwells(t, x)
+    with pytest.raises(AnalysisError, match='must increase'):
+        detect_dwells(t[::-1], x)
+
+
 def test_mmd_iso230_on_a_simulated_linear_axis(tmp_path, capsys):
     log = tmp_path / 'x.mcap'
     spec = SimulationSpec(scenario='iso_linear', scenario_params=('n_cycles=2', 'dwell_s=0.3', 'lead_s=0.3'),

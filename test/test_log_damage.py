@@ -260,6 +260,50 @@ def test_stamps_that_go_backwards_are_refused_and_a_segment_can_be_read(tmp_path
     assert main(['process', str(back), '--segment', '3', '--out', str(tmp_path / 'p.mcap')]) == 2
 
 
+def test_repeated_stamps_are_refused_and_a_clean_segment_can_be_read(tmp_path, capsys):
+    """Every other sample stamped as the one before it: mmd process paired the reference with
+    the wrong samples (x RMS 54.8 µm instead of 1.3 µm) and iso230-2 divided by zero."""
+    from mmd_ros.core.device import find_config, load_device
+    from mmd_ros.logs.layout import BAR_NAMES, TOPIC_DEVICE, TOPIC_REF_LENGTHS, open_run
+    from mmd_ros.logs.writer import LogWriter
+    device = load_device(find_config('mmd_prototype.yaml'))
+    t0, n = 1_800_000_000 * 10**9, 200
+    stamps = t0 + np.arange(n, dtype=np.int64) * 4_000_000
+    counts = np.arange(n * 8, dtype=np.float64).reshape(n, 8)
+    pose = np.zeros((n, 6))
+    twice = stamps.copy()
+    twice[1::2] = twice[::2]
+    dup = write_run(tmp_path / 'dup.mcap', device, None, twice, counts, reference_pose=pose)
+    with pytest.raises(LogFormatError, match=f'100 of the 200 samples of {TOPIC_RAW} repeat the '
+                       f'stamp of the sample before them, first sample 1 at {t0} ns'):
+        read_run(dup)
+    for args in (['process', str(dup), '--out', str(tmp_path / 'p.mcap')], ['iso230-2', str(dup)]):
+        assert main(args) == 2
+        assert 'repeat the stamp' in capsys.readouterr().err
+    # a clock stepped back 10 s after sample 99, and one repeat in the second stretch
+    back = stamps - np.where(np.arange(n) >= 100, 10**10, 0)
+    back[151] = back[150]
+    path = write_run(tmp_path / 'back.mcap', device, None, back, counts, reference_pose=pose)
+    with pytest.raises(LogFormatError, match='go backwards 1 time'):
+        read_run(path)
+    assert np.array_equal(read_run(path, segment=1).counts, counts[:100])
+    with pytest.raises(LogFormatError, match='1 of the 100 samples .* first sample 151 at'):
+        read_run(path, segment=2)
+    # the reference repeating a stamp: which of the two goes with that sample?
+    ref = stamps.copy()
+    ref[5] = ref[4]
+    with LogWriter(tmp_path / 'ref.mcap') as log:
+        log.write_string(TOPIC_DEVICE, t0, device.to_yaml())
+        log.write_rows([(TOPIC_RAW, 'sensor_msgs/msg/JointState',
+                         log.joint_state_rows(device.channel_names, stamps, counts)),
+                        (TOPIC_REF_LENGTHS, 'sensor_msgs/msg/JointState',
+                         log.joint_state_rows(BAR_NAMES, ref, np.ones((n, 6))))], stamps)
+    with pytest.raises(LogFormatError, match=f'1 of the 200 samples of {TOPIC_REF_LENGTHS} repeat'):
+        read_run(tmp_path / 'ref.mcap')
+    with open_run(tmp_path / 'ref.mcap') as stream, pytest.raises(LogFormatError, match='repeat'):
+        list(stream.blocks(64))
+
+
 @pytest.mark.parametrize('place', ['compressed data', 'record length', 'record length high byte',
                                    'opcode', 'no summary'])
 def test_mmd_process_reading_block_by_block_loses_and_reports_the_same(tmp_path, run_log, place):

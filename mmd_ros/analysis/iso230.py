@@ -234,6 +234,9 @@ def detect_dwells(times_s: FloatArray, coord: FloatArray, *, min_dwell_s: float 
     idx = np.flatnonzero(ok)
     x = np.interp(np.arange(x.size), idx, x[idx])
     dt = float(np.median(np.diff(t))) if t.size > 1 else 1.0
+    if not dt > 0:
+        raise AnalysisError(f'the sample times must increase: their median step is {dt:g} s '
+                            '(repeated or unsorted stamps?)')
     h = max(1, int(round(window_s / dt)))
     d1 = np.abs(np.diff(x))
     # sample-to-sample noise from the quietest fifth of the differences (the axis moves most of

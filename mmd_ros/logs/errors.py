@@ -16,4 +16,4 @@ class LogFormatError(LogError):
 
 
 class StampsNotIncreasing(LogFormatError):
-    """The samples' stamps go backwards (a log read block by block cannot sort them)."""
+    """The samples' stamps go backwards or repeat (a log read block by block cannot sort them)."""

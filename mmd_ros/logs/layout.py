@@ -258,6 +258,28 @@ def monotonic_runs(stamps_ns: NDArray[np.int64]) -> list[tuple[int, int]]:
     return list(zip(edges[:-1], edges[1:]))
 
 
+def repeated_stamps(stamps_ns: NDArray[np.int64]) -> NDArray[np.intp]:
+    """Indices of the samples whose stamp is that of the sample before them."""
+    return np.flatnonzero(np.diff(stamps_ns) == 0) + 1
+
+
+def _refuse_repeated(stamps_ns: NDArray[np.int64], topic: str, source: str, first: int = 0) -> None:
+    """Raise when samples of ``topic`` repeat the stamp of the one before them: samples are
+    found by stamp downstream (the reference by the raw counts' stamps, dwells and speeds by
+    time), so two at one time would be paired with the wrong samples or divide by a zero step.
+    ``first`` is the index in the log of ``stamps_ns[0]``."""
+    rep = repeated_stamps(stamps_ns)
+    if rep.size == 0:
+        return
+    k = int(rep[0])
+    raise LogFormatError(
+        f'{source}: {rep.size} of the {stamps_ns.size} samples of {topic} repeat the stamp of '
+        f'the sample before them, first sample {first + k} at {int(stamps_ns[k])} ns '
+        f'({(stamps_ns[k] - stamps_ns[0]) * 1e-9:.6g} s into the run); samples at the same time '
+        'cannot be told apart or matched by stamp (a clock too coarse for the sample rate, or a '
+        'recorder that stamped on arrival?)')
+
+
 def _runs_text(stamps_ns: NDArray[np.int64], runs: list[tuple[int, int]]) -> str:
     return ', '.join(f'{k}: samples {a}–{b - 1} ({(stamps_ns[b - 1] - stamps_ns[a]) * 1e-9:.1f} s)'
                      for k, (a, b) in enumerate(runs, 1))
@@ -272,7 +294,8 @@ def read_run(path: str | os.PathLike[str], *, segment: int | None = None) -> Run
     Stamps that go backwards (a clock stepped back while recording) are refused: the samples
     are searched by time everywhere downstream, so such a log would give errors of metres
     without a word. The message lists the stretches of increasing stamps ("segments");
-    ``segment`` (1, 2, ...) reads one of them alone.
+    ``segment`` (1, 2, ...) reads one of them alone. Samples that repeat the stamp of the one
+    before them (of the raw counts in the segment read, or of the reference) are refused too.
     """
     reader = LogReader(path)
     source = str(path)
@@ -294,6 +317,7 @@ def read_run(path: str | os.PathLike[str], *, segment: int | None = None) -> Run
         raise LogFormatError(f'{source}: --segment must be in [1, {len(runs)}] (the log has '
                              f'{len(runs)} segment(s) of increasing stamps), got {segment}')
     a, b = runs[segment - 1] if segment is not None else (0, raw.stamps_ns.size)
+    _refuse_repeated(raw.stamps_ns[a:b], TOPIC_RAW, source, a)
     values = raw.values if raw.values.size else np.zeros((0, 8))
     status = raw.status[a:b] if raw.status is not None and raw.status[a:b].any() else None
     sel = JointStates(raw.stamps_ns[a:b], raw.names, values[a:b], status)
@@ -304,7 +328,7 @@ def read_run(path: str | os.PathLike[str], *, segment: int | None = None) -> Run
                                (TOPIC_REF_LENGTHS, BAR_NAMES, 'reference_lengths')):
         if reader.has_topic(topic):
             ref = _segment_of(reader.joint_states(topic), len(runs), segment or 1, topic, source)
-            setattr(run, attr, _aligned(ref, sel, names, source))
+            setattr(run, attr, _aligned(ref, sel, names, topic, source))
     if reader.has_topic(TOPIC_MACHINE_JOINTS) and sel.stamps_ns.size:
         # all of them for a run of one segment (a recorder may hear the controller before the
         # terminal, seconds apart on a busy machine); of one segment, those within its span
@@ -381,7 +405,8 @@ class RunStream:
         """The run in blocks of ``size`` samples (the last may be shorter), in time order, with
         the reference aligned by stamp as :func:`read_run` aligns it. A raw sample is handed on
         once the reference has reached its stamp (or is too far behind: ``HOLD_*``).
-        Raises :class:`LogFormatError` when the stamps do not increase."""
+        Raises :class:`StampsNotIncreasing` when the stamps go back or repeat
+        (:func:`read_run` says where)."""
         source = str(self.path)
         raw: list[JointStates] = []
         refs: dict[str, list[JointStates]] = {TOPIC_REF_POSE: [], TOPIC_REF_LENGTHS: []}
@@ -410,7 +435,8 @@ class RunStream:
                 ref = JointStates(np.concatenate([p.stamps_ns for p in parts]) if parts else np.zeros(0, np.int64),
                                   parts[0].names if parts else names,
                                   np.concatenate([p.values for p in parts]) if parts else np.zeros((0, len(names))))
-                aligned[topic] = _aligned(ref, JointStates(out_s, [], out_v), names, source)
+                aligned[topic] = _aligned(ref, JointStates(out_s, [], out_v), names, topic,
+                                          source)
                 later = ref.stamps_ns > out_s[-1]
                 refs[topic] = [JointStates(ref.stamps_ns[later], ref.names, ref.values[later])]
             return RunBlock(out_s, out_v, aligned.get(TOPIC_REF_POSE), aligned.get(TOPIC_REF_LENGTHS),
@@ -428,7 +454,8 @@ class RunStream:
                 raise LogFormatError(f'{source}: {TOPIC_RAW} names {got.names} do not match the '
                                      f'device channels {self.device.channel_names}')
             if not _increasing(got.stamps_ns, last_raw):
-                raise StampsNotIncreasing(f'{source}: the {TOPIC_RAW} stamps go backwards')
+                raise StampsNotIncreasing(f'{source}: the {TOPIC_RAW} stamps go backwards or '
+                                          'repeat')
             last_raw = int(got.stamps_ns[-1])
             raw.append(got)
             pending += got.stamps_ns.size
@@ -449,12 +476,12 @@ def open_run(path: str | os.PathLike[str]) -> RunStream:
 
 
 def _increasing(stamps: NDArray[np.int64], last: int | None) -> bool:
-    """Whether ``stamps`` never go back, from ``last`` on."""
+    """Whether ``stamps`` increase (never go back nor repeat), from ``last`` on."""
     if stamps.size == 0:
         return True
-    if last is not None and stamps[0] < last:
+    if last is not None and stamps[0] <= last:
         return False
-    return bool(np.all(np.diff(stamps) >= 0))
+    return bool(np.all(np.diff(stamps) > 0))
 
 
 def _run_header(reader: LogReader, source: str) -> tuple[DeviceDescription, Calibration | None, Model | None]:
@@ -490,8 +517,11 @@ def _segment_of(ref: JointStates, n_runs: int, segment: int, topic: str, source:
     return JointStates(ref.stamps_ns[a:b], ref.names, ref.values[a:b])
 
 
-def _aligned(ref: JointStates, raw: JointStates, names: list[str], source: str) -> NDArray[np.float64]:
-    """Reference values at the raw samples' stamps (NaN where the reference has none)."""
+def _aligned(ref: JointStates, raw: JointStates, names: list[str], topic: str,
+             source: str) -> NDArray[np.float64]:
+    """Reference values at the raw samples' stamps (NaN where the reference has none); raises
+    when reference samples repeat a stamp (which of them goes with that sample?)."""
+    _refuse_repeated(ref.stamps_ns, topic, source)
     out = np.full((raw.stamps_ns.size, len(names)), np.nan)
     cols = [ref.names.index(n) if n in ref.names else -1 for n in names]
     if not any(c >= 0 for c in cols):
