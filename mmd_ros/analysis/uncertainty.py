@@ -549,7 +549,8 @@ def fit_uncertainty(ctx: FitContext, found: list[FittedEffect], runs: list[Resid
     # (the samples of the log whose context the signatures are read on: another log's
     # indices fell outside a shorter one, or on other instants of a longer one)
     ref = next((run for run in runs if run.ctx is ctx), None)
-    idx0 = ref.idx if ref is not None else _usable(ctx)
+    idx0 = (ref.idx if ref is not None
+            else np.flatnonzero(ctx.obs.usable & ctx.base.measured(ctx.obs.kind)))
     validity = Validity.from_model(model)
     sample, seen_m = idx0[:4000], None if validity is None else validity.bar_range_m
     directions, mean_terms, run_own, rest = _term_directions(ctx, found, sample, seen_m)
@@ -1126,13 +1127,6 @@ def fitted_effects(sel: Any, chosen: list[tuple[Any, FloatArray]], found: list[A
                                 None if shift is None else (shift[0], np.asarray(shift[1])[part]),
                                 list(getattr(f, 'alternatives', []))))
     return out
-
-
-def _usable(ctx: FitContext) -> IntArray:
-    """The samples of ``ctx``'s log with a finite residual (all of them without one)."""
-    if ctx.residual is None:
-        return np.arange(ctx.times_s.size)
-    return np.flatnonzero(np.all(np.isfinite(ctx.residual), axis=1))
 
 
 def with_fit_uncertainty(model: Model, ctx: FitContext, found: list[FittedEffect],
