@@ -43,6 +43,7 @@ import math
 import time
 from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
+from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
@@ -2402,6 +2403,21 @@ def _fmt(stats: list[ComponentError] | None) -> str:
     return ', '.join(f'{s.name} {s.rms:.3g} {_unit(s.unit)}' for s in stats)
 
 
+def _loro_worse(summaries: list[RunSummary]) -> list[str]:
+    """The components a model fitted on the other logs made worse by more than their noise
+    floor on a log it did not see, as text."""
+    out = []
+    for s in summaries:
+        if s.loro_before is None or s.loro_after is None:
+            continue
+        for b, a in zip(s.loro_before, s.loro_after):
+            floor = s.floor.get(b.name, math.nan)
+            if a.rms > b.rms + floor:
+                out.append(f'{b.name} of {Path(s.name).name} worse ({b.rms:.3g} → '
+                           f'{a.rms:.3g} {_unit(b.unit)}, floor {floor:.2g} {_unit(b.unit)})')
+    return out
+
+
 def _unit(unit: str) -> str:
     return 'µm' if unit == 'um' else '″' if unit == 'arcsec' else unit
 
@@ -2428,6 +2444,12 @@ def _conclusion(runs: list[_Run], summaries: list[RunSummary], found: list[Found
                          'fitted on the others): ' + '; '.join(
                              f'{r.run.path.name} {_fmt(s.loro_before)} → {_fmt(s.loro_after)}'
                              for r, s in zip(runs, summaries)) + '.')
+            worse = _loro_worse(summaries)
+            if worse:
+                parts.append(f'Fitted on the other logs, the model makes {"; ".join(worse)}: what '
+                             'they determined does not carry over to that motion, and the model '
+                             'written from all of them is not validated there by a log it did '
+                             'not see (record another run of that motion).')
         else:
             which = (f'of {runs[0].run.path.name}, one of the logs' if several
                      else 'of the one log')
