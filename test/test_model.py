@@ -60,6 +60,12 @@ def test_model_file_round_trip(tmp_path):
      'uncertainty.fit.profile.factor[0]'),
     ('format_version: 1\nuncertainty: {fit: {profile: {lengths_mm: [], factor: []}}}\n',
      'uncertainty.fit.profile.excess_nm2'),
+    ('format_version: 1\nvalidity: {bar_range_mm: ' + str([[340, 300]] + [[300, 340]] * 5)
+     + '}\n', 'validity.bar_range_mm'),
+    ('format_version: 1\nvalidity: {bar_range_mm: [[300, 340]]}\n', 'validity.bar_range_mm'),
+    ('format_version: 1\nvalidity: {temperature_c: [.nan, 1]}\n', 'validity.temperature_c'),
+    ('format_version: 1\nvalidity: {temperature_c: [24, 21]}\n', 'validity.temperature_c'),
+    ('format_version: 1\nvalidity: [1, 2]\n', 'validity'),
 ])
 def test_bad_model_files_name_the_key(tmp_path, text, key):
     path = tmp_path / 'model.yaml'

@@ -529,12 +529,35 @@ class Model:
         terms = [term_from_dict(item, source, f'terms[{k}]') for k, item in enumerate(raw_terms)]
         uncertainty = ModelUncertainty.from_dict(data.get('uncertainty'), source)
         extra = {k: data[k] for k in RECORD_KEYS if k in data}
+        if extra.get('validity') is not None:
+            _check_validity(extra['validity'], source)
         return cls(mode, plate, None if sigma is None else sigma * M_PER_UM, terms, extra, source,
                    uncertainty)
 
     @classmethod
     def from_yaml(cls, text: str, source: str = '<model>') -> Model:
         return cls.from_dict(parse_yaml(text, source), source)
+
+
+def _check_validity(record: Any, source: str) -> None:
+    """The ranges of a model's ``validity`` record (:mod:`mmd_ros.core.validity`), which the
+    uncertainty budget and the nodes' warnings use: each bar's lowest and highest CDF length
+    and the temperature span, finite and in order (a reversed range changed the pose's claimed
+    sigma without a word). The rest of the record is free-form."""
+    record = validate.mapping(record, source, 'validity')
+    if 'bar_range_mm' in record:
+        bars = validate.floats(record['bar_range_mm'], source, 'validity.bar_range_mm', (6, 2),
+                               what='six [lowest, highest] CDF lengths in mm')
+        if np.any(bars[:, 0] > bars[:, 1]):
+            raise ConfigError(source, 'validity.bar_range_mm',
+                              f'each bar\'s lowest length must not exceed its highest, got '
+                              f'{bars.tolist()}')
+    if record.get('temperature_c') is not None:
+        temp = validate.floats(record['temperature_c'], source, 'validity.temperature_c', (2,),
+                               what='[lowest, highest] temperature in °C')
+        if temp[0] > temp[1]:
+            raise ConfigError(source, 'validity.temperature_c',
+                              f'the lowest must not exceed the highest, got {temp.tolist()}')
 
 
 def term_from_dict(item: Any, source: str, where: str = 'term') -> ModelTerm:
