@@ -239,6 +239,20 @@ def test_no_coverage_skips_the_covariance(run_log, tmp_path):
     assert 'uncertainty_coverage' not in summary and 'uncertainty_budget' not in summary
 
 
+def test_a_reference_no_sample_has_a_value_of_is_said_so(run_log, tmp_path):
+    """A reference whose stamps match none of the raw counts' (another clock), or whose values
+    are all NaN: the summary says why there is no error to show (it printed an empty table)."""
+    from mmd_ros.logs.layout import write_run
+    run = read_run(run_log)
+    blank = tmp_path / 'blank.mcap'
+    write_run(blank, run.device, run.calibration, run.stamps_ns, run.counts,
+              reference_pose=np.full_like(run.reference_pose, np.nan), metadata=run.metadata)
+    summary = process_log(read_run(blank), tmp_path / 'out.mcap', Model(), coverage=False)
+    assert summary['pose_error'] == [] and 'match none' in summary['pose_error_note']
+    summary = process_log(run, tmp_path / 'out2.mcap', Model(), coverage=False)
+    assert summary['pose_error'] and 'pose_error_note' not in summary
+
+
 def test_compiled_crc32_equals_zlib():
     """The chunks' CRC (compiled, carry-less multiplication) is zlib.crc32 for every length
     around the 16- and 64-byte folds, from any start in memory and any starting value."""

@@ -71,7 +71,9 @@ def run_command(args: argparse.Namespace) -> int:
              if summary['no_signal'] else ''))
     print(f'wrote {out}' + (f' and {args.csv}' if args.csv else '')
           + f' in {elapsed:.2f} s ({summary["samples_per_s"]:.0f} samples/s)')
-    if 'pose_error' in summary:
+    if summary.get('pose_error_note'):
+        print(f'pose error against the reference: none, {summary["pose_error_note"]}')
+    elif 'pose_error' in summary:
         from mmd_ros.core.accuracy import ComponentStats
         print(format_stats([ComponentStats(**s) for s in summary['pose_error']],
                            'pose error against the reference (MMD - reference):'))

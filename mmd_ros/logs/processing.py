@@ -273,6 +273,11 @@ class RunSummary:
             summary['segment'] = {'index': segment[0], 'of': segment[1]}
         if self.pose_error is not None:
             summary['pose_error'] = [s.as_dict() for s in self.pose_error.stats()]
+            if not summary['pose_error']:
+                summary['pose_error_note'] = (
+                    'the log has a reference pose, but no sample with a valid pose has a value '
+                    'of it: its stamps match none of the raw counts\' (the reader pairs them '
+                    'by stamp), or all its values are NaN')
         if self.coverage is not None:
             metadata = getattr(source, 'metadata', {}) or {}
             absolute = absolute_reference
