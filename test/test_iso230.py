@@ -57,8 +57,11 @@ def test_rotary_axes_in_arcseconds_and_small_n():
     assert r.unit == 'arcsec' and r.figures_report()['B'] == pytest.approx(1.5)
     single = evaluate([0.0, 0.5], [[1e-6], [2e-6]], [[0.0], [1e-6]], axis='x')
     assert single.figures['B'] == pytest.approx(1e-6) and math.isnan(single.figures['A'])
-    with pytest.raises(AnalysisError, match='both directions'):
+    with pytest.raises(AnalysisError, match='targets 500 mm were not approached from both'):
         evaluate([0.0, 0.5], [[1e-6], [np.nan]], [[0.0], [1e-6]])
+    # named in the units --targets takes: degrees on a rotary axis
+    with pytest.raises(AnalysisError, match='targets -40 ° were not approached from both'):
+        evaluate([math.radians(-40), 0.0], [[np.nan], [0.0]], [[0.0], [0.0]], axis='psi')
 
 
 def synthetic_run(rate=200.0, n_cycles=3, seed=0):

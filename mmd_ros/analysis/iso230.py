@@ -180,8 +180,10 @@ def evaluate(positions: Any, dev_up: Any, dev_down: Any, *, axis: str = 'x',
     mu, su, nu = _stats(up)
     md, sd, nd = _stats(down)
     if np.any(nu == 0) or np.any(nd == 0):
-        missing = [f'{p:g}' for p, a, b in zip(pos, nu, nd) if a == 0 or b == 0]
-        raise AnalysisError(f'targets {missing} were not approached from both directions')
+        # (in the units --targets takes: mm, or degrees on a rotary axis)
+        scale, unit = (180.0 / np.pi, '°') if axis_index(axis) >= 3 else (1e3, 'mm')
+        missing = ', '.join(f'{p * scale:g}' for p, a, b in zip(pos, nu, nd) if a == 0 or b == 0)
+        raise AnalysisError(f'targets {missing} {unit} were not approached from both directions')
     mean = 0.5 * (mu + md)
     rev = mu - md
     ru, rd = 4.0 * su, 4.0 * sd
