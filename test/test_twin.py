@@ -468,6 +468,52 @@ def test_scenario_leaving_the_workspace_is_refused_with_time_and_bar(device):
         twin.counts_on_pair(7, 'dr4', [0.0], ROOM)
 
 
+def test_the_workspace_check_before_a_run_goes_block_by_block(device, monkeypatch):
+    """A week at 100 Hz is 60 million poses: checked at once, they took gigabytes before the
+    first sample was simulated."""
+    from mmd_ros.twin import twin as twin_module
+    monkeypatch.setattr(twin_module, 'BLOCK', 1000)
+    for scenario in (IsoLinear(axis='z', n_cycles=1), Hold(duration_s=35.0)):
+        motion = scenario.build(device)
+        blocks = list(twin_module._check_times(motion, 100.0))
+        assert len(blocks) > 3 and all(b.size <= 1000 + motion.knots_s.size for b in blocks)
+        np.testing.assert_array_equal(np.concatenate(blocks), motion.check_times(100.0))
+
+
+def test_an_iso_run_checks_its_travel_and_overrun_in_any_order(device):
+    """travel_m=1e-7 extrapolated the machine's straightness bow to the 2 mm overrun: a 1.6 km
+    move, a run of days, all memory. A travel and an overrun that fit are accepted whichever is
+    assigned first; negative overruns and jitters are refused."""
+    for params in (['travel_m=1e-3', 'overrun_m=5e-4'], ['overrun_m=5e-4', 'travel_m=1e-3']):
+        motion = make_scenario('iso_linear', params + ['n_cycles=1']).build(device)
+        assert motion.duration_s < 60.0
+    with pytest.raises(TwinError, match='overrun_m must be at most the travel of the run, 0.001 m'):
+        make_scenario('iso_linear', ['travel_m=1e-3']).build(device)
+    for params, match in ((['travel_m=1e-7'], 'travel_m must be at least 0.001 m'),
+                          (['travel_m=0'], 'travel_m must be at least'),
+                          (['overrun_m=-1e-3'], 'overrun_m must be > 0'),
+                          (['target_jitter_m=-1e-3'], 'target_jitter_m must be >= 0')):
+        with pytest.raises(TwinError, match=match):
+            make_scenario('iso_linear', params)
+    with pytest.raises(TwinError, match=r'target_jitter_m \(0.03 m\) is too large for the target '
+                       r'spacing \(0.02 m\)'):
+        make_scenario('iso_linear', ['target_jitter_m=0.03']).build(device)
+    with pytest.raises(TwinError, match='linear_travel_mm must be at least 1 mm'):
+        make_scenario('machine_session', ['linear_travel_mm=[0, 0]'])
+
+
+def test_a_run_of_one_sample_is_refused_and_the_summary_gives_the_span(device, tmp_path):
+    """--rate 0.01 wrote one sample of a 9 s run and said "100.0 s"."""
+    from mmd_ros.twin.recording import SimulationSpec, simulate_to_log
+    twin = TwinDevice(device, Effects.ideal(), seed=0)
+    with pytest.raises(TwinError, match='9 s, which at 0.01 Hz is 1 sample: .* at least 0.112 Hz'):
+        twin.simulate(Hold(duration_s=9.0), ROOM, sample_rate_hz=0.01)
+    spec = SimulationSpec(scenario='hold', scenario_params=('duration_s=9',), effects='none',
+                          sample_rate_hz=0.2)
+    _, _, summary = simulate_to_log(spec, tmp_path / 'slow.mcap', progress=False)
+    assert summary['samples'] == 2 and summary['duration_s'] == pytest.approx(5.0)
+
+
 def test_thermal_soak_and_static_bars(device):
     twin = TwinDevice(device, Effects.realistic(), seed=1)
     run = twin.simulate(ThermalSoak(duration_s=60.0), ROOM, sample_rate_hz=10.0)

@@ -13,7 +13,7 @@ from mmd_ros.logs.outputs import check_outputs
 from mmd_ros.twin import SCENARIOS
 from mmd_ros.twin.effects import PRESETS
 from mmd_ros.twin.recording import SimulationSpec, simulate_to_log, spec_inputs
-from mmd_ros.twin.twin import MAX_CLOCK_S
+from mmd_ros.twin.twin import MAX_CLOCK_S, MAX_SEED
 
 __all__ = ['register']
 
@@ -57,8 +57,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    'compensates), realistic (everything on)')
     p.add_argument('--effect', action='append', default=[], metavar='NAME=VALUE',
                    help='change one effect parameter, e.g. hysteresis_m=0.5e-6 (repeatable)')
-    p.add_argument('--seed', type=validate.arg_number(low=0, integer=True), default=1,
-                   help='random seed, an integer >= 0 (default: 1)')
+    p.add_argument('--seed', type=validate.arg_number(low=0, high=MAX_SEED, integer=True),
+                   default=1,
+                   help='random seed, an integer in [0, 2^64 - 1] (default: 1)')
     p.add_argument('--device', default='mmd_prototype.yaml', help='device description file')
     p.add_argument('--ambient', default=None,
                    help='room temperature: section_4_1 (the 20 h test), constant:T in °C, or a '

@@ -32,9 +32,9 @@ from mmd_ros.core.yamlio import (
     atomic_write_text, interrupted_saves, parse_yaml, read_text_file, read_yaml,
 )
 
-__all__ = ['BarCalibration', 'Calibration', 'CdfBank', 'CentreDistanceFunction', 'RecoveredCalibration',
-           'TerminalBinding', 'binding_problem', 'channel_roles', 'load_calibration',
-           'recover_interrupted_save']
+__all__ = ['AMBIENT_RANGE_C', 'BarCalibration', 'Calibration', 'CdfBank', 'CentreDistanceFunction',
+           'RecoveredCalibration', 'TerminalBinding', 'binding_problem', 'channel_roles',
+           'load_calibration', 'recover_interrupted_save']
 
 FloatArray = NDArray[np.float64]
 #: The keys of a calibration file, of one bar's points and of the terminal it was made with;
@@ -42,6 +42,8 @@ FloatArray = NDArray[np.float64]
 CALIBRATION_KEYS = ('format_version', 'device', 'created', 'valid', 'ambient_c', 'thermal_zero_um',
                     'bars', 'quality', 'terminal', 'uncertainty')
 BAR_KEYS = ('pairs', 'counts', 'distances_mm')
+#: Room temperatures a calibration may state (``ambient_c``) [°C].
+AMBIENT_RANGE_C = (-100.0, 200.0)
 TERMINAL_KEYS = ('serial', 'simulated', 'channels')
 
 
@@ -300,12 +302,14 @@ class Calibration:
             bars[str(name)] = bar
         zero = f.mapping(data, 'thermal_zero_um') if data.get('thermal_zero_um') is not None else {}
         ambient = data.get('ambient_c')
+        ambient_low, ambient_high = AMBIENT_RANGE_C
         quality = data.get('quality') or {}
         return cls(
             device=str(data.get('device', '')),
             bars=bars,
             thermal_zero_m={str(k): f.number(zero, k, 'thermal_zero_um') * 1e-6 for k in zero},
-            ambient_c=None if ambient is None else f.number(data, 'ambient_c', low=-100.0, high=200.0),
+            ambient_c=None if ambient is None else f.number(data, 'ambient_c', low=ambient_low,
+                                                            high=ambient_high),
             created=str(data.get('created', '')),
             valid=f.boolean(data, 'valid', default=True),
             quality=dict(f.mapping(data, 'quality') if quality else {}),

@@ -39,7 +39,9 @@ _MISSING = object()
 
 
 def _fmt(v: float) -> str:
-    return f'{v:g}'
+    text = f'{v:g}'
+    # an integer bound that %g would round (2^64 - 1 for a seed) is written out
+    return str(v) if isinstance(v, int) and float(text) != v else text
 
 
 def describe(*, low: float | None = None, high: float | None = None, low_open: bool = False,

@@ -99,6 +99,8 @@ class MachineErrorSizes:
                   'rotary_play_travel_deg'):
             if getattr(self, f) < 0:
                 raise TwinError(f'machine errors: {f} must be >= 0')
+        if self.seed < 0:
+            raise TwinError(f'machine errors: seed must be an integer >= 0, got {self.seed}')
 
 
 @dataclass(frozen=True)

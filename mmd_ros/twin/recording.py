@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from mmd_ros.core.calibration import Calibration
+from mmd_ros.core.calibration import AMBIENT_RANGE_C, Calibration
 from mmd_ros.core.device import DeviceDescription, find_config, load_device
 from mmd_ros.core.errors import ConfigError
 from mmd_ros.core.progress import Progress
@@ -72,9 +72,15 @@ def ambient_profile(spec: str) -> AmbientProfile:
         return AmbientProfile.section_4_1()
     if spec.startswith('constant:'):
         try:
-            return AmbientProfile.constant(float(spec.split(':', 1)[1]))
+            temp_c = float(spec.split(':', 1)[1])
         except ValueError:
-            pass
+            temp_c = None
+        if temp_c is not None:
+            low, high = AMBIENT_RANGE_C
+            if not low <= temp_c <= high:     # what the calibration the twin makes may state
+                raise ConfigError('--ambient', spec, f'T must be in [{low:g}, {high:g}] °C (a '
+                                  f'room temperature a calibration may state), got {temp_c:g}')
+            return AmbientProfile.constant(temp_c)
     elif spec.endswith(('.yaml', '.yml')):
         try:
             return AmbientProfile.from_dict(read_yaml(spec))
@@ -167,7 +173,8 @@ def simulate_to_log(spec: SimulationSpec, out: Path, *, progress: bool = True
         bar.close()
     assert first is not None
     summary = {
-        'log': str(out), 'samples': total, 'duration_s': total / rate, 'sample_rate_hz': rate,
+        # from the first sample to the last, as mmd process counts it
+        'log': str(out), 'samples': total, 'duration_s': (total - 1) / rate, 'sample_rate_hz': rate,
         'scenario': scenario.to_dict(), 'effects': effects.to_dict(), 'seed': spec.seed,
         'reference': first.reference_kind, 'ambient': spec.ambient,
         'ambient_at_calibration_c': calibration.ambient_c,

@@ -54,6 +54,9 @@ MAX_DURATION_S = 7 * 24 * 3600.0
 #: per metre of travel at least).
 MAX_TARGETS = 1000
 MAX_CYCLES = 1000
+#: Shortest travel of a linear ISO 230-2 run [m]: the targets must lie well apart compared with
+#: the machine's micrometre errors for the dwells to be told apart.
+MIN_TRAVEL_M = 1e-3
 #: Workspace margins of random waypoints [m], [rad].
 _MARGIN_M = 1e-3
 _MARGIN_RAD = math.radians(1.0)
@@ -106,6 +109,40 @@ def _check_common(scenario: Any) -> None:
     _check_duration(scenario.kind, 'lead_s', scenario.lead_s, zero=True)
 
 
+def _check_travel(kind: str, name: str, travel: float, unit: str, scale: float = 1.0) -> None:
+    """The travel of a linear ISO run (``scale`` times it in m): at least MIN_TRAVEL_M, finite."""
+    if not (travel * scale >= MIN_TRAVEL_M and math.isfinite(travel)):
+        raise TwinError(f'{kind}: {name} must be at least {MIN_TRAVEL_M / scale:g} {unit} (the '
+                        'targets must lie well apart compared with the machine\'s micrometre '
+                        f'errors), got {travel}')
+
+
+def _check_overrun(kind: str, name: str, overrun: float, unit: str,
+                   travel: float | None = None) -> None:
+    """The overrun of an ISO run: > 0 (each end target is approached from beyond it) and, with
+    ``travel``, at most the travel (the machine's errors are known over the travel, not far
+    beyond it: a bow extrapolated 2 mm past a travel of 0.1 µm moved the machine a kilometre).
+    The travel is checked when the run is built: assignments may change both, in any order."""
+    if not (overrun > 0 and math.isfinite(overrun)):
+        raise TwinError(f'{kind}: {name} must be > 0 {unit} (past the end targets before '
+                        f'reversing), got {overrun}')
+    if travel is not None and overrun > travel:
+        raise TwinError(f'{kind}: {name} must be at most the travel of the run, {travel:g} '
+                        f'{unit} (the machine\'s errors are known over its travel), got '
+                        f'{overrun:g}')
+
+
+def _check_seed(kind: str, name: str, seed: int) -> None:
+    if seed < 0:
+        raise TwinError(f'{kind}: {name} must be an integer >= 0, got {seed}')
+
+
+def _check_jitter(kind: str, name: str, jitter: float) -> None:
+    if not (jitter >= 0 and math.isfinite(jitter)):
+        raise TwinError(f'{kind}: {name} must be >= 0 (interior targets move by up to this '
+                        f'much), got {jitter}')
+
+
 @dataclass(frozen=True)
 class IsoLinear(Scenario):
     """ISO 230-2 linear positioning run along ``axis`` of {L}, centred on the start pose.
@@ -136,6 +173,15 @@ class IsoLinear(Scenario):
         if self.axis not in AXES[:3]:
             raise TwinError(f'iso_linear: axis must be x, y or z, got {self.axis!r}')
         _check_common(self)
+        _check_travel(self.kind, 'travel_m', self.travel, 'm')
+        _check_overrun(self.kind, 'overrun_m', self.overrun_m, 'm')
+        _check_jitter(self.kind, 'target_jitter_m', self.target_jitter_m)
+        _check_seed(self.kind, 'seed', self.seed)
+
+    @property
+    def travel(self) -> float:
+        """Distance from the first to the last target [m] (travel_m or the axis's default)."""
+        return self.travel_m if self.travel_m is not None else (0.12 if self.axis == 'z' else 0.2)
 
     @property
     def default_reference(self) -> str:
@@ -143,13 +189,17 @@ class IsoLinear(Scenario):
 
     def build(self, device: DeviceDescription) -> Trajectory:
         axis = AXES.index(self.axis)
-        travel = self.travel_m if self.travel_m is not None else (0.12 if self.axis == 'z' else 0.2)
+        travel = self.travel
+        _check_overrun(self.kind, 'overrun_m', self.overrun_m, 'm', travel)
         positions = self.start_pose[axis] + np.linspace(-travel / 2, travel / 2, self.n_targets)
         jitter = np.random.default_rng([self.seed, 1]).uniform(-1.0, 1.0, self.n_targets)
         jitter[[0, -1]] = 0.0
         positions = positions + self.target_jitter_m * jitter
         if np.any(np.diff(positions) <= 0):
-            raise TwinError('iso_linear: target_jitter_m is too large for the target spacing')
+            spacing = travel / (self.n_targets - 1)
+            raise TwinError(f'iso_linear: target_jitter_m ({self.target_jitter_m:g} m) is too '
+                            f'large for the target spacing ({spacing:g} m): targets would swap '
+                            'places; keep it below half the spacing')
         return iso_cycle(self.start_pose, axis, positions, self.overrun_m, self.n_cycles,
                          self.dwell_s, self.lead_s, self.limits, self.machine,
                          np.random.default_rng([self.seed, 2]))
@@ -185,6 +235,8 @@ class IsoRotary(Scenario):
         if self.axis not in AXES[3:]:
             raise TwinError(f'iso_rotary: axis must be phi, theta or psi, got {self.axis!r}')
         _check_common(self)
+        _check_overrun(self.kind, 'overrun_rad', self.overrun_rad, 'rad')
+        _check_seed(self.kind, 'seed', self.seed)
 
     @property
     def default_reference(self) -> str:
@@ -235,8 +287,19 @@ class RandomMotion(Scenario):
     limits: MotionLimits = MotionLimits()
     seed: int = 0
 
+    def __post_init__(self) -> None:
+        for name, unit in (('radius_m', 'm'), ('max_angle_rad', 'rad')):
+            value = getattr(self, name)
+            if not (value >= 0 and math.isfinite(value)):
+                raise TwinError(f'random_motion: {name} must be >= 0 {unit}, got {value}')
+        _check_duration(self.kind, 'dwell_s', self.dwell_s, zero=True)
+        _check_seed(self.kind, 'seed', self.seed)
+
     def build(self, device: DeviceDescription) -> Trajectory:
         _check_duration(self.kind, 'duration_s', self.duration_s)
+        if self.radius_m == 0 and self.max_angle_rad == 0:
+            raise TwinError('random_motion: radius_m and max_angle_rad are both 0: nothing would '
+                            'move; use the hold scenario to stand still')
         rng = np.random.default_rng(self.seed)
         geo = device.measured_geometry
         centre = np.array(self.centre_pose, dtype=np.float64)
@@ -347,6 +410,12 @@ class MachineSession(Scenario):
             raise TwinError('machine_session: dwell_s must be > 0 and lead_s >= 0')
         if not self.runs:
             raise TwinError('machine_session: runs must name at least one axis')
+        for travel in self.linear_travel_mm:
+            _check_travel(self.kind, 'linear_travel_mm', travel, 'mm', 1e-3)
+        _check_overrun(self.kind, 'overrun_mm', self.overrun_mm, 'mm')
+        _check_overrun(self.kind, 'overrun_deg', self.overrun_deg, 'deg')
+        _check_jitter(self.kind, 'target_jitter_mm', self.target_jitter_mm)
+        _check_seed(self.kind, 'setup_seed', self.setup_seed)
 
     @property
     def default_reference(self) -> str:
@@ -366,6 +435,7 @@ class MachineSession(Scenario):
 
     def plans(self, machine: Any) -> list[RunPlan]:
         """The runs: axis, targets, cycles, overrun, following."""
+        _check_overrun(self.kind, 'overrun_mm', self.overrun_mm, 'mm', min(self.linear_travel_mm))
         spans = self.spans()
         rng = np.random.default_rng([self.errors.seed, 14])
         extra = self._following_positions(machine, spans) if self.follow_targets else {}
@@ -391,7 +461,11 @@ class MachineSession(Scenario):
                 jitter[np.argmin(np.abs(targets - axis.reference))] = 0.0  # keep the reference
                 targets = targets + jitter
                 if np.any(np.diff(targets) <= 0):
-                    raise TwinError('machine_session: target_jitter_mm is too large for the spacing')
+                    spacing_mm = travel * 1e3 / (self.n_linear_targets - 1)
+                    raise TwinError(f'machine_session: target_jitter_mm ({self.target_jitter_mm:g})'
+                                    f' is too large for the spacing of the {axis.name} targets '
+                                    f'({spacing_mm:g} mm): targets would swap places; keep it '
+                                    'below half the spacing')
                 for value in extra.get(axis.name, []):   # (within 1 mm of a target: that one)
                     if np.min(np.abs(targets - value)) > 1e-3 and targets[0] <= value <= targets[-1]:
                         targets = np.sort(np.append(targets, value))

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from mmd_ros.core.calibration import AMBIENT_RANGE_C
 from mmd_ros.twin.codec import from_plain, to_plain
 from mmd_ros.twin.errors import TwinError
 
@@ -39,6 +40,17 @@ REFERENCE_TEMP_C = 20.0
 
 #: Relative difference of two time constants below which the degenerate lag formula is used.
 _SAME_TAU = 1e-6
+
+
+def _check_room(name: str, temp_c: float) -> None:
+    """A room temperature of a profile: within what a calibration may state (the twin's
+    calibration records the room's temperature; a log whose calibration says -300 °C is
+    refused by every command that reads it). The profile never leaves the range of its
+    temperatures: each ramp approaches its end exponentially."""
+    low, high = AMBIENT_RANGE_C
+    if not low <= temp_c <= high:       # False for NaN too
+        raise TwinError(f'{name} must be in [{low:g}, {high:g}] °C (a room temperature a '
+                        f'calibration may state), got {temp_c}')
 
 
 @dataclass(frozen=True)
@@ -59,8 +71,7 @@ class Ramp:
             raise TwinError(f'ramp duration_s must be > 0, got {self.duration_s}')
         if not (self.time_constant_s > 0 and math.isfinite(self.time_constant_s)):
             raise TwinError(f'ramp time_constant_s must be > 0, got {self.time_constant_s}')
-        if not math.isfinite(self.end_c):
-            raise TwinError(f'ramp end_c must be finite, got {self.end_c}')
+        _check_room('ramp end_c', self.end_c)
 
 
 @dataclass(frozen=True)
@@ -75,8 +86,7 @@ class AmbientProfile:
     ramps: tuple[Ramp, ...] = ()
 
     def __post_init__(self) -> None:
-        if not math.isfinite(self.initial_c):
-            raise TwinError(f'initial_c must be finite, got {self.initial_c}')
+        _check_room('initial_c', self.initial_c)
         object.__setattr__(self, 'ramps', tuple(self.ramps))
         knots = [0.0]
         starts = [self.initial_c]

@@ -28,6 +28,7 @@ from numpy.typing import ArrayLike, NDArray
 from mmd_ros.core.calibration import BarCalibration, Calibration
 from mmd_ros.core.calibration_routine import CaptureStats, capture_uncertainty
 from mmd_ros.core.device import DeviceDescription
+from mmd_ros.core.errors import ConfigError
 from mmd_ros.hardware.protocol import MAX_SAMPLE_RATE_HZ
 from mmd_ros.twin.effects import Effects
 from mmd_ros.twin.errors import TwinError
@@ -38,8 +39,8 @@ from mmd_ros.twin.reference import POSE_NOISE, reference_names, reference_values
 from mmd_ros.twin.scenarios import MAX_DURATION_S, RestingBars, Scenario
 from mmd_ros.twin.thermal import REFERENCE_TEMP_C, AmbientProfile
 
-__all__ = ['MAX_CLOCK_S', 'MAX_SAMPLES', 'IsoTargets', 'Placement', 'SimulatedRun', 'TwinDevice',
-           'check_clock']
+__all__ = ['MAX_CLOCK_S', 'MAX_SAMPLES', 'MAX_SEED', 'IsoTargets', 'Placement', 'SimulatedRun',
+           'TwinDevice', 'check_clock']
 
 FloatArray = NDArray[np.float64]
 
@@ -53,6 +54,8 @@ CHECK_RATE_HZ = 100.0
 MAX_SAMPLES = 1_000_000_000
 #: Largest time on the twin's clock, either side of its zero [s]: a year.
 MAX_CLOCK_S = 365 * 24 * 3600.0
+#: Largest seed: the twin's random streams are keyed by 64-bit hashes of it.
+MAX_SEED = 2**64 - 1
 
 
 def check_clock(t_s: float, what: str) -> None:
@@ -175,17 +178,31 @@ class SimulatedRun:
                    machine_joint_names=first.machine_joint_names)
 
 
+def _stating(effects: tuple[str, ...], values: Effects, stating: Any, *figures: float
+             ) -> DeviceDescription:
+    """``stating(*figures)``: the description stating figures of the effects named, or a
+    :class:`TwinError` that blames those effects (not the description, which holds none of
+    them) when the figures are beyond what a description may state."""
+    try:
+        return stating(*figures)
+    except ConfigError as exc:
+        given = ', '.join(f'{name}={getattr(values, name):g}' for name in effects)
+        raise TwinError(f'effect {given}: the simulated device cannot state it in its '
+                        f'description ({exc.key} {exc.problem}); change the effect') from None
+
+
 class TwinDevice:
     """A simulated MMD (seeded, deterministic).
 
     device : the device description (joints, reference plate, bars, channel map)
     effects : error sources; ``Effects.ideal()`` if None
-    seed : non-negative integer; the same seed draws the same device
+    seed : integer in [0, 2^64 - 1]; the same seed draws the same device
     """
 
     def __init__(self, device: DeviceDescription, effects: Effects | None = None, seed: int = 0) -> None:
-        if not (isinstance(seed, (int, np.integer)) and seed >= 0):
-            raise TwinError(f'seed must be a non-negative integer, got {seed!r}')
+        if not (isinstance(seed, (int, np.integer)) and 0 <= seed <= MAX_SEED):
+            raise TwinError(f'seed must be an integer in [0, 2^64 - 1] (it keys 64-bit random '
+                            f'streams), got {seed!r}')
         if not 0 < device.sample_rate_hz <= MAX_SAMPLE_RATE_HZ:
             raise TwinError(f'{device.source}: terminal.sample_rate_hz must be in (0, {MAX_SAMPLE_RATE_HZ}] '
                             f'Hz (the terminal\'s maximum), got {device.sample_rate_hz:g}')
@@ -214,21 +231,26 @@ class TwinDevice:
         (``bars.gravity_sag_uncertainty_nm``) their spread times it (0 without a spread: the
         twin's sag is then its figure; with one, this twin's own sag, alike for its bars, stays
         hidden), and the vertical it sags along (``plates.vertical``) the one the twin stands
-        in: the description's, else level (+z of {L}). What a description states, it keeps."""
+        in: the description's, else level (+z of {L}). What a description states, it keeps.
+        Raises :class:`TwinError` naming the effect whose figure no description may state."""
         device = self.device
+        fx = self.effects
         if device.latch_skew_s is None:
-            device = device.with_latch_skew(self.effects.sampling_skew_s)
+            device = _stating(('sampling_skew_s',), fx, device.with_latch_skew, fx.sampling_skew_s)
         if device.subdivision_error_m is None:
-            device = device.with_subdivision_error(self.effects.cyclic_error_m, self.effects.cyclic_period_m)
+            device = _stating(('cyclic_error_m', 'cyclic_period_m'), fx,
+                              device.with_subdivision_error, fx.cyclic_error_m, fx.cyclic_period_m)
         if device.friction_hysteresis_m is None:
             lo, hi = HYSTERESIS_SPREAD      # the RMS of a uniform share in [lo, hi]
-            device = device.with_friction_hysteresis(
-                self.effects.hysteresis_m * math.sqrt((hi ** 3 - lo ** 3) / (3.0 * (hi - lo))))
+            device = _stating(('hysteresis_m',), fx, device.with_friction_hysteresis,
+                              fx.hysteresis_m * math.sqrt((hi ** 3 - lo ** 3) / (3.0 * (hi - lo))))
         if device.seating_repeatability_m is None:
-            device = device.with_seating_repeatability(self.effects.placement_repeatability_m)
+            device = _stating(('placement_repeatability_m',), fx, device.with_seating_repeatability,
+                              fx.placement_repeatability_m)
         if device.gravity_sag_m is None:
-            sag = self.effects.gravity_sag_m
-            device = device.with_gravity_sag(sag, sag * self.effects.gravity_sag_spread)
+            sag = fx.gravity_sag_m
+            device = _stating(('gravity_sag_m', 'gravity_sag_spread'), fx, device.with_gravity_sag,
+                              sag, sag * fx.gravity_sag_spread)
         if device.vertical is None:
             device = device.with_vertical(device.up)
         return device
@@ -470,6 +492,19 @@ def _linear_reader(counts: tuple[float, ...], distances_m: tuple[float, ...]):
     return read
 
 
+def _check_times(motion: Any, rate_hz: float) -> Iterator[FloatArray]:
+    """The times of the workspace check before a run (``motion.check_times(rate_hz)``: a grid
+    at ``rate_hz`` and every knot) in increasing blocks of about :data:`BLOCK`: a week at
+    100 Hz would need gigabytes of poses at once."""
+    step = 1.0 / rate_hz
+    n = math.ceil(motion.duration_s / step)
+    knots = motion.knots_s[motion.knots_s <= motion.duration_s]
+    for k0 in range(0, max(n, 1), BLOCK):
+        k1 = min(k0 + BLOCK, n)
+        end = k1 * step if k1 < n else math.inf
+        yield np.union1d(np.arange(k0, k1) * step, knots[(knots >= k0 * step) & (knots < end)])
+
+
 class _Plan:
     """A scenario prepared for simulation on one twin: motion built, workspace checked."""
 
@@ -497,12 +532,19 @@ class _Plan:
             raise TwinError(f'{scenario.kind}: {self.n_samples:.3g} samples ({self.motion.duration_s:g} s '
                             f'at {self.rate:g} Hz); at most {MAX_SAMPLES:.0e} can be simulated in one '
                             'run: lower the sample rate')
+        if self.n_samples < 2:
+            raise TwinError(f'{scenario.kind}: the run lasts {self.motion.duration_s:.6g} s, which '
+                            f'at {self.rate:g} Hz is {self.n_samples} sample: raise the sample '
+                            f'rate to at least {math.ceil(1e3 / self.motion.duration_s) / 1e3:g} Hz'
+                            if self.motion.duration_s > 0 else
+                            f'{scenario.kind}: the run lasts 0 s: nothing to simulate')
         if not isinstance(self.motion, RestingBars):
-            times = self.motion.check_times(min(self.rate, CHECK_RATE_HZ))
-            poses = self.motion.pose(times)
-            rot = rotation_matrices(poses)
             geo = dev.measured_geometry
-            check_workspace(dev, times, bar_legs(geo.upper, geo.lower, poses, rot), rot, scenario.kind)
+            for times in _check_times(self.motion, min(self.rate, CHECK_RATE_HZ)):
+                poses = self.motion.pose(times)
+                rot = rotation_matrices(poses)
+                check_workspace(dev, times, bar_legs(geo.upper, geo.lower, poses, rot), rot,
+                                scenario.kind)
         self.metadata = {
             'device': dev.name,
             'seed': twin.seed,
