@@ -2060,8 +2060,8 @@ def _check_statement(sel: _Selector, stated: list[ModelTerm], prior_m: float | N
     what an error estimated d +- s with nothing known of it beforehand leaves. Where the data
     do not exercise the bars' inclination, or determine the sag no better than the figure
     itself (s >= the figure: ``undetermined``), the statement is not checked: sigma_p is
-    claimed, or without it the whole figure. None and no effect when there is no statement, or a fitted sag
-    in its place."""
+    claimed, or without it the whole figure. None and no effect when there is no statement,
+    or a fitted sag in its place."""
     if not stated or any(a.effect.name == 'gravity_sag' for a in sel.active):
         return [], None
     effect, points = catalogue(['gravity_sag', 'calibration_points'])
