@@ -650,19 +650,22 @@ def test_without_the_y_run_the_c_line_position_that_follows_the_open_frame_is_no
     plans = [p for p in _plans(machine) if p.axis in 'XYZC']
     options = IdentifyOptions(draws=4, component_m=0.1 * UM, component_rad=0.1 * ARCSEC)
     full = identify(exact_runs(twin, plans), machine, options=options)
-    part = identify(exact_runs(twin, [p for p in plans if p.axis in 'XC']), machine, options=options)
+    part = identify(exact_runs(twin, [p for p in plans if p.axis in 'XC']), machine,
+                    options=options)
     for name in ('EX0C', 'EY0C', 'EA0C', 'EB0C'):
         assert full.value(name).determined, name
     for name in ('EX0C', 'EB0C'):
         v = part.value(name)
-        assert v.determined and v.value == pytest.approx(full.value(name).value, abs=0.05 * UM), name
+        expected = full.value(name).value
+        assert v.determined and v.value == pytest.approx(expected, abs=0.05 * UM), name
     ea0c, ey0c = part.value('EA0C'), part.value('EY0C')
     assert abs(ea0c.value - 9 * ARCSEC) > 300 * ARCSEC             # {L}'s tilt about x
     assert abs(ey0c.value + 7 * UM) > 400 * UM                      # carried 300 mm down
     assert not ea0c.determined and 'needs the Y run' in ea0c.note
     assert not ey0c.determined and '300 µm per mrad' in ey0c.note and 'about x' in ey0c.note
     assert any(line.startswith('EY0C: ') for line in part.not_determined())
-    loc = yaml.safe_load(write_location_yaml(part, tmp_path / 'loc.yaml').read_text(encoding='utf-8'))
+    loc = yaml.safe_load(write_location_yaml(part, tmp_path / 'loc.yaml')
+                         .read_text(encoding='utf-8'))
     errors = loc['rotary_axes']['C']['location_errors']
     assert errors['EY0C']['determined'] is False and errors['EB0C']['determined'] is True
 
