@@ -604,10 +604,6 @@ class MachineTrajectory:
         q, play, noise = self.state(times_s)
         return self.machine.mmd_poses(q, play, noise)
 
-    def check_times(self, rate_hz: float) -> FloatArray:
-        grid = np.arange(0.0, self.duration_s, 1.0 / rate_hz)
-        return np.union1d(grid, self.knots_s[self.knots_s <= self.duration_s])
-
 
 def plan_session(machine: TwinMachine, runs: list[RunPlan], *, dwell_s: float, lead_s: float,
                  speed: float, accel: float, angular_speed: float, angular_accel: float,

@@ -175,11 +175,6 @@ class Trajectory:
                 'approach': self.approach[j].astype(np.int16),
                 'in_dwell': self.dwell[j]}
 
-    def check_times(self, rate_hz: float) -> FloatArray:
-        """Times at which to check the workspace: every knot and a grid at ``rate_hz``."""
-        grid = np.arange(0.0, self.duration_s, 1.0 / rate_hz)
-        return np.union1d(grid, self.knots_s[self.knots_s <= self.duration_s])
-
 
 @dataclass
 class TrajectoryBuilder:

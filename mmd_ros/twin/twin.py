@@ -493,9 +493,9 @@ def _linear_reader(counts: tuple[float, ...], distances_m: tuple[float, ...]):
 
 
 def _check_times(motion: Any, rate_hz: float) -> Iterator[FloatArray]:
-    """The times of the workspace check before a run (``motion.check_times(rate_hz)``: a grid
-    at ``rate_hz`` and every knot) in increasing blocks of about :data:`BLOCK`: a week at
-    100 Hz would need gigabytes of poses at once."""
+    """The times of the workspace check before a run (a grid at ``rate_hz`` and every knot
+    of ``motion``) in increasing blocks of about :data:`BLOCK`: a week at 100 Hz would need
+    gigabytes of poses at once."""
     step = 1.0 / rate_hz
     n = math.ceil(motion.duration_s / step)
     knots = motion.knots_s[motion.knots_s <= motion.duration_s]
