@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from mmd_ros.core.calibration import AMBIENT_RANGE_C, Calibration
+from mmd_ros.core.calibration import Calibration
 from mmd_ros.core.device import DeviceDescription, find_config, load_device
 from mmd_ros.core.errors import ConfigError
 from mmd_ros.core.progress import Progress
@@ -25,7 +25,7 @@ from mmd_ros.logs.writer import LogWriter
 from mmd_ros.twin.effects import PRESET_AMBIENT, Effects
 from mmd_ros.twin.errors import TwinError, TwinParameterError
 from mmd_ros.twin.scenarios import make_scenario
-from mmd_ros.twin.thermal import AmbientProfile
+from mmd_ros.twin.thermal import AmbientProfile, check_room
 from mmd_ros.twin.twin import TwinDevice
 
 __all__ = ['EPOCH_S', 'SimulationSpec', 'ambient_profile', 'run_log', 'simulate_to_log', 'spec_inputs']
@@ -76,10 +76,10 @@ def ambient_profile(spec: str) -> AmbientProfile:
         except ValueError:
             temp_c = None
         if temp_c is not None:
-            low, high = AMBIENT_RANGE_C
-            if not low <= temp_c <= high:     # what the calibration the twin makes may state
-                raise ConfigError('--ambient', spec, f'T must be in [{low:g}, {high:g}] °C (a '
-                                  f'room temperature a calibration may state), got {temp_c:g}')
+            try:
+                check_room('T', temp_c)       # what the calibration the twin makes may state
+            except TwinError as exc:
+                raise ConfigError('--ambient', spec, str(exc)) from None
             return AmbientProfile.constant(temp_c)
     elif spec.endswith(('.yaml', '.yml')):
         try:

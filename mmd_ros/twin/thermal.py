@@ -30,7 +30,7 @@ from mmd_ros.core.calibration import AMBIENT_RANGE_C
 from mmd_ros.twin.codec import from_plain, to_plain
 from mmd_ros.twin.errors import TwinError
 
-__all__ = ['REFERENCE_TEMP_C', 'AmbientProfile', 'Ramp']
+__all__ = ['REFERENCE_TEMP_C', 'AmbientProfile', 'Ramp', 'check_room']
 
 FloatArray = NDArray[np.float64]
 
@@ -42,7 +42,7 @@ REFERENCE_TEMP_C = 20.0
 _SAME_TAU = 1e-6
 
 
-def _check_room(name: str, temp_c: float) -> None:
+def check_room(name: str, temp_c: float) -> None:
     """A room temperature of a profile: within what a calibration may state (the twin's
     calibration records the room's temperature; a log whose calibration says -300 °C is
     refused by every command that reads it). The profile never leaves the range of its
@@ -71,7 +71,7 @@ class Ramp:
             raise TwinError(f'ramp duration_s must be > 0, got {self.duration_s}')
         if not (self.time_constant_s > 0 and math.isfinite(self.time_constant_s)):
             raise TwinError(f'ramp time_constant_s must be > 0, got {self.time_constant_s}')
-        _check_room('ramp end_c', self.end_c)
+        check_room('ramp end_c', self.end_c)
 
 
 @dataclass(frozen=True)
@@ -86,7 +86,7 @@ class AmbientProfile:
     ramps: tuple[Ramp, ...] = ()
 
     def __post_init__(self) -> None:
-        _check_room('initial_c', self.initial_c)
+        check_room('initial_c', self.initial_c)
         object.__setattr__(self, 'ramps', tuple(self.ramps))
         knots = [0.0]
         starts = [self.initial_c]
