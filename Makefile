@@ -2,6 +2,8 @@
 #   make demo   create .venv, install, run the main job on the simulated device
 #   make test   create .venv if missing, install, run the whole test suite
 PYTHON ?= python3
+# pytest-xdist workers of make test (CI's machine has 2 cores; 1 runs the suite serially)
+TEST_WORKERS ?= 2
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
@@ -25,7 +27,7 @@ demo: $(STAMP)
 	$(BIN)/python -m mmd_ros.demo
 
 test: $(STAMP)
-	$(BIN)/python -m pytest -q test
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadgroup test
 
 bench: $(STAMP)
 	$(BIN)/python bench/run_all.py

@@ -36,7 +36,9 @@ def ros_available() -> bool:
     return True
 
 
-needs_ros = pytest.mark.skipif(not ros_available(), reason='rclpy is not installed')
+#: The reason of :data:`needs_ros`, by which conftest.py finds the tests that use DDS.
+NO_ROS = 'rclpy is not installed'
+needs_ros = pytest.mark.skipif(not ros_available(), reason=NO_ROS)
 
 
 def command(name: str) -> list[str]:
