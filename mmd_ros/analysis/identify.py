@@ -62,7 +62,7 @@ from mmd_ros.analysis.glitches import Step, bar_residual, residual_steps
 from mmd_ros.analysis.uncertainty import (
     CLAIM_LEVEL, FittedEffect, ResidualRun, base_budget, beyond_claim, claimed_sigma,
     fitted_effects, measured_read_noise, calibration_constants, with_fit_uncertainty)
-from mmd_ros.core.budget import SAG_TERMS
+from mmd_ros.core.budget import LENGTH_TERMS, SAG_TERMS
 from mmd_ros.core.calibration import Calibration
 from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.kinematics import jacobian
@@ -1757,6 +1757,7 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
     found: list[Found] = []
     not_claimed: list[Found] = []
     unchecked: list[Found] = []
+    growing: list[ModelTerm] = []      # (the terms of the bars' lengths among them)
     validated = False
     afters: list[tuple[Processed, FloatArray]] | None = None
     stats_pred = None
@@ -1852,6 +1853,8 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
             worst = max(f.unchecked, key=lambda u: u.change / max(u.floor, 1e-300))
             f.reason = worst.message() + ' (not written; --accept-unchecked writes it)'
             unchecked.append(f)
+            if f.term_type in LENGTH_TERMS:
+                growing.extend(_terms_for(sel, [(sel.active[k], f.value)], runs[-1]))
             sel.active[k].written = False
             continue
         if not any(a.written for a in sel.active):
@@ -1970,11 +1973,12 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
         effects = fitted_effects(sel, [(a, refit.get(id(a), t)) for a, t in chosen], found,
                                  runs[-1]) + statement
         if unseen:
-            extended = with_fit_uncertainty(extended, runs[-1].ctx, effects, unseen, unseen=True)
+            extended = with_fit_uncertainty(extended, runs[-1].ctx, effects, unseen, unseen=True,
+                                            growing=growing)
         elif afters:
             extended = with_fit_uncertainty(extended, runs[-1].ctx, effects, [
                 ResidualRun(r.ctx, after, res, r.split.test_idx)
-                for r, (after, res) in zip(runs, afters)])
+                for r, (after, res) in zip(runs, afters)], growing=growing)
 
     # -- nothing written, and a residual the budget claims too little for, or a read noise where
     # the bars stood still that a stream in motion would not claim: the model's terms stay and
@@ -1999,6 +2003,7 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
             extended = with_fit_uncertainty(
                 extended, runs[-1].ctx, statement,
                 [ResidualRun(r.ctx, r.ctx.base, r.res_before, idx) for r, idx in zip(runs, every)],
+                growing=growing,
                 residual_from='the logs analysed, every usable sample (no term was fitted to them)')
 
     first_summary = summaries[0]

@@ -66,8 +66,8 @@ from mmd_ros.analysis.data import FitContext, Observation, Processed
 from mmd_ros.core.budget import LengthBudget, Observed
 from mmd_ros.core.kinematics import jacobian
 from mmd_ros.core.model import (FIT_REPLACEABLE, PROFILE_POINTS, FitUncertainty, LengthProfile,
-                                Model, ModelTerm, ModelUncertainty)
-from mmd_ros.core.terms import limited_to_seen
+                                Model, ModelTerm, ModelUncertainty, TermContext)
+from mmd_ros.core.terms import lengths_within, limited_to_seen
 from mmd_ros.core.uncertainty import hat_weights, pose_covariance
 from mmd_ros.core.validity import Validity
 
@@ -534,7 +534,8 @@ def beyond_claim(ctx: FitContext, residual: FloatArray, idx: IntArray,
 
 
 def fit_uncertainty(ctx: FitContext, found: list[FittedEffect], runs: list[ResidualRun],
-                    model: Model, *, unseen: bool = False) -> FitUncertainty:
+                    model: Model, *, unseen: bool = False,
+                    growing: list[ModelTerm] | None = None) -> FitUncertainty:
     """The ``uncertainty.fit`` section of the model a fit writes (see the module docstring).
 
     ctx : the context of the log whose parameters the model applies (signatures, terms)
@@ -564,7 +565,7 @@ def fit_uncertainty(ctx: FitContext, found: list[FittedEffect], runs: list[Resid
                          {'residual_from': ('logs the fit did not see (leave-one-run-out)' if unseen
                                             else 'held-out blocks of the fitted logs')},
                          measured_read_noise([run.ctx for run in runs]), rest_terms_m2=rest)
-    _sized_from(fit, ctx, found, runs, model, unseen)
+    _sized_from(fit, ctx, found, runs, model, unseen, growing)
     # a form of an effect the logs could not rule out (a cyclic error the calibration read,
     # fitted from one component): the change to it is claimed too, after the residual and the
     # scale were measured (it is not in these logs' residual: counted there, it lowered the
@@ -578,7 +579,8 @@ def fit_uncertainty(ctx: FitContext, found: list[FittedEffect], runs: list[Resid
 
 
 def _sized_from(fit: FitUncertainty, ctx: FitContext, found: list[FittedEffect],
-                runs: list[ResidualRun], model: Model, unseen: bool = False) -> None:
+                runs: list[ResidualRun], model: Model, unseen: bool = False,
+                growing: list[ModelTerm] | None = None) -> None:
     """The residual, the sources it replaces and the scale of the kept ones, measured on
     ``runs`` with the claims ``fit`` makes so far (:func:`fit_uncertainty`; ``unseen``: the
     runs' residuals are from models fitted without them)."""
@@ -712,6 +714,7 @@ def _sized_from(fit: FitUncertainty, ctx: FitContext, found: list[FittedEffect],
         fit.systematic_scale = max(estimate, 1.0)
         fit.record['scale_estimate'] = round(estimate, 4)
         fit.record['common_mode_visibility'] = round(sees_common, 3)
+        excess = max(estimate - 1.0, 0.0) * mean_repl / max(total, 1)
         if estimate > 1.0 and sees_common < 1.0:
             # what those components showed is of the bars' differences; how much of it the
             # six bars share (an error of their scale, their temperature, the reference bar's),
@@ -719,13 +722,73 @@ def _sized_from(fit: FitUncertainty, ctx: FitContext, found: list[FittedEffect],
             # large as the whole excess they showed (scaled alone, a bow of every bar's scale
             # seen by an x-axis laser left z claimed 0.48 times its error, and 86 % of new
             # 6-DOF motion within the lengths the fit saw in the 95 % ellipsoid; measured 95 %)
-            excess = (estimate - 1.0) * mean_repl / total
             common = np.full(6, 1.0 / math.sqrt(6.0))
             whole = float(np.trace(excess))
             fit.residual_m2 = fit.residual_m2 + whole * np.outer(common, common)
             fit.record['common_mode_nm'] = round(math.sqrt(max(whole, 0.0)) * 1e9, 1)
+            excess = excess + whole * np.outer(common, common)
+        # (an error of the bars' lengths found in it: beyond the lengths seen, it may grow)
+        fit.profile, share = _growth_profile(
+            [run.after.cdf_lengths_m[idx] for run, idx in partial], excess, growing or [],
+            _observing(ctx, ctx.base, ctx.model)[0])
+        if fit.profile is not None:
+            fit.record['growing_share'] = [round(float(v), 3) for v in share]
         return
     fit.record['note'] = 'no usable residual: the calibration-derived sources stay as they are'
+
+
+#: Degree of the polynomial an error of a bar's length is taken to be beyond the lengths a
+#: fit saw (a bar's scale error: offset, scale, bow).
+GROWTH_DEGREE = 2
+
+
+def _growth_profile(lengths: list[FloatArray], excess: FloatArray, terms: list[ModelTerm],
+                    budget: LengthBudget) -> tuple[LengthProfile | None, FloatArray]:
+    """Where along each bar an excess a partial reference showed is claimed, when a term of the
+    bars' lengths was found in it and not written (``terms``): as large as seen, and as large
+    as a smooth error of that mean square reaches beyond the lengths seen.
+
+    A reference that sees some pose components (a laser along x, a rotary encoder) cannot tell
+    which bar an error of the bars' lengths came from, and the term that follows it is not
+    written (its effect on the other components is not determined). Its excess is claimed
+    flat over the lengths the fit saw (``lengths``, per run (n, 6) [m]); beyond them no data
+    say what the error does, and a smooth one grows (a bow of each bar's scale seen by an
+    x-axis laser: 12.2 % of new motion's samples with a bar beyond those lengths in the 95 %
+    ellipsoid, its error there 2-3 times the claim). Taken as a polynomial of degree
+    :data:`GROWTH_DEGREE` in the bar's length u (-1 to 1 over the lengths seen), its
+    coefficients on the Legendre polynomials orthonormal there independent and alike, its
+    expected square at u is K(u) / (degree + 1) of its mean square, K(u) = sum (2 n + 1)
+    P_n(u)^2 (0.75 in the middle, 3 at the ends, 12.2 at u = 1.4). Only the share of a bar's
+    error that is smooth grows: of the term's correction over the lengths seen, the share of
+    its variance beyond the calibration points' own errors (independent from point to point,
+    :attr:`LengthBudget.point_nugget_m2`; a cyclic error the calibration read at its points
+    left a points term riding along that does not grow). Bar b's factor is
+    max(1, 1 + s_b (K(u) / (degree + 1) - 1)), s_b that share, on a grid 200 mm either side
+    of the lengths seen (None where no bar's share is above 0), and the shares (6,)."""
+    from numpy.polynomial import legendre
+    if not terms or not np.any(np.diag(excess) > 0):
+        return None, np.zeros(6)
+    x = np.concatenate(lengths)
+    lo, hi = np.nanmin(x, axis=0), np.nanmax(x, axis=0)
+    n = 201
+    along, ok = lengths_within(np.column_stack([lo, hi]), budget.knots_m, n)
+    ctx = TermContext(np.zeros(n), np.zeros((n, 8)), along, along, np.zeros((n, 1)), np.zeros(n))
+    spread = np.var(sum(term.correction(ctx) for term in terms), axis=0)
+    with np.errstate(divide='ignore', invalid='ignore'):
+        share = np.where(ok & (spread > 0),
+                         np.clip(1.0 - budget.point_nugget_m2 / spread, 0.0, 1.0), 0.0)
+    if not np.any(share > 0):
+        return None, share
+    grids, factors = [], []
+    for b in range(6):
+        mid, half = 0.5 * (lo[b] + hi[b]), max(0.5 * (hi[b] - lo[b]), 1e-3)
+        grid = np.linspace(lo[b] - 0.2, hi[b] + 0.2, PROFILE_POINTS)
+        u = (grid - mid) / half
+        k = sum((2 * j + 1) * legendre.legval(u, np.eye(GROWTH_DEGREE + 1)[j]) ** 2
+                for j in range(GROWTH_DEGREE + 1))
+        grids.append(grid)
+        factors.append(np.clip(1.0 + share[b] * (k / (GROWTH_DEGREE + 1) - 1.0), 1.0, 1e6))
+    return LengthProfile(excess.copy(), grids, factors), share
 
 
 #: Samples per run at most at which the residual's profile along each bar is read.
@@ -1131,12 +1194,13 @@ def fitted_effects(sel: Any, chosen: list[tuple[Any, FloatArray]], found: list[A
 
 def with_fit_uncertainty(model: Model, ctx: FitContext, found: list[FittedEffect],
                          runs: list[ResidualRun], *, unseen: bool = False,
+                         growing: list[ModelTerm] | None = None,
                          residual_from: str | None = None) -> Model:
     """``model`` with its ``uncertainty.fit`` section measured by the fit (the overrides of the
     model it started from are kept); see :func:`fit_uncertainty`. ``residual_from`` replaces
     the record of where the residual comes from."""
     previous = model.uncertainty
-    fit = fit_uncertainty(ctx, found, runs, model, unseen=unseen)
+    fit = fit_uncertainty(ctx, found, runs, model, unseen=unseen, growing=growing)
     if residual_from is not None:
         fit.record['residual_from'] = residual_from
     model.uncertainty = ModelUncertainty(previous.thermal_mismatch_fraction, previous.read_noise_m, fit)

@@ -538,15 +538,22 @@ class LengthBudget:
         self._has_pairs = bool(np.any(self.pair_var_m2 > 0))
         self._has_hysteresis = bool(np.any(self.hysteresis_m > 0))
         self._has_mean_terms = bool(np.any(self.mean_terms_m2))
-        self._has_residual = bool(np.any(self.residual_m2))
         # (where along each bar the residual lay: claimed there, :class:`LengthProfile`)
-        self._profile = fit.profile if fit is not None and self._has_residual else None
+        self._profile = fit.profile if fit is not None else None
+        self._has_residual = bool(np.any(self.residual_m2)) or self._profile is not None
         self._cross_key: tuple[float, ...] | None = None
         self._tab: dict[str, FloatArray] | None = None
         self._unchecked_points: NDArray[np.bool_] | None = None
         self._fast_parts: dict[str, Any] | None = None
         self._resolved: tuple[FloatArray, FloatArray] | None = None
         self._cross_w: FloatArray = np.zeros((0, 0))
+
+    @property
+    def point_nugget_m2(self) -> FloatArray:
+        """Per measuring bar, the variance of each calibration point's own error, independent
+        from point to point (placement, its count's sub-divisional error, after a one-sided
+        routine the friction state it was seated in), (6,) [m^2]."""
+        return self._point_nugget_m2
 
     def reset(self) -> None:
         """A new run: the stream's read-noise estimate and the bars' motion directions start
