@@ -1781,6 +1781,37 @@ def test_an_interference_seen_by_a_laser_is_carried_to_the_whole_pose():
     assert max(without) < 0.5 and min(covered) >= 0.93
 
 
+def test_an_excess_grows_beyond_the_lengths_seen_only_where_the_unwritten_term_was_smooth():
+    """What a partial reference showed is claimed to grow beyond the lengths the fit saw as a
+    smooth error's expected square would (a random polynomial of degree 2 over those lengths:
+    3 at their ends, 12.2 a fifth of their span further), and only for the share of the
+    unwritten length term's correction beyond the calibration points' own errors: a bow grows,
+    point errors the size of the points' own do not."""
+    from mmd_ros.analysis.uncertainty import _growth_profile
+    from mmd_ros.core.terms import CdfOffsetsTerm
+    from mmd_ros.twin import AmbientProfile
+    twin = TwinDevice(DEVICE, Effects.ideal(), seed=3)
+    calibration = twin.calibrate(0.0, AmbientProfile.constant(21.0))
+    budget = LengthBudget(DEVICE, calibration, Model())
+    knots = budget.knots_m
+    lo, hi = knots[:, 2], knots[:, 5]
+    seen = [np.linspace(lo, hi, 50)]
+    excess = np.diag(np.full(6, (50e-9) ** 2))
+    u = (knots - 0.5 * (lo + hi)[:, None]) / (0.5 * (hi - lo))[:, None]
+    bow = CdfOffsetsTerm(knots, 0.4e-6 * (u * u - 1.0 / 3.0))
+    profile, share = _growth_profile(seen, excess, [bow], budget)
+    assert np.all(share > 0.9), share
+    at = np.column_stack([0.5 * (lo + hi), hi, hi + 0.2 * (hi - lo)])     # u = 0, 1, 1.4
+    f = np.array([profile.factors(at[:, j][None, :])[0] for j in range(3)])
+    assert np.allclose(f[0], 1.0) and np.all(f[1] > 2.5) and np.all(f[2] > 10.0), f
+    assert np.all(profile.factors(lo[None, :] - 0.1) > f[2])       # (100 mm below: larger)
+    nugget = np.sqrt(budget.point_nugget_m2)[:, None]
+    jitter = CdfOffsetsTerm(knots, nugget * np.where(np.arange(knots.shape[1]) % 2, 1.0, -1.0))
+    profile, share = _growth_profile(seen, excess, [jitter], budget)
+    assert profile is None and np.all(share == 0.0), share
+    assert _growth_profile(seen, excess, [], budget)[0] is None
+
+
 def test_a_bow_seen_by_a_laser_claims_the_bars_common_mode_as_large_as_what_it_showed():
     """A quadratic bow of each bar's scale about the middle of its travel (0.25-0.35 µm from
     middle to end, after the calibration: it did not see it), seen by an x-axis laser on 6-DOF

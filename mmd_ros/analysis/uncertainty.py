@@ -57,6 +57,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from numpy.polynomial import legendre
 from numpy.typing import NDArray
 from scipy.linalg import block_diag
 from scipy.optimize import minimize_scalar
@@ -765,11 +766,12 @@ def _growth_profile(lengths: list[FloatArray], excess: FloatArray, terms: list[M
     left a points term riding along that does not grow). Bar b's factor is
     max(1, 1 + s_b (K(u) / (degree + 1) - 1)), s_b that share, on a grid 200 mm either side
     of the lengths seen (None where no bar's share is above 0), and the shares (6,)."""
-    from numpy.polynomial import legendre
     if not terms or not np.any(np.diag(excess) > 0):
         return None, np.zeros(6)
     x = np.concatenate(lengths)
-    lo, hi = np.nanmin(x, axis=0), np.nanmax(x, axis=0)
+    finite = np.isfinite(x)
+    lo = np.min(np.where(finite, x, np.inf), axis=0)
+    hi = np.max(np.where(finite, x, -np.inf), axis=0)
     n = 201
     along, ok = lengths_within(np.column_stack([lo, hi]), budget.knots_m, n)
     ctx = TermContext(np.zeros(n), np.zeros((n, 8)), along, along, np.zeros((n, 1)), np.zeros(n))
@@ -781,6 +783,10 @@ def _growth_profile(lengths: list[FloatArray], excess: FloatArray, terms: list[M
         return None, share
     grids, factors = [], []
     for b in range(6):
+        if not (ok[b] and share[b] > 0):      # (a bar seen nowhere, or whose error does not grow)
+            grids.append(np.zeros(0))
+            factors.append(np.zeros(0))
+            continue
         mid, half = 0.5 * (lo[b] + hi[b]), max(0.5 * (hi[b] - lo[b]), 1e-3)
         grid = np.linspace(lo[b] - 0.2, hi[b] + 0.2, PROFILE_POINTS)
         u = (grid - mid) / half
