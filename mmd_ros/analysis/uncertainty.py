@@ -67,8 +67,8 @@ from mmd_ros.analysis.data import FitContext, Observation, Processed
 from mmd_ros.core.budget import LengthBudget, Observed
 from mmd_ros.core.kinematics import jacobian
 from mmd_ros.core.model import (FIT_REPLACEABLE, PROFILE_POINTS, FitUncertainty, LengthProfile,
-                                Model, ModelTerm, ModelUncertainty, TermContext)
-from mmd_ros.core.terms import lengths_within, limited_to_seen
+                                Model, ModelTerm, ModelUncertainty)
+from mmd_ros.core.terms import limited_to_seen
 from mmd_ros.core.uncertainty import hat_weights, pose_covariance
 from mmd_ros.core.validity import Validity
 
@@ -731,7 +731,7 @@ def _sized_from(fit: FitUncertainty, ctx: FitContext, found: list[FittedEffect],
         # (an error of the bars' lengths found in it: beyond the lengths seen, it may grow)
         fit.profile, share = _growth_profile(
             [run.after.cdf_lengths_m[idx] for run, idx in partial], excess, growing or [],
-            _observing(ctx, ctx.base, ctx.model)[0])
+            base_budget(ctx))
         if fit.profile is not None:
             fit.record['growing_share'] = [round(float(v), 3) for v in share]
         return
@@ -762,7 +762,7 @@ def _growth_profile(lengths: list[FloatArray], excess: FloatArray, terms: list[M
     P_n(u)^2 (0.75 in the middle, 3 at the ends, 12.2 at u = 1.4). Only the share of a bar's
     error that is smooth grows: of the term's correction over the lengths seen, the share of
     its variance beyond the calibration points' own errors (independent from point to point,
-    :attr:`LengthBudget.point_nugget_m2`; a cyclic error the calibration read at its points
+    :meth:`LengthBudget.smooth_share`; a cyclic error the calibration read at its points
     left a points term riding along that does not grow). Bar b's factor is
     max(1, 1 + s_b (K(u) / (degree + 1) - 1)), s_b that share, on a grid 200 mm either side
     of the lengths seen (None where no bar's share is above 0), and the shares (6,)."""
@@ -772,13 +772,8 @@ def _growth_profile(lengths: list[FloatArray], excess: FloatArray, terms: list[M
     finite = np.isfinite(x)
     lo = np.min(np.where(finite, x, np.inf), axis=0)
     hi = np.max(np.where(finite, x, -np.inf), axis=0)
-    n = 201
-    along, ok = lengths_within(np.column_stack([lo, hi]), budget.knots_m, n)
-    ctx = TermContext(np.zeros(n), np.zeros((n, 8)), along, along, np.zeros((n, 1)), np.zeros(n))
-    spread = np.var(sum(term.correction(ctx) for term in terms), axis=0)
-    with np.errstate(divide='ignore', invalid='ignore'):
-        share = np.where(ok & (spread > 0),
-                         np.clip(1.0 - budget.point_nugget_m2 / spread, 0.0, 1.0), 0.0)
+    _, ok, corrections = budget.length_corrections(terms, np.column_stack([lo, hi]))
+    share = np.where(ok, budget.smooth_share(np.var(sum(corrections), axis=0)), 0.0)
     if not np.any(share > 0):
         return None, share
     grids, factors = [], []

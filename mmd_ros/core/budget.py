@@ -786,8 +786,9 @@ class LengthBudget:
         model's ``cdf_offsets`` term holds at zero is not checked either, though a segment
         ending at it holds lengths seen: the fit's samples did not come near enough to fit it,
         and the term corrects nothing there (one-sided realistic twins, zeroed fits: a bar 130
-        nm off within 2 mm beyond a bound in the middle of a segment, 9.2 % of one twin's
-        samples beyond covered; within those lengths the fit's residual checked the error
+        nm off within 2 mm beyond a bound in the middle of a segment, the point beyond held at
+        zero; with the size claim of the unchecked range taken away, 9.2 % of that twin's
+        samples beyond were covered; within those lengths the fit's residual checked the error
         there, and the flank claim holds what it left). 0 when every bar lies within the
         segments the fit saw, else (N, 6)."""
         lo, hi = self._fit_range_m[:, 0], self._fit_range_m[:, 1]
@@ -835,6 +836,24 @@ class LengthBudget:
         return np.where(beyond > 0.0, self.interpolation.correlation(np.nan_to_num(
             np.maximum(beyond, 0.0), posinf=1.0)), 1.0)
 
+    def length_corrections(self, terms: list[Any], range_m: FloatArray, n: int = 201
+                           ) -> tuple[FloatArray, NDArray[np.bool_], list[FloatArray]]:
+        """Each length-dependent term's correction at ``n`` lengths evenly spread over each
+        bar's ``range_m`` (6, 2) [m] within its CDF span: the lengths (n, 6), which bars have
+        any (6,), and the corrections (n, 6) each, in the order of ``terms``."""
+        lengths, ok = lengths_within(range_m, self.knots_m, n)     # the terms' span: the CDF's
+        ctx = TermContext(np.zeros(n), np.zeros((n, 8)), lengths, lengths, np.zeros((n, 1)),
+                          np.zeros(n))
+        return lengths, ok, [term.correction(ctx) for term in terms]
+
+    def smooth_share(self, spread_m2: FloatArray) -> FloatArray:
+        """Per bar, the share of a points correction's variance ``spread_m2`` (6,) [m^2] that
+        the calibration points' own errors (:attr:`point_nugget_m2`) cannot explain, (6,): 0
+        where it is no larger than theirs."""
+        with np.errstate(divide='ignore', invalid='ignore'):
+            return np.where(spread_m2 > 0.0, np.clip(
+                1.0 - self._point_nugget_m2 / spread_m2, 0.0, 1.0), 0.0)
+
     def _length_spread(self, range_m: FloatArray) -> tuple[FloatArray, _Trend]:
         """Per bar, the mean square of the length terms' correction over the lengths
         ``range_m`` (6, 2) the fit saw, about its straight-line fit there, (6,) [m^2]: the size
@@ -842,22 +861,18 @@ class LengthBudget:
         trend of the point terms' correction there (its least-squares quadratic,
         :class:`_Trend`; see :meth:`_unchecked`)."""
         n = 201
-        lengths, ok = lengths_within(range_m, self.knots_m, n)     # the terms' span: the CDF's
-        ctx = TermContext(np.zeros(n), np.zeros((n, 8)), lengths, lengths, np.zeros((n, 1)), np.zeros(n))
-        each = [(term.type_name in POINT_TERMS, term.correction(ctx))
-                for term in self._length_terms]
-        c = sum(correction for _, correction in each)
+        lengths, ok, corrections = self.length_corrections(self._length_terms, range_m, n)
+        c = sum(corrections)
         s = np.linspace(-1.0, 1.0, n)
         a = np.column_stack([np.ones(n), s])
         rest = c - a @ np.linalg.lstsq(a, c, rcond=None)[0]
-        points = sum((correction for point, correction in each if point), np.zeros((n, 6)))
+        points = sum((correction for term, correction in zip(self._length_terms, corrections)
+                      if term.type_name in POINT_TERMS), np.zeros((n, 6)))
         quadratic = np.linalg.lstsq(np.column_stack([a, s * s]), points, rcond=None)[0]
         # as much of it as the points' own errors (independent from point to point) cannot
         # explain: a trend beyond them is an error of the bar's
-        spread = np.mean((points - points.mean(axis=0)) ** 2, axis=0)
-        with np.errstate(divide='ignore', invalid='ignore'):
-            quadratic = quadratic * np.where(spread > 0.0, np.clip(
-                1.0 - self._point_nugget_m2 / spread, 0.0, 1.0), 0.0)
+        quadratic = quadratic * self.smooth_share(np.mean((points - points.mean(axis=0)) ** 2,
+                                                          axis=0))
         trend = _Trend(0.5 * (lengths[0] + lengths[-1]), 0.5 * (lengths[-1] - lengths[0]),
                        np.where(ok, quadratic, 0.0))
         return np.where(ok, np.mean(rest * rest, axis=0), 0.0), trend
