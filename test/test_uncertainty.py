@@ -1612,7 +1612,12 @@ def test_a_local_error_a_fit_run_crossed_rarely_is_claimed_where_it_was_seen():
     twins, zeroed: where a bar crossed its bump for a few seconds of the fitted run, one half
     of the run may not hold it and no profile along the bar predicts the other half better
     than the flat claim; a new run that dwells there was covered 60.5 % (one twin; 89.9 % of
-    all four's samples). What stood out of the mean where it was seen is now claimed there."""
+    all four's samples). What stood out of the mean where it was seen is now claimed there.
+    Where a profile does predict the other half, its estimate at each length starts from the
+    mean excess and moves off it as far as the independent samples there allow: twin 2's bar 5
+    crossed its -391 nm bump twice (97 of 12000 samples, 5 independent ones), its profile
+    claimed 97 nm there where the error was 321 nm, and a new run that dwelt on it for 35 % of
+    its samples was covered 79 %; what stands out of the mean is now claimed there too."""
     errors, covs, flats = [], [], []
     for k in range(4):
         result, calibration, twin, run_of = _bumped_twin(k)
@@ -1624,10 +1629,12 @@ def test_a_local_error_a_fit_run_crossed_rarely_is_claimed_where_it_was_seen():
                 run.times_s, counts, with_covariance=True)
             into.append(res.covariance[res.valid])
         errors.append(pose_error(res.poses, run.true_poses)[res.valid])
+    each = [float(np.mean(_d2(e, c) <= LIMIT)) for e, c in zip(errors, covs)]
     e = np.concatenate(errors)
     with_, without = (float(np.mean(_d2(e, np.concatenate(c)) <= LIMIT)) for c in (covs, flats))
-    print('coverage', round(with_, 3), 'claimed alike at every length', round(without, 3))
-    assert without < 0.92 and with_ >= 0.93
+    print('coverage', round(with_, 3), 'each twin', np.round(each, 3),
+          'claimed alike at every length', round(without, 3))
+    assert without < 0.92 and with_ >= 0.93 and min(each) >= 0.93, each
 
 
 def test_a_zeroed_fit_of_a_bow_beyond_its_points_leaves_the_level_it_cannot_see():
