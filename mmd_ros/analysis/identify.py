@@ -1971,7 +1971,7 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
         # on logs the fit never saw when there are several (analysis/uncertainty.py)
         refit = {id(a): t for a, t in lasting}
         effects = fitted_effects(sel, [(a, refit.get(id(a), t)) for a, t in chosen], found,
-                                 runs[-1]) + statement
+                                 runs[-1], [t for _, t in chosen]) + statement
         if unseen:
             extended = with_fit_uncertainty(extended, runs[-1].ctx, effects, unseen, unseen=True,
                                             growing=growing)

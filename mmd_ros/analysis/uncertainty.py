@@ -12,12 +12,13 @@ claim in two ways (``msg_docs/frames.md``):
   per-sample sum and enter, with all others, as their mean over the fit's samples
   (``mean_terms_nm2``, for a stage without counts). Parameters that belong to the fitted run
   (a drift's offset and rate, ``Effect.scope == 'run'``) are not among the model's terms, and
-  on any other run the same drift would be an error no data checked: the bars' correction
-  together is one more direction, and each bar's own, as far as it drifted apart from the
-  others (:func:`_apart`), one more, its variance over the fitted run entering that bar's
-  residual (another run may drift of its own); after a zeroed fit, which does not see where
-  the bars' common drift started, the residual also holds that common mode as large as the
-  drift's mean change over the fitted run;
+  on any other run the same drift would be an error no data checked: less what the model's
+  terms, fitted again without it, took over of it (they apply that on every run), the bars'
+  correction together is one more direction, and each bar's own, as far as it drifted apart
+  from the others (:func:`_apart`), one more, its variance over the fitted run entering that
+  bar's residual (another run may drift of its own); after a zeroed fit, which does not see
+  where the bars' common drift started, the residual also holds that common mode as large as
+  the drift's mean change over the fitted run;
 - **the residual**: with a reference that determines every bar (a full pose, or bar lengths)
   the bar-length residual, J dp, has a covariance R, the reference's own variance (the log's
   ``reference_sigma``) taken out. With several logs it is each log's error under the model
@@ -114,6 +115,9 @@ class FittedEffect:
     shifted: tuple[Any, FloatArray] | None = None
     #: forms of the effect the data could not rule out (settings, with the same parameters)
     alternatives: list[Any] = field(default_factory=list)
+    #: the parameters as fitted together with the run's own effects (a drift), where the
+    #: model's were fitted again without them (None: the same)
+    joint: FloatArray | None = None
 
 
 @dataclass
@@ -170,6 +174,11 @@ def _term_directions(ctx: FitContext, found: list[FittedEffect], idx: IntArray,
         chosen.append(terms)
         mean_total += mean
     run_own = np.zeros((6, 6))
+    # what the model's terms, fitted again without the run's own effects, took over of them
+    taken = np.zeros((idx.size, 6))
+    for f in found:
+        if f.joint is not None and f.theta is not None:
+            taken += f.effect.signature(ctx, f.hyper, idx) @ (f.theta - f.joint)
     for f in found:
         if f.effect.scope != 'run' or f.theta is None or not np.any(f.theta):
             continue
@@ -183,8 +192,14 @@ def _term_directions(ctx: FitContext, found: list[FittedEffect], idx: IntArray,
         # times its error in x, y and the rotations on new motion)
         sig = f.effect.signature(ctx, f.hyper, idx)                            # (n, 6, P)
         touches = np.any(sig != 0.0, axis=0)                                   # (6, P)
+        # less what the model's terms took over of it: those apply it on every run, and
+        # their own uncertainty claims it (a settling of a few nm whose offsets, 0.14-0.85 µm,
+        # stood in for the CDF points' constants: the points refitted without it took them,
+        # and new motion was claimed 7.8-17.4 times its error while they were claimed again)
+        held = np.linalg.lstsq(sig.reshape(-1, sig.shape[2]), taken.reshape(-1), rcond=None)[0]
+        left = f.theta - held
         own = _own_parameters(touches)
-        apart = _apart(f.theta, own)
+        apart = _apart(left, own)
         for bar, mine in enumerate(own):
             theta = np.where(mine, apart, 0.0)
             if not np.any(theta):
@@ -198,9 +213,9 @@ def _term_directions(ctx: FitContext, found: list[FittedEffect], idx: IntArray,
         # after handling moves the common mode, which bar by bar claims sqrt(6) times too
         # little of (z on new motion 0.42 times its error; the drift, applied, had cancelled
         # the new run's own until it was left out of the model's terms)
-        whole = sig @ f.theta
+        whole = sig @ left
         mean_total += whole.T @ whole / max(idx.size, 1)
-        chosen.append(limited_to_seen(f.effect.make_terms(ctx, f.hyper, f.theta), seen_m))
+        chosen.append(limited_to_seen(f.effect.make_terms(ctx, f.hyper, left), seen_m))
         if ctx.obs.datum:
             # a zeroed reference does not see the bars' common offset, so not where their
             # drift started: another run may start as far from where it ends as this one
@@ -1179,11 +1194,13 @@ def _unexplained_mean(rest: list[FloatArray], lengths: list[FloatArray], weights
 
 
 def fitted_effects(sel: Any, chosen: list[tuple[Any, FloatArray]], found: list[Any],
-                   run: Any) -> list[FittedEffect]:
+                   run: Any, joint: list[FloatArray] | None = None) -> list[FittedEffect]:
     """The effects a model written for ``run`` applies, with the covariance of their
-    parameters for its group (a selector of :mod:`mmd_ros.analysis.identify`)."""
+    parameters for its group (a selector of :mod:`mmd_ros.analysis.identify`); ``joint``:
+    the parameters as fitted together with the run's own effects, where ``chosen``'s were
+    fitted again without them."""
     out = []
-    for (a, theta), f in zip(chosen, found):
+    for k, ((a, theta), f) in enumerate(zip(chosen, found)):
         g = sel.group_index(a.effect, run)
         cov = getattr(f, 'covariance', None)
         if g is None or cov is None:
@@ -1191,9 +1208,12 @@ def fitted_effects(sel: Any, chosen: list[tuple[Any, FloatArray]], found: list[A
         n_p = theta.size // sel.n_groups(a.effect)
         part = slice(g * n_p, (g + 1) * n_p)
         shift = getattr(f, 'setting_shift', None)
-        out.append(FittedEffect(a.effect, a.hyper, cov[part, part], np.asarray(theta)[part],
+        mine = np.asarray(theta)[part]
+        both = None if joint is None else np.asarray(joint[k])[part]
+        out.append(FittedEffect(a.effect, a.hyper, cov[part, part], mine,
                                 None if shift is None else (shift[0], np.asarray(shift[1])[part]),
-                                list(getattr(f, 'alternatives', []))))
+                                list(getattr(f, 'alternatives', [])),
+                                None if both is None or np.array_equal(both, mine) else both))
     return out
 
 
