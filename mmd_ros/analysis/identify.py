@@ -1537,8 +1537,9 @@ def _select(sel: _Selector, effects: list[Effect], o: AnalysisOptions,
             # the floor's mean square, counted 14 independent samples of 8000: calibration
             # points that left 1.1 times it, t 15.9, failed the criterion, nothing was found)
             count = min(judged, key=lambda c: c.mse1).n_left
-            for c in judged if count > judged[0].n_eff else []:
-                sel.judge(c, count)
+            if count > judged[0].n_eff:
+                for c in judged:
+                    sel.judge(c, count)
         cands.sort(key=lambda c: (c.verdict != 'significant', c.delta_ic if math.isfinite(c.delta_ic) else math.inf))
         steps.append(cands)
         significant = [c for c in cands if c.verdict == 'significant']
