@@ -719,8 +719,10 @@ class SamplingSkew(Effect):
         return {f'bar{i + 1} velocity': v[:, i] for i in np.flatnonzero(_moving_bars(ctx))}
 
     def interpret(self, ctx, hyper, theta, sigma):
+        # (a reference logged on a clock of its own, lagging the MMD, reads as a common delay)
         return [f'channel delays {np.min(theta) * 1e6:+.1f} … {np.max(theta) * 1e6:+.1f} µs '
-                f'(mean {np.mean(theta) * 1e6:+.1f} µs: a common delay shifts the whole pose in time)']
+                f'(mean {np.mean(theta) * 1e6:+.1f} µs: a common delay shifts the whole pose '
+                'in time, as a reference that lags the MMD by as much would)']
 
 
 class GravitySag(Effect):
