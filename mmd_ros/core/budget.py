@@ -459,8 +459,16 @@ class LengthBudget:
         if skew is None:
             self.notes.append('latch skew: the device description does not state the terminal\'s '
                               '(terminal.latch_skew_us); a bar moving at v reads up to v x skew off')
-        self.latch_skew_s = (0.0 if any(t.type_name in SKEW_TERMS for t in model.terms)
-                             else float(skew or 0.0))
+        skews = [t for t in model.terms if t.type_name in SKEW_TERMS]
+        self.latch_skew_s = 0.0 if skews else float(skew or 0.0)
+        # a skew fitted against a reference on a clock of its own corrects how the channels'
+        # delays differ, not their common part, which that reference's lag hides: of the stated
+        # skew [0, s] the common part stays, one delay of every bar (uniform: mean s/2 and
+        # variance s^2/12 along the bars' velocity v, a rank-one covariance, not one per bar)
+        self.latch_common_only = bool(skews) and not any(getattr(t, 'common_fitted', True)
+                                                         for t in skews)
+        if self.latch_common_only:
+            self.latch_skew_s = float(skew or 0.0)
         self._velocity = _Velocity(1.0 / device.sample_rate_hz)
 
         # -- the bars' gravity sag (their characterisation), unless a fitted term compensates it:
@@ -698,7 +706,11 @@ class LengthBudget:
         if self.latch_skew_s and observed is not None and observed.velocity_m_s is not None:
             v = observed.velocity_m_s
             t.bias['latch_skew'] = 0.5 * self.latch_skew_s * v
-            t.diag['latch_skew'] = (self.latch_skew_s ** 2 / 12.0) * v * v
+            if self.latch_common_only:
+                var = self.latch_skew_s ** 2 / 12.0
+                t.full['latch_skew'] = var * v[:, :, None] * v[:, None, :]
+            else:
+                t.diag['latch_skew'] = (self.latch_skew_s ** 2 / 12.0) * v * v
         if self._sag_kept and observed is not None and observed.n_z2 is not None:
             t.bias['gravity_sag'] = (-self._sag_kept * self.gravity_sag_m) * observed.n_z2
             if self.gravity_sag_sigma_m:
@@ -1113,10 +1125,14 @@ class LengthBudget:
             diag += hysteresis[1]
         if self._fitted_range_m is not None:
             diag += self._unchecked(x, bar_error_m, eps, temp_change_c)
+        common = None
         if self.latch_skew_s and observed is not None and observed.velocity_m_s is not None:
             v = observed.velocity_m_s
             bias += (0.5 * self.latch_skew_s) * v
-            diag += (self.latch_skew_s ** 2 / 12.0) * v * v
+            if self.latch_common_only:
+                common = (self.latch_skew_s / math.sqrt(12.0)) * v
+            else:
+                diag += (self.latch_skew_s ** 2 / 12.0) * v * v
         sag = None
         if self._sag_kept and observed is not None and observed.n_z2 is not None:
             bias -= (self._sag_kept * self.gravity_sag_m) * observed.n_z2
@@ -1125,6 +1141,8 @@ class LengthBudget:
         total = bias[:, :, None] * bias[:, None, :]
         if sag is not None:
             total += sag[:, :, None] * sag[:, None, :]
+        if common is not None:
+            total += common[:, :, None] * common[:, None, :]
         total[:, rows[0], rows[0]] += diag
         if drift is not None:
             total += drift[:, :, None] * drift[:, None, :]
@@ -1203,6 +1221,7 @@ class LengthBudget:
             'thermal_mismatch_fraction': self.mismatch_fraction,
             'hysteresis_nm': [round(float(v) * 1e9, 2) for v in self.hysteresis_m],
             'latch_skew_us': round(self.latch_skew_s * 1e6, 3),
+            'latch_skew_common_only': self.latch_common_only,
             'gravity_sag_nm': round(self.gravity_sag_m * 1e9, 3),
             'gravity_sag_uncertainty_nm': round(self.gravity_sag_sigma_m * 1e9, 3),
             'vertical': [round(float(v), 6) for v in self._up],

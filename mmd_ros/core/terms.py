@@ -834,13 +834,20 @@ class SamplingSkewTerm(_Replayable):
     moving bar reads d_i(t + tau_i) ~ d_i + tau_i v_i. Correction: -tau_i v_i, with v_i the
     backward difference of the CDF lengths (causal, so the stream gives the batch result; zero
     across gaps longer than ``max_gap_s``).
+
+    common_fitted : the delays' common part was fitted (against a reference on the MMD's clock);
+        False: only how they differ between the channels (against a reference on a clock of
+        its own, whose lag a common delay cannot be told from), and the terminal's stated
+        latch skew stays in the uncertainty budget for the common part
     """
 
     type_name = 'sampling_skew'
 
-    def __init__(self, skew_s: FloatArray, max_gap_s: float = MAX_GAP_S) -> None:
+    def __init__(self, skew_s: FloatArray, max_gap_s: float = MAX_GAP_S,
+                 common_fitted: bool = True) -> None:
         self.skew_s = np.asarray(skew_s, dtype=np.float64)
         self.max_gap_s = float(max_gap_s)
+        self.common_fitted = bool(common_fitted)
         self.reset()
 
     @staticmethod
@@ -869,10 +876,15 @@ class SamplingSkewTerm(_Replayable):
     @classmethod
     def from_params(cls, params: dict[str, Any], source: str) -> SamplingSkewTerm:
         return cls(six_values(params, 'skew_us', source) * 1e-6,
-                   _number(params, 'max_gap_s', source, MAX_GAP_S, positive=True))
+                   _number(params, 'max_gap_s', source, MAX_GAP_S, positive=True),
+                   validate.boolean(params.get('common_fitted', True), source, 'common_fitted'))
 
     def params(self) -> dict[str, Any]:
-        return {'skew_us': (self.skew_s / 1e-6).tolist(), 'max_gap_s': self.max_gap_s}
+        out: dict[str, Any] = {'skew_us': (self.skew_s / 1e-6).tolist(),
+                               'max_gap_s': self.max_gap_s}
+        if not self.common_fitted:
+            out['common_fitted'] = False
+        return out
 
 
 @register_term
