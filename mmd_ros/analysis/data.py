@@ -15,11 +15,13 @@ component (fitted on the training part only), unless told the reference is absol
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.signal import savgol_filter
 
 from mmd_ros.analysis.errors import AnalysisError
 from mmd_ros.core.accuracy import robust_std, white_noise
@@ -28,7 +30,7 @@ from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.kinematics import jacobian
 from mmd_ros.core.model import HysteresisTerm, Model
 from mmd_ros.core.pipeline import Pipeline
-from mmd_ros.core.terms import SamplingSkewTerm, dahl_state, play_positions
+from mmd_ros.core.terms import MAX_GAP_S, SamplingSkewTerm, dahl_state, play_positions
 from mmd_ros.core.units import ARCSEC_PER_RAD, M_PER_UM
 
 __all__ = [
@@ -128,6 +130,12 @@ class Observation:
         (the log's ``reference_sigma``), 0 where not stated
     sigma_estimated : ``sigma`` is the reference's white noise as the data show it
         (:func:`reference_noise`), the log stating none
+    clock : whose clock the reference was sampled on, as the log states it (metadata
+        ``reference_clock``): 'shared' (at the MMD's sample instants), 'own' (another
+        instrument's or program's: it may lag the MMD), None not stated
+    lag : (N, k, c) the observed components' velocity (and acceleration) when the analysis
+        takes a delay between the reference and the MMD as the reference's (a nuisance of each
+        log, like a zeroed reference's offsets: :func:`observed_motion`), else None
     """
 
     kind: str
@@ -139,6 +147,8 @@ class Observation:
     datum: bool
     sigma: FloatArray | None = None
     sigma_estimated: bool = False
+    clock: str | None = None
+    lag: FloatArray | None = None
 
     @property
     def to_report(self) -> FloatArray:
@@ -196,12 +206,15 @@ class Observation:
 
 
 def make_observation(reference_pose: FloatArray | None, reference_lengths: FloatArray | None,
-                     datum: str = 'auto', reference_sigma: Any = None) -> Observation:
+                     datum: str = 'auto', reference_sigma: Any = None,
+                     reference_clock: Any = None) -> Observation:
     """The observation space of a log's reference (pose components, else bar lengths).
 
     datum : 'auto' (an offset per pose component; none for bar lengths), 'offset', 'none'
     reference_sigma : (6,) the reference pose's standard uncertainty [m, rad] (the log's
         metadata ``reference_sigma``), or None: not stated
+    reference_clock : 'shared' or 'own' (the log's metadata ``reference_clock``), or None:
+        not stated (anything else is no statement either)
     """
     if datum not in ('auto', 'offset', 'none'):
         raise AnalysisError(f'datum must be auto, offset or none, got {datum!r}')
@@ -227,7 +240,9 @@ def make_observation(reference_pose: FloatArray | None, reference_lengths: Float
                 sigma = np.nan_to_num(s[comps], nan=0.0)
             except (TypeError, ValueError):
                 sigma = None    # a malformed statement is no statement
-        return Observation(kind, comps, names, units, ref[:, comps], usable, use_datum, sigma)
+        clock = reference_clock if reference_clock in ('shared', 'own') else None
+        return Observation(kind, comps, names, units, ref[:, comps], usable, use_datum, sigma,
+                           clock=clock)
     raise AnalysisError('the log has no reference (no /mmd/reference/pose or '
                         '/mmd/reference/bar_lengths with known values): nothing to compare the '
                         'MMD with; record a reference (see msg_docs/analysis.md)')
@@ -389,6 +404,90 @@ def reference_noise(obs: Observation, processed: Processed, residual: FloatArray
     own = processed.poses if obs.kind == 'pose' else processed.lengths_m
     mmd = white_noise(own[:, obs.components], idx)
     return np.sqrt(np.maximum(white_noise(residual, idx) ** 2 - mmd ** 2, 0.0))
+
+
+
+#: Samples of the Savitzky-Golay fit of a lagging reference's motion (:func:`observed_motion`)
+LAG_WINDOW = 21
+
+
+def observed_motion(obs: Observation, device: DeviceDescription, processed: Processed,
+                    times_s: FloatArray, smooth: bool) -> FloatArray:
+    """How fast the observed components move, (N, k, 1), or with ``smooth`` how fast and how
+    they accelerate, (N, k, 2) [m/s, rad/s; m/s^2, rad/s^2], from the bars' CDF lengths mapped
+    as the observation maps a change of the bars (:meth:`Observation.length_map`), zero where
+    there is no pose. A reference read a time δ late differs from the MMD by δ v - δ^2 a / 2
+    + ...; a common latch delay of the bars' channels gives the first.
+
+    Without ``smooth`` the velocity is the skew term's backward difference (the sum of its
+    signatures: a common skew and this lag are then one direction); its noise, about
+    sqrt(2) sigma / dt per bar, times δ is a nanometre at 10 µs but 34 nm at 2.4 ms. With
+    ``smooth``, a cubic Savitzky-Golay fit over :data:`LAG_WINDOW` samples (gaps longer than
+    the skew term's ``max_gap_s``, and the samples beside them, get zero)."""
+    lengths = processed.cdf_lengths_m
+    if not smooth:
+        bars = [-SamplingSkewTerm.features(lengths, times_s, MAX_GAP_S, None)[0]]
+    else:
+        n = times_s.size
+        dt = np.diff(times_s)
+        period = float(np.median(dt)) if dt.size else 1.0
+        window = min(LAG_WINDOW, n if n % 2 else n - 1)
+        if window < 5:
+            bars = [np.zeros_like(lengths)] * 2
+        else:
+            bars = [savgol_filter(np.nan_to_num(lengths), window, 3, deriv=d, delta=period, axis=0)
+                    for d in (1, 2)]
+            broken = np.zeros(n, dtype=bool)
+            broken[1:] |= np.abs(dt - period) > 0.25 * period
+            near = np.convolve(broken | ~np.all(np.isfinite(lengths), axis=1),
+                               np.ones(2 * window + 1), mode='same') > 0
+            bars = [np.where(near[:, None], 0.0, b) for b in bars]
+    out = np.zeros((times_s.size, len(obs.components), len(bars)))
+    for j, b in enumerate(bars):
+        if obs.kind == 'lengths':
+            out[:, :, j] = b[:, obs.components]
+            continue
+        ok = np.flatnonzero(processed.valid & np.all(np.isfinite(processed.poses), axis=1)
+                            & np.all(np.isfinite(b), axis=1))
+        if ok.size:
+            jinv = obs.length_map(device, processed.poses[ok])
+            out[ok, :, j] = np.einsum('nkj,nj->nk', jinv, b[ok])
+    return out
+
+
+def fit_lag(obs: Observation, residual: FloatArray, idx: NDArray[np.int64]
+            ) -> tuple[FloatArray, float, FloatArray]:
+    """How the reference's lag behind the MMD explains the residual over the samples ``idx``:
+    the residual (N, k) [m, rad] as the columns of ``obs.lag`` (N, k, c) times a coefficient
+    each (the first the delay δ [s], positive when the reference reads late), with an offset
+    per component beside them for a zeroed reference. Returns the coefficients (c,), the
+    delay's standard deviation (the residual's correlation counted: :func:`effective_samples`)
+    and the offsets (k,) [m, rad]. Components are weighted by the inverse of the residual's
+    spread in each."""
+    k, c = len(obs.components), obs.lag.shape[2]
+    r, v = residual[idx], obs.lag[idx]
+    ok = np.all(np.isfinite(r), axis=1) & np.all(np.isfinite(v), axis=(1, 2))
+    r, v = r[ok], v[ok]
+    if r.shape[0] < 3 + c:
+        return np.zeros(c), math.inf, np.zeros(k)
+    mean_r, mean_v = r.mean(axis=0), v.mean(axis=0)
+    if obs.datum:
+        r, v = r - mean_r, v - mean_v
+    scale = np.std(r, axis=0)
+    w = np.where(scale > 0, 1.0 / np.where(scale > 0, scale, 1.0), 0.0)
+    rw = (r * w).reshape(-1)
+    vw = (v * w[None, :, None]).reshape(-1, c)
+    gram = vw.T @ vw
+    if gram[0, 0] <= 0:
+        return np.zeros(c), math.inf, np.zeros(k)
+    inv = np.linalg.pinv(gram)
+    coef = inv @ (vw.T @ rw)
+    e = (rw - vw @ coef).reshape(-1, k)
+    dof = max(e.size - c - (k if obs.datum else 0), 1)
+    inflation = max(e.size / effective_samples(e), 1.0)
+    sd = math.sqrt(max(float(np.sum(e * e)) / dof * inflation * inv[0, 0], 0.0))
+    offsets = mean_r - mean_v @ coef if obs.datum else np.zeros(k)
+    return coef, sd, offsets
 
 
 def binned_r2(values: FloatArray, feature: FloatArray, n_bins: int = 20) -> float:

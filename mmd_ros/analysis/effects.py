@@ -694,6 +694,13 @@ class CyclicError(Effect):
                 f'(second harmonic {amp2.min():.0f} … {amp2.max():.0f} nm), {where}']
 
 
+#: The largest delay a channel of the MMD's terminal can latch its count with [s]: two sample
+#: periods at 1 kHz (a terminal that stamps a packet with the tick after the one it latched
+#: reads a whole period late). A common delay between the MMD and a reference beyond it is
+#: the reference's (identify.py, _reference_lag).
+MAX_SKEW_S = 2e-3
+
+
 class SamplingSkew(Effect):
     name = 'sampling_skew'
     term_type = 'sampling_skew'
@@ -702,7 +709,7 @@ class SamplingSkew(Effect):
                'later: an error proportional to the bar\'s velocity')
 
     def parameters(self, ctx, hyper):
-        return _bar_names('skew', 'µs', 1e6, 2e-3)
+        return _bar_names('skew', 'µs', 1e6, MAX_SKEW_S)
 
     def signature(self, ctx, hyper, idx):
         return _diag(-ctx.velocities()[idx])
@@ -712,13 +719,18 @@ class SamplingSkew(Effect):
         return ok, '' if ok.all() else 'bars that move slower than 1 mm/s: ' + _bars(~ok)
 
     def make_term(self, ctx, hyper, theta):
-        return SamplingSkewTerm(theta)
+        # against a lagging reference (its lag a nuisance of the log) the common delay is not
+        # determined: the fit leaves it out (its direction lies in the lag's)
+        return SamplingSkewTerm(theta, common_fitted=ctx.obs.lag is None)
 
     def diagnostics(self, ctx, hyper):
         v = ctx.velocities()
         return {f'bar{i + 1} velocity': v[:, i] for i in np.flatnonzero(_moving_bars(ctx))}
 
     def interpret(self, ctx, hyper, theta, sigma):
+        if ctx.obs.lag is not None:
+            return [f'channel delays {np.min(theta) * 1e6:+.1f} … {np.max(theta) * 1e6:+.1f} µs '
+                    'about their mean, which the reference\'s lag hides (not fitted)']
         # (a reference logged on a clock of its own, lagging the MMD, reads as a common delay)
         return [f'channel delays {np.min(theta) * 1e6:+.1f} … {np.max(theta) * 1e6:+.1f} µs '
                 f'(mean {np.mean(theta) * 1e6:+.1f} µs: a common delay shifts the whole pose '

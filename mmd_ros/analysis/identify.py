@@ -55,11 +55,11 @@ from threadpoolctl import threadpool_limits
 
 from mmd_ros.analysis.axis_motion import AxisMotion, axis_motion
 from mmd_ros.analysis.data import (
-    FitContext, Observation, Processed, Split, binned_r2, effective_samples, make_observation,
-    make_split, noise_floor, quantisation_floor, reference_noise, residual_features, run_pipeline,
-    sample_noise,
+    FitContext, Observation, Processed, Split, binned_r2, effective_samples, fit_lag,
+    make_observation, make_split, noise_floor, observed_motion, quantisation_floor,
+    reference_noise, residual_features, run_pipeline, sample_noise,
 )
-from mmd_ros.analysis.effects import CATALOGUE, Effect, Parameter, catalogue
+from mmd_ros.analysis.effects import CATALOGUE, MAX_SKEW_S, Effect, Parameter, catalogue
 from mmd_ros.analysis.errors import AnalysisError
 from mmd_ros.analysis.glitches import Step, bar_residual, residual_steps
 from mmd_ros.analysis.uncertainty import (
@@ -283,6 +283,8 @@ class RunSummary:
     #: held-out blocks, the model as given: without the stated terms the analysis started from
     #: (None when it started from none; ``before`` includes them)
     given: list[ComponentError] | None = None
+    #: the reference's lag behind the MMD, when taken as the reference's (else None)
+    lag: ReferenceLag | None = None
 
     def as_dict(self) -> dict[str, Any]:
         def rows(stats: list[ComponentError] | None) -> list[dict[str, Any]] | None:
@@ -296,7 +298,10 @@ class RunSummary:
                 'leave_one_run_out_after': rows(self.loro_after), 'leave_one_run_out_note': self.loro_note,
                 'leave_one_run_out_after_in_range': rows(self.loro_in_range),
                 'leave_one_run_out_in_range_share': self.loro_in_range_share,
-                'log_problem': self.log_problem}
+                'log_problem': self.log_problem,
+                'reference_lag': None if self.lag is None else {
+                    'delay_s': self.lag.delay_s, 'sd_s': self.lag.sd_s,
+                    'clock_stated_own': self.lag.stated}}
 
 
 @dataclass
@@ -423,6 +428,8 @@ class _Run:
     axis: AxisMotion | None = None
     #: the residual of the model as given, without the stated terms (``res_before`` when none)
     res_given: FloatArray | None = None
+    #: the reference's lag behind the MMD, when it is taken as the reference's
+    lag: ReferenceLag | None = None
 
     def group(self, scope: str) -> str:
         return {'device': 'device', 'calibration': self.cal_key, 'run': self.ident}[scope]
@@ -461,12 +468,16 @@ def _prepare(index: int, run: RunLog, model: Model, calibration: Calibration | N
                             'analyze does)')
     try:
         obs = make_observation(run.reference_pose, run.reference_lengths, o.datum,
-                               run.metadata.get('reference_sigma'))
+                               run.metadata.get('reference_sigma'),
+                               run.metadata.get('reference_clock'))
     except AnalysisError as exc:
         raise AnalysisError(f'{run.path}: {exc}') from None
     times = run.times_s
     say(f'{run.path.name}: running the current model over {times.size} samples')
     before = run_pipeline(run.device, calibration, model, times, run.counts)
+    obs, lag = _reference_lag(obs, run.device, before, times)
+    if lag is not None:
+        say(f'{run.path.name}: {lag.text()}')
     usable = obs.usable & before.measured(obs.kind)
     try:
         split = make_split(times, usable, o.n_blocks, o.max_samples, o.seed + index)
@@ -492,7 +503,96 @@ def _prepare(index: int, run: RunLog, model: Model, calibration: Calibration | N
         given = _datum_corrected(obs, raw - change, before.measured(obs.kind), split.train_idx)
     return _Run(index, run, str(run.path), run.content_hash(), calibration_key(calibration),
                 calibration, obs, ctx, split, floor, np.nan_to_num(raw), res_before, usable, datum_sigma,
-                axis, res_given=given)
+                axis, res_given=given, lag=lag)
+
+
+@dataclass
+class ReferenceLag:
+    """A delay between a log's reference and the MMD taken as the reference's.
+
+    delay_s, sd_s : the delay [s] (positive: the reference reads late) as the residual of the
+        model as given shows it, and its standard deviation
+    stated : the log states that its reference runs on a clock of its own (else the delay is
+        beyond what the MMD's channels can latch, :data:`MAX_SKEW_S`)
+    """
+
+    delay_s: float
+    sd_s: float
+    stated: bool
+    #: the part of it taken out by pairing samples (a whole number of sample periods) [s]
+    shifted_s: float = 0.0
+
+    def text(self) -> str:
+        why = ('the log states that its reference runs on a clock of its own '
+               '(reference_clock: own), so a delay between the two is not the MMD\'s'
+               if self.stated else
+               f'beyond the {MAX_SKEW_S * 1e3:g} ms any channel of the MMD\'s terminal can '
+               'latch late (a logger on another clock, time stamps taken on receipt); a log '
+               'states reference_clock: own or shared to say whose a delay is')
+        return (f'the reference reads {_duration(abs(self.delay_s))} '
+                f'{"late" if self.delay_s >= 0 else "early"} (± {_duration(self.sd_s)}): '
+                f'{why}; fitted per log beside the effects and taken out of every figure')
+
+
+def _duration(seconds: float) -> str:
+    return f'{seconds * 1e3:.3g} ms' if seconds >= 1e-3 else f'{seconds * 1e6:.3g} µs'
+
+
+#: A reference's lag left to the nuisance (after pairing samples) from which its second order,
+#: the acceleration's, is fitted too [s]
+SECOND_ORDER_LAG_S = 2e-4
+
+
+def _reference_lag(obs: Observation, device: DeviceDescription, processed: Processed,
+                   times_s: FloatArray) -> tuple[Observation, ReferenceLag | None]:
+    """The observation with the reference's lag behind the MMD taken as a nuisance of the
+    log (``Observation.lag``), when it is the reference's: the log says that its reference
+    runs on a clock of its own, or, not saying, the common delay between the two is beyond
+    what the MMD's channels can latch (:data:`MAX_SKEW_S`). A common delay within that is the
+    MMD's (the skew term's common mode): a reference sampled at the MMD's instants has none,
+    and the twin's logs and our recorder's say ``reference_clock: shared``. A reference on
+    its own clock 10 µs late had a common skew of 10 µs written, and the model made new
+    motion 6-8 times worse against the true pose; 2 ms late, no skew could hold it, and a false
+    91 µm step and an uncertainty of 800-4000 times the error were reported.
+
+    A delay of a sample period or more is taken out by pairing each MMD sample with the
+    reference's that many samples later (no interpolation: the reference's noise stays as
+    stated), the rest (within half a period) by the nuisance: the velocity, and from
+    :data:`SECOND_ORDER_LAG_S` on the acceleration too (3 ms late at 200 Hz, a 2 ms rest with
+    the velocity alone left roll 2.9 times the budget's claim)."""
+    if obs.clock == 'shared':
+        return obs, None
+    timed = replace(obs, lag=observed_motion(obs, device, processed, times_s, False))
+    every = np.flatnonzero(obs.usable & processed.measured(obs.kind))
+    coef, sd, _ = fit_lag(timed, obs.residual(processed), every)
+    delay = float(coef[0])
+    if obs.clock != 'own' and not (math.isfinite(sd) and abs(delay) - 3.0 * sd > MAX_SKEW_S):
+        return obs, None
+    period = float(np.median(np.diff(times_s))) if times_s.size > 1 else 0.0
+    shift = int(round(delay / period)) if period > 0 else 0
+    if shift:
+        timed = _shifted(timed, times_s, shift, period)
+    if abs(delay - shift * period) >= SECOND_ORDER_LAG_S:
+        timed = replace(timed, lag=observed_motion(obs, device, processed, times_s, True))
+    if shift or timed.lag.shape[2] > 1:
+        every = np.flatnonzero(timed.usable & processed.measured(obs.kind))
+        coef, sd, _ = fit_lag(timed, timed.residual(processed), every)
+        delay = shift * period + float(coef[0])
+    return timed, ReferenceLag(delay, sd, obs.clock == 'own', shift * period)
+
+
+def _shifted(obs: Observation, times_s: FloatArray, shift: int, period: float) -> Observation:
+    """The observation with each sample's reference taken ``shift`` samples later (earlier
+    when negative): where the two samples are not ``shift`` periods apart (a gap, the log's
+    ends) the reference is unknown."""
+    n = times_s.size
+    src = np.arange(n) + shift
+    inside = (src >= 0) & (src < n)
+    src = np.clip(src, 0, n - 1)
+    apart = np.abs(times_s[src] - times_s - shift * period) <= 0.25 * period
+    ok = inside & apart
+    reference = np.where(ok[:, None], obs.reference[src], np.nan)
+    return replace(obs, reference=reference, usable=ok & obs.usable[src])
 
 
 def _needs_statement(logs: list[RunLog], o: AnalysisOptions) -> bool:
@@ -611,6 +711,9 @@ class _Rows:
             self.nuisance = nuis.reshape(-1, k)
         else:
             self.nuisance = np.zeros((idx.size * k, 0))
+        if obs.lag is not None:     # the reference's lag behind the MMD: its motion's columns
+            lag = (obs.lag[idx] * weights[None, :, None]).reshape(idx.size * k, -1)
+            self.nuisance = np.concatenate([self.nuisance, lag], axis=1)
         self.n_unseen = 0
         if self.axis_jinv is not None:
             self._add_axis_rows(axis, idx, block)
@@ -1432,9 +1535,13 @@ def _golden_minimum(score: Callable[[float], float], lo: float, hi: float, steps
 def _datum_corrected(obs: Observation, residual: FloatArray, valid: NDArray[np.bool_],
                      train_idx: IntArray) -> FloatArray:
     """Residual with NaN where not usable and, for a zeroed reference, its training-part mean
-    per component removed."""
+    per component removed; for a reference that lags the MMD (``obs.lag``), that lag too,
+    fitted over the training part (:func:`fit_lag`)."""
     r = residual.copy()
     r[~(valid & obs.usable)] = np.nan
+    if obs.lag is not None:
+        coef, _, offsets = fit_lag(obs, r, train_idx)
+        return r - offsets - obs.lag @ coef
     if obs.datum:
         known = r[train_idx]
         known = known[np.all(np.isfinite(known), axis=1)]
@@ -1949,7 +2056,7 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
             component_errors(r.obs, res_after, r.split.test_idx) if res_after is not None else None,
             log_problem=r.run.problem.as_dict() if r.run.problem else None,
             given=(component_errors(r.obs, r.res_given, r.split.test_idx)
-                   if r.res_given is not None else None)))
+                   if r.res_given is not None else None), lag=r.lag))
     final = [afters[k][1] if afters else r.res_before for k, r in enumerate(runs)]
     ratios = [np.sqrt(np.nanmean((res[r.split.fit_test] / r.floor) ** 2, axis=0)) for r, res in zip(runs, final)]
     at_floor = bool(all(np.all(x <= o.floor_factor) for x in ratios))
@@ -2455,7 +2562,8 @@ def _conclusion(runs: list[_Run], summaries: list[RunSummary], found: list[Found
                 not_claimed: list[Found], unchecked: list[Found], at_floor: bool,
                 structure: list[tuple[str, float]], validation: str, uncertainty_only: str = '',
                 stated: list[str] | None = None, glitches: list[tuple[str, Step]] = ()) -> str:
-    parts = []
+    parts = [f'{r.run.path.name}: {r.lag.text()[0].upper()}{r.lag.text()[1:]}.' for r in runs
+             if r.lag is not None]
     if stated:
         parts.append(f'Started from {"; ".join(stated)}: the figures before include it (held-out '
                      'RMS of the model as given → with it: ' + '; '.join(

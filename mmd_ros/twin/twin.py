@@ -559,6 +559,8 @@ class _Plan:
             # the twin reads the actual pose, not zeroed, with the instrument's noise
             'reference_absolute': True,
             'reference_sigma': None if self.reference == 'bar_lengths' else POSE_NOISE.tolist(),
+            # at the MMD's sample instants: a delay between the two is the MMD's
+            'reference_clock': 'shared',
         }
 
     def initial_state(self) -> DahlState:
