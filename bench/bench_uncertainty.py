@@ -102,7 +102,7 @@ def judge(errors: list[np.ndarray], covs: list[np.ndarray], tails: list[np.ndarr
 
 def run_case(device, name: str, scenario: str, runs: int, seconds: float, after: bool,
              approaches: int = 2, datum: str = 'none', stated_sag: bool = True,
-             lengths: bool = False) -> dict:
+             lengths: bool = False, clock: str = 'shared') -> dict:
     preset, effect_params, ambient = CASES[name]
     kind, params, rate = SCENARIOS[scenario]
     room = ambient_profile(ambient)
@@ -114,7 +114,7 @@ def run_case(device, name: str, scenario: str, runs: int, seconds: float, after:
         start = 600.0
         if after:
             # each twin's own extended model, judged on new motion of that twin
-            model, found, start = fit(twin, room, calibration, k, datum, stated_sag)
+            model, found, start = fit(twin, room, calibration, k, datum, stated_sag, clock)
             notes.append(found)
         p = [v.format(seconds=seconds, k=k) for v in params]
         run = twin.simulate(make_scenario(kind, p), room, start_s=start, reference='pose6',
@@ -143,6 +143,7 @@ def run_case(device, name: str, scenario: str, runs: int, seconds: float, after:
         out['analysis'] = '; '.join(notes)
         out['datum'] = datum
         out['stated_sag'] = stated_sag
+        out['reference_clock'] = clock
         # every bar inside the lengths its model's fit saw, and the rest (judged apart); and of
         # the first, those with a bar where its fitted lengths end inside a CDF segment
         groups = (('inside_fit_range', inside, True), ('outside_fit_range', inside, False),
@@ -159,13 +160,16 @@ def run_case(device, name: str, scenario: str, runs: int, seconds: float, after:
     return out
 
 
-def fit(twin, room, calibration, k, datum: str = 'none', stated_sag: bool = True):
+def fit(twin, room, calibration, k, datum: str = 'none', stated_sag: bool = True,
+        clock: str = 'shared'):
     """mmd analyze on a 60 s random run with the full pose reference, absolute (``datum``
     'none') or zeroed (an offset per component removed, 'offset': the default for a pose),
-    started from the bars' stated gravity sag unless ``stated_sag`` is False."""
+    started from the bars' stated gravity sag unless ``stated_sag`` is False; the log saying
+    that its reference runs on the MMD's clock (``clock`` 'shared', the twin's) or its own."""
     from mmd_ros.analysis.identify import AnalysisOptions, analyze
     run = twin.simulate(make_scenario('random_motion', ['duration_s=60', f'seed={100 + k}']), room,
                         start_s=600.0, reference='pose6')
+    run.metadata['reference_clock'] = clock
     options = AnalysisOptions(datum=datum, stated_sag=stated_sag)
     result = analyze(run_log(twin, calibration, run, 600.0), options=options)
     found = '+'.join(f.effect for f in result.found) or 'nothing'
@@ -217,6 +221,10 @@ def main() -> None:
     parser.add_argument('--no-stated-sag', action='store_true', dest='no_stated_sag',
                         help='with --after: the analysis starts from the model as given, not from '
                         'the bars\' stated gravity sag')
+    parser.add_argument('--reference-clock', default='shared', choices=('shared', 'own'),
+                        dest='clock', help='with --after: the fitted log says its reference runs '
+                        'on the MMD\'s clock (shared, the twin\'s) or its own (a lag is then '
+                        'fitted beside the effects, and the skew\'s common delay is not)')
     parser.add_argument('--lengths', action='store_true',
                         help='judge the six bars\' length covariance against their true lengths '
                         '(what a log with reference bar lengths reports) instead of the pose')
@@ -235,7 +243,7 @@ def main() -> None:
     for name in args.cases.split(','):
         t0 = time.perf_counter()
         r = run_case(device, name, args.scenario, args.runs, args.seconds, args.after, args.approaches,
-                     args.datum, not args.no_stated_sag, args.lengths)
+                     args.datum, not args.no_stated_sag, args.lengths, args.clock)
         r['seconds'] = round(time.perf_counter() - t0, 1)
         results.append(r)
         print(f'{name:17s} {args.scenario:8s} ratio ' + ' '.join(f'{v:.2f}' for v in r['ratio'])
