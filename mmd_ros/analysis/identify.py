@@ -566,7 +566,9 @@ def _reference_lag(obs: Observation, device: DeviceDescription, processed: Proce
     every = np.flatnonzero(obs.usable & processed.measured(obs.kind))
     coef, sd, _ = fit_lag(timed, obs.residual(processed), every)
     delay = float(coef[0])
-    if obs.clock != 'own' and not (math.isfinite(sd) and abs(delay) - 3.0 * sd > MAX_SKEW_S):
+    if not sd <= MAX_SKEW_S:
+        return obs, None        # (the reference hardly moves: no lag shows, none matters)
+    if obs.clock != 'own' and abs(delay) - 3.0 * sd <= MAX_SKEW_S:
         return obs, None
     period = float(np.median(np.diff(times_s))) if times_s.size > 1 else 0.0
     shift = int(round(delay / period)) if period > 0 else 0
