@@ -776,16 +776,28 @@ def test_a_reference_on_a_clock_of_its_own_puts_its_lag_into_no_term(tmp_path):
     assert analyze(read_run(unsaid)).runs[0].lag is None
 
 
-@pytest.mark.parametrize('lag_s', [5e-3, 2.6e-3, -3e-3])
-def test_a_reference_late_by_more_than_a_channel_can_latch_is_taken_as_lagging(tmp_path, lag_s):
+@pytest.mark.parametrize('lag_s,gap', [(5e-3, False), (2.6e-3, False), (2.6e-3, True),
+                                       (-3e-3, False)])
+def test_a_reference_late_by_more_than_a_channel_can_latch_is_taken_as_lagging(tmp_path, lag_s,
+                                                                                gap):
     """The same reference 5 ms late, in a log that does not say whose clock it runs on (time
     stamps taken on receipt): no skew could hold it, a false 91 µm step on bar 4 was reported,
     and the uncertainty written claimed 800-4000 times a new run's error. A delay beyond the
     2 ms any channel can latch late is the reference's: paired a whole sample period later and
     the rest fitted as a nuisance (smoothed velocity and acceleration: at 200 Hz 2.6 ms is
-    half a period from either sample), nothing is found, nothing claimed, no step."""
-    log = injected_log(tmp_path, 'late.mcap', None, lag_s=lag_s)
-    result = analyze(read_run(log))
+    half a period from either sample), nothing is found, nothing claimed, no step; also with a
+    1 s gap in the log and 0.5 s without a reference (the smoothed motion is not known within
+    a window of the gap: with zeros there, what the lag left beside it was claimed as an
+    error)."""
+    run = read_run(injected_log(tmp_path, 'late.mcap', None, lag_s=lag_s))
+    if gap:
+        keep = np.ones(run.stamps_ns.size, dtype=bool)
+        keep[3000:3200] = False
+        ref = run.reference_pose.copy()
+        ref[5000:5100] = np.nan
+        run = read_run(write_run(tmp_path / 'gap.mcap', run.device, run.calibration,
+                                 run.stamps_ns[keep], run.counts[keep], reference_pose=ref[keep]))
+    result = analyze(run)
     lag = result.runs[0].lag
     assert lag is not None and not lag.stated and lag.delay_s == pytest.approx(lag_s, abs=1e-6), lag
     assert not result.found and not result.glitches, result.conclusion

@@ -416,14 +416,16 @@ def observed_motion(obs: Observation, device: DeviceDescription, processed: Proc
     """How fast the observed components move, (N, k, 1), or with ``smooth`` how fast and how
     they accelerate, (N, k, 2) [m/s, rad/s; m/s^2, rad/s^2], from the bars' CDF lengths mapped
     as the observation maps a change of the bars (:meth:`Observation.length_map`), zero where
-    there is no pose. A reference read a time δ late differs from the MMD by δ v - δ^2 a / 2
-    + ...; a common latch delay of the bars' channels gives the first.
+    there is no pose, NaN where it is not known. A reference read a time δ late differs from
+    the MMD by δ v - δ^2 a / 2 + ...; a common latch delay of the bars' channels gives the
+    first.
 
     Without ``smooth`` the velocity is the skew term's backward difference (the sum of its
     signatures: a common skew and this lag are then one direction); its noise, about
     sqrt(2) sigma / dt per bar, times δ is a nanometre at 10 µs but 34 nm at 2.4 ms. With
-    ``smooth``, a cubic Savitzky-Golay fit over :data:`LAG_WINDOW` samples (gaps longer than
-    the skew term's ``max_gap_s``, and the samples beside them, get zero)."""
+    ``smooth``, a cubic Savitzky-Golay fit over :data:`LAG_WINDOW` samples within each
+    stretch of evenly spaced samples; NaN in a stretch shorter than that (a lag there cannot
+    be taken out: with zeros beside a 1 s gap the residual there was claimed as an error)."""
     lengths = processed.cdf_lengths_m
     if not smooth:
         bars = [-SamplingSkewTerm.features(lengths, times_s, MAX_GAP_S, None)[0]]
@@ -431,17 +433,15 @@ def observed_motion(obs: Observation, device: DeviceDescription, processed: Proc
         n = times_s.size
         dt = np.diff(times_s)
         period = float(np.median(dt)) if dt.size else 1.0
-        window = min(LAG_WINDOW, n if n % 2 else n - 1)
-        if window < 5:
-            bars = [np.zeros_like(lengths)] * 2
-        else:
-            bars = [savgol_filter(np.nan_to_num(lengths), window, 3, deriv=d, delta=period, axis=0)
-                    for d in (1, 2)]
-            broken = np.zeros(n, dtype=bool)
-            broken[1:] |= np.abs(dt - period) > 0.25 * period
-            near = np.convolve(broken | ~np.all(np.isfinite(lengths), axis=1),
-                               np.ones(2 * window + 1), mode='same') > 0
-            bars = [np.where(near[:, None], 0.0, b) for b in bars]
+        cuts = np.flatnonzero((np.abs(dt - period) > 0.25 * period)
+                              | ~np.all(np.isfinite(lengths[1:]), axis=1)
+                              | ~np.all(np.isfinite(lengths[:-1]), axis=1)) + 1
+        bars = [np.full_like(lengths, np.nan), np.full_like(lengths, np.nan)]
+        for a, b in zip(np.concatenate(([0], cuts)), np.concatenate((cuts, [n]))):
+            if b - a >= LAG_WINDOW and np.all(np.isfinite(lengths[a:b])):
+                for d in (1, 2):
+                    bars[d - 1][a:b] = savgol_filter(lengths[a:b], LAG_WINDOW, 3, deriv=d,
+                                                     delta=period, axis=0)
     out = np.zeros((times_s.size, len(obs.components), len(bars)))
     for j, b in enumerate(bars):
         if obs.kind == 'lengths':
@@ -449,6 +449,7 @@ def observed_motion(obs: Observation, device: DeviceDescription, processed: Proc
             continue
         ok = np.flatnonzero(processed.valid & np.all(np.isfinite(processed.poses), axis=1)
                             & np.all(np.isfinite(b), axis=1))
+        out[~np.all(np.isfinite(b), axis=1), :, j] = np.nan
         if ok.size:
             jinv = obs.length_map(device, processed.poses[ok])
             out[ok, :, j] = np.einsum('nkj,nj->nk', jinv, b[ok])

@@ -575,7 +575,9 @@ def _reference_lag(obs: Observation, device: DeviceDescription, processed: Proce
     if shift:
         timed = _shifted(timed, times_s, shift, period)
     if abs(delay - shift * period) >= SECOND_ORDER_LAG_S:
-        timed = replace(timed, lag=observed_motion(obs, device, processed, times_s, True))
+        motion = observed_motion(obs, device, processed, times_s, True)
+        known = np.all(np.isfinite(motion), axis=(1, 2))
+        timed = replace(timed, lag=np.nan_to_num(motion), usable=timed.usable & known)
     if shift or timed.lag.shape[2] > 1:
         every = np.flatnonzero(timed.usable & processed.measured(obs.kind))
         coef, sd, _ = fit_lag(timed, timed.residual(processed), every)
