@@ -804,3 +804,25 @@ def test_a_reference_late_by_more_than_a_channel_can_latch_is_taken_as_lagging(t
     assert result.model is None and not result.uncertainty_only, result.conclusion
     reported = json.loads(json.dumps(result.runs[0].as_dict()))['reference_lag']
     assert reported['delay_s'] == lag.delay_s
+
+
+def test_one_log_on_the_mmd_s_clock_determines_the_common_skew_of_a_session(tmp_path):
+    """Two logs of a realistic twin (channels latching within [0, 50 µs]), one whose reference
+    runs on its own clock: its lag is fitted, and the other log, on the MMD's clock, determines
+    the skew's common delay, which is written (the term had taken whether it was fitted from
+    the last log alone). With both on their own clocks it is not."""
+    twin = TwinDevice(DEVICE, Effects.realistic(), seed=2)
+    true_mean = float(np.mean(twin.physics.skew_s[list(DEVICE.measuring_channels)]))
+    own = injected_log(tmp_path, 'own.mcap', None, effects=Effects.realistic(),
+                       metadata={'reference_clock': 'own'})
+    shared = injected_log(tmp_path, 'shared.mcap', None, params=('duration_s=40', 'seed=7'),
+                          effects=Effects.realistic(), metadata={'reference_clock': 'shared'})
+    options = AnalysisOptions(leave_one_out=False, effects=['hysteresis', 'sampling_skew'])
+    for logs, fitted in (([shared, own], True), ([own], False)):
+        result = analyze([read_run(p) for p in logs], options=options)
+        skew = [t for t in result.model.terms if t.type_name == 'sampling_skew']
+        assert len(skew) == 1 and skew[0].common_fitted is fitted, result.conclusion
+        if fitted:
+            assert np.mean(skew[0].skew_s) == pytest.approx(true_mean, abs=3e-6)
+        else:
+            assert abs(np.mean(skew[0].skew_s)) < 5e-6, skew[0].skew_s

@@ -719,9 +719,9 @@ class SamplingSkew(Effect):
         return ok, '' if ok.all() else 'bars that move slower than 1 mm/s: ' + _bars(~ok)
 
     def make_term(self, ctx, hyper, theta):
-        # against a lagging reference (its lag a nuisance of the log) the common delay is not
-        # determined: the fit leaves it out (its direction lies in the lag's)
-        return SamplingSkewTerm(theta, common_fitted=ctx.obs.lag is None)
+        # (identify._terms_for says whether its common delay was fitted: not when every
+        # log's reference lags, the lag a nuisance of each whose direction is the common one)
+        return SamplingSkewTerm(theta)
 
     def diagnostics(self, ctx, hyper):
         v = ctx.velocities()

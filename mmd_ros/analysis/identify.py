@@ -70,7 +70,7 @@ from mmd_ros.core.calibration import Calibration
 from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.kinematics import jacobian
 from mmd_ros.core.model import Model, ModelTerm, TermContext
-from mmd_ros.core.terms import GravitySagTerm, limited_to_seen
+from mmd_ros.core.terms import GravitySagTerm, SamplingSkewTerm, limited_to_seen
 from mmd_ros.core.units import ARCSEC_PER_RAD, M_PER_MM, M_PER_UM
 from mmd_ros.logs.layout import RunLog
 
@@ -1580,6 +1580,12 @@ def _terms_for(sel: _Selector, chosen: list[tuple[_Active, FloatArray]], run: _R
         t = sel.theta_for(a.effect, theta, run)
         if t is not None:
             terms.extend(a.effect.make_terms(run.ctx, a.hyper, t))
+    # a common skew of the channels is the reference's lag where that lag is fitted: one log
+    # whose reference shares the MMD's clock determines it (the skew is the device's)
+    lagging = all(r.obs.lag is not None for r in sel.runs)
+    for term in terms:
+        if isinstance(term, SamplingSkewTerm):
+            term.common_fitted = not lagging
     return terms
 
 
