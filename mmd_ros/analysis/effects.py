@@ -731,10 +731,14 @@ class SamplingSkew(Effect):
         if ctx.obs.lag is not None:
             return [f'channel delays {np.min(theta) * 1e6:+.1f} … {np.max(theta) * 1e6:+.1f} µs '
                     'about their mean, which the reference\'s lag hides (not fitted)']
+        delays = (f'channel delays {np.min(theta) * 1e6:+.1f} … {np.max(theta) * 1e6:+.1f} µs '
+                  f'(mean {np.mean(theta) * 1e6:+.1f} µs')
+        if ctx.obs.clock == 'shared':
+            return [delays + ', the channels\' own: the log\'s reference shares the MMD\'s clock)']
         # (a reference logged on a clock of its own, lagging the MMD, reads as a common delay)
-        return [f'channel delays {np.min(theta) * 1e6:+.1f} … {np.max(theta) * 1e6:+.1f} µs '
-                f'(mean {np.mean(theta) * 1e6:+.1f} µs: a common delay shifts the whole pose '
-                'in time, as a reference that lags the MMD by as much would)']
+        return [delays + ': a common delay shifts the whole pose in time, as a reference that '
+                'lags the MMD by as much would; a log whose reference runs on a clock of its own '
+                'says reference_clock: own)']
 
 
 class GravitySag(Effect):
