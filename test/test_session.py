@@ -758,14 +758,15 @@ def test_mmd_process_reads_the_reference_noise_a_log_does_not_state(tmp_path, ca
     assert report['ellipsoid_coverage'] > 0.93, report
 
 
-def test_a_reference_on_a_clock_of_its_own_puts_its_lag_into_no_term(tmp_path):
+def test_a_reference_on_a_clock_of_its_own_puts_its_lag_into_no_term(tmp_path, capsys):
     """A clean device's 6-DOF reference logged by another program 10 µs late, the log saying
     that the reference runs on its own clock (``reference_clock: own``): a common delay of the
     bars' channels and the reference's lag are one signature, and the analysis wrote a skew of
     10 µs on every channel; on new motion against the true pose the model made every component
     6-8 times worse than no model (27.8 % in the 95 % ellipsoid). The lag is now a nuisance of
     the log, reported, and no skew takes it; a log that does not say keeps the skew (a delay
-    within what a channel can latch is the MMD's)."""
+    within what a channel can latch is the MMD's), unless ``mmd analyze --reference-clock own``
+    says it for the log."""
     log = injected_log(tmp_path, 'own.mcap', None, lag_s=10e-6, metadata={'reference_clock': 'own'})
     result = analyze(read_run(log))
     lag = result.runs[0].lag
@@ -774,6 +775,10 @@ def test_a_reference_on_a_clock_of_its_own_puts_its_lag_into_no_term(tmp_path):
     assert not result.found and result.model is None, result.conclusion
     unsaid = injected_log(tmp_path, 'unsaid.mcap', None, lag_s=10e-6)
     assert analyze(read_run(unsaid)).runs[0].lag is None
+    assert main(['analyze', str(unsaid), '--json', '--reference-clock', 'own', '--quiet']) == 0
+    data = json.loads(capsys.readouterr().out)
+    assert data['runs'][0]['reference_lag']['clock_stated_own'], data['runs'][0]
+    assert not data['found'] and data['model_file'] is None, data['conclusion']
 
 
 @pytest.mark.parametrize('lag_s,gap', [(5e-3, False), (2.6e-3, False), (2.6e-3, True),

@@ -117,6 +117,9 @@ class AnalysisOptions:
     under_claim: float = 1.25
     #: a one-axis run's unseen components read as the machine's motion (analysis/axis_motion.py)
     axis_motion: bool = True
+    #: whose clock every log's reference ran on, 'shared' or 'own', over what the logs say
+    #: (their metadata ``reference_clock``); None: as they say (:func:`_reference_lag`)
+    reference_clock: str | None = None
 
 
 @dataclass
@@ -469,7 +472,7 @@ def _prepare(index: int, run: RunLog, model: Model, calibration: Calibration | N
     try:
         obs = make_observation(run.reference_pose, run.reference_lengths, o.datum,
                                run.metadata.get('reference_sigma'),
-                               run.metadata.get('reference_clock'))
+                               o.reference_clock or run.metadata.get('reference_clock'))
     except AnalysisError as exc:
         raise AnalysisError(f'{run.path}: {exc}') from None
     times = run.times_s

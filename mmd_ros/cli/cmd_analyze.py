@@ -75,7 +75,8 @@ def run_command(args: argparse.Namespace) -> int:
         n_blocks=args.blocks, max_samples=args.max_samples, min_gain=args.min_gain,
         max_effects=args.max_effects, datum='none' if args.absolute_reference else 'auto',
         seed=args.seed, cyclic_periods_m=periods, accept_unchecked=args.accept_unchecked,
-        axis_motion=not args.no_axis_motion, stated_sag=not args.no_stated_sag)
+        axis_motion=not args.no_axis_motion, stated_sag=not args.no_stated_sag,
+        reference_clock=args.reference_clock)
     result = analyze(runs, model, calibration, options, progress=say)
     written = {}
     if args.out:
@@ -141,6 +142,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument('--absolute-reference', action='store_true', dest='absolute_reference',
                    help='the reference pose is absolute in {L} (default: zeroed, an offset per '
                    'component is removed)')
+    p.add_argument('--reference-clock', choices=('shared', 'own'), dest='reference_clock',
+                   help='whose clock the references ran on, over what the logs say (metadata '
+                   'reference_clock): shared, the MMD\'s (a common delay is the channels\'), '
+                   'or own (its lag is fitted per log; msg_docs/analysis.md)')
     p.add_argument('--seed', type=validate.arg_number(low=0, integer=True), default=0,
                    help='draws the held-out blocks (default 0)')
     add_segment_argument(p)
