@@ -406,7 +406,6 @@ def reference_noise(obs: Observation, processed: Processed, residual: FloatArray
     return np.sqrt(np.maximum(white_noise(residual, idx) ** 2 - mmd ** 2, 0.0))
 
 
-
 #: Samples of the Savitzky-Golay fit of a lagging reference's motion (:func:`observed_motion`)
 LAG_WINDOW = 21
 
