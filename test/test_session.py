@@ -786,8 +786,9 @@ def test_a_reference_on_a_clock_of_its_own_puts_its_lag_into_no_term(tmp_path, c
 def test_a_reference_late_by_more_than_a_channel_can_latch_is_taken_as_lagging(tmp_path, lag_s,
                                                                                 gap):
     """The same reference 5 ms late, in a log that does not say whose clock it runs on (time
-    stamps taken on receipt): no skew could hold it, a false 91 µm step on bar 4 was reported,
-    and the uncertainty written claimed 800-4000 times a new run's error. A delay beyond the
+    stamps taken on receipt): no skew could hold it, a false 230 µm step on bar 4 was reported,
+    and the uncertainty written claimed 2000-10000 times a new run's error (2.6 ms: 119 µm,
+    1000-5200 times; 3 ms early: 138 µm, 1200-6000 times). A delay beyond the
     2 ms any channel can latch late is the reference's: paired a whole sample period later and
     the rest fitted as a nuisance (smoothed velocity and acceleration: at 200 Hz 2.6 ms is
     half a period from either sample), nothing is found, nothing claimed, no step; also with a
