@@ -411,7 +411,8 @@ LAG_WINDOW = 21
 
 
 def observed_motion(obs: Observation, device: DeviceDescription, processed: Processed,
-                    times_s: FloatArray, smooth: bool) -> FloatArray:
+                    times_s: FloatArray, smooth: bool,
+                    rows: NDArray[np.int64] | None = None) -> FloatArray:
     """How fast the observed components move, (N, k, 1), or with ``smooth`` how fast and how
     they accelerate, (N, k, 2) [m/s, rad/s; m/s^2, rad/s^2], from the bars' CDF lengths mapped
     as the observation maps a change of the bars (:meth:`Observation.length_map`), zero where
@@ -424,7 +425,8 @@ def observed_motion(obs: Observation, device: DeviceDescription, processed: Proc
     sqrt(2) sigma / dt per bar, times δ is a nanometre at 10 µs but 34 nm at 2.4 ms. With
     ``smooth``, a cubic Savitzky-Golay fit over :data:`LAG_WINDOW` samples within each
     stretch of evenly spaced samples; NaN in a stretch shorter than that (a lag there cannot
-    be taken out: with zeros beside a 1 s gap the residual there was claimed as an error)."""
+    be taken out: with zeros beside a 1 s gap the residual there was claimed as an error).
+    ``rows``: those samples only, (len(rows), k, c)."""
     lengths = processed.cdf_lengths_m
     if not smooth:
         bars = [-SamplingSkewTerm.features(lengths, times_s, MAX_GAP_S, None)[0]]
@@ -441,16 +443,19 @@ def observed_motion(obs: Observation, device: DeviceDescription, processed: Proc
                 for d in (1, 2):
                     bars[d - 1][a:b] = savgol_filter(lengths[a:b], LAG_WINDOW, 3, deriv=d,
                                                      delta=period, axis=0)
-    out = np.zeros((times_s.size, len(obs.components), len(bars)))
+    poses, valid = processed.poses, processed.valid
+    if rows is not None:
+        bars, poses, valid = [b[rows] for b in bars], poses[rows], valid[rows]
+    out = np.zeros((poses.shape[0], len(obs.components), len(bars)))
     for j, b in enumerate(bars):
         if obs.kind == 'lengths':
             out[:, :, j] = b[:, obs.components]
             continue
-        ok = np.flatnonzero(processed.valid & np.all(np.isfinite(processed.poses), axis=1)
+        ok = np.flatnonzero(valid & np.all(np.isfinite(poses), axis=1)
                             & np.all(np.isfinite(b), axis=1))
         out[~np.all(np.isfinite(b), axis=1), :, j] = np.nan
         if ok.size:
-            jinv = obs.length_map(device, processed.poses[ok])
+            jinv = obs.length_map(device, poses[ok])
             out[ok, :, j] = np.einsum('nkj,nj->nk', jinv, b[ok])
     return out
 
