@@ -728,11 +728,10 @@ class SamplingSkew(Effect):
         return {f'bar{i + 1} velocity': v[:, i] for i in np.flatnonzero(_moving_bars(ctx))}
 
     def interpret(self, ctx, hyper, theta, sigma):
+        span = f'channel delays {np.min(theta) * 1e6:+.1f} … {np.max(theta) * 1e6:+.1f} µs'
         if ctx.obs.lag is not None:
-            return [f'channel delays {np.min(theta) * 1e6:+.1f} … {np.max(theta) * 1e6:+.1f} µs '
-                    'about their mean, which the reference\'s lag hides (not fitted)']
-        delays = (f'channel delays {np.min(theta) * 1e6:+.1f} … {np.max(theta) * 1e6:+.1f} µs '
-                  f'(mean {np.mean(theta) * 1e6:+.1f} µs')
+            return [span + ' about their mean, which the reference\'s lag hides (not fitted)']
+        delays = f'{span} (mean {np.mean(theta) * 1e6:+.1f} µs'
         if ctx.obs.clock == 'shared':
             return [delays + ', the channels\' own: the log\'s reference shares the MMD\'s clock)']
         # (a reference logged on a clock of its own, lagging the MMD, reads as a common delay)

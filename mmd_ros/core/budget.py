@@ -460,15 +460,14 @@ class LengthBudget:
             self.notes.append('latch skew: the device description does not state the terminal\'s '
                               '(terminal.latch_skew_us); a bar moving at v reads up to v x skew off')
         skews = [t for t in model.terms if t.type_name in SKEW_TERMS]
-        self.latch_skew_s = 0.0 if skews else float(skew or 0.0)
         # a skew fitted against a reference on a clock of its own corrects how the channels'
         # delays differ, not their common part, which that reference's lag hides: of the stated
         # skew [0, s] the common part stays, one delay of every bar (uniform: mean s/2 and
         # variance s^2/12 along the bars' velocity v, a rank-one covariance, not one per bar)
         self.latch_common_only = bool(skews) and not any(getattr(t, 'common_fitted', True)
                                                          for t in skews)
-        if self.latch_common_only:
-            self.latch_skew_s = float(skew or 0.0)
+        self.latch_skew_s = (0.0 if skews and not self.latch_common_only
+                             else float(skew or 0.0))
         self._velocity = _Velocity(1.0 / device.sample_rate_hz)
 
         # -- the bars' gravity sag (their characterisation), unless a fitted term compensates it:
