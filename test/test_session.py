@@ -763,7 +763,7 @@ def test_a_reference_on_a_clock_of_its_own_puts_its_lag_into_no_term(tmp_path, c
     that the reference runs on its own clock (``reference_clock: own``): a common delay of the
     bars' channels and the reference's lag are one signature, and the analysis wrote a skew of
     10 µs on every channel; on new motion against the true pose the model made every component
-    6-8 times worse than no model (27.8 % in the 95 % ellipsoid). The lag is now a nuisance of
+    2.7-18 times worse than no model (27.7 % in the 95 % ellipsoid). The lag is now a nuisance of
     the log, reported, and no skew takes it; a log that does not say keeps the skew (a delay
     within what a channel can latch is the MMD's), unless ``mmd analyze --reference-clock own``
     says it for the log."""

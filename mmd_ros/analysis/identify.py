@@ -556,7 +556,7 @@ def _reference_lag(obs: Observation, device: DeviceDescription, processed: Proce
     what the MMD's channels can latch (:data:`MAX_SKEW_S`). A common delay within that is the
     MMD's (the skew term's common mode): a reference sampled at the MMD's instants has none,
     and the twin's logs say ``reference_clock: shared``. A reference on its own clock 10 µs
-    late had a common skew of 10 µs written, and the model made new motion 6-8 times worse
+    late had a common skew of 10 µs written, and the model made new motion 2.7-18 times worse
     against the true pose; 5 ms late, no skew could hold it, and a false 230 µm step and an
     uncertainty of 2000-10000 times the error were reported.
 
