@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mmd_ros.analysis import analyze, write_report
+from mmd_ros.analysis import AnalysisOptions, analyze, write_report
 from mmd_ros.twin.recording import SimulationSpec, simulate_to_log
 from mmd_ros.cli.main import main
 from mmd_ros.core.device import find_config, load_device
@@ -103,17 +103,26 @@ VARIANTS = [
 ]
 
 
+#: The effect named first against a zeroed reference (a laser or a tracker zeroed at its
+#: start). An absolute one (the twin's logs say theirs is) also sees the calibration's own
+#: point errors, larger than a drift or a small hysteresis on some twins and named before it,
+#: and reads a uniform plate expansion for what it is to a pose, a change of the joints'
+#: positions (kinematic): test_with_an_absolute_reference_*
+ZEROED = AnalysisOptions(datum='offset')
+
+
 def _check_found_first(logs, effect, seed, with_effect, without_effect, scenario, params, reference, opts):
     kw = dict(opts)
     run = read_run(logs(scenario, params, with_effect, reference, seed=seed, **kw))
-    result = analyze(run)
+    result = analyze(run, options=ZEROED)
     assert result.found, result.conclusion
     assert result.found[0].effect == effect, [f.effect for f in result.found]
     assert result.validated and result.model is not None
     clean_kw = dict(kw)
     if effect in ('kinematic', 'gravity_sag'):
         clean_kw.pop('device')
-    clean = analyze(read_run(logs(scenario, params, without_effect, reference, seed=seed, **clean_kw)))
+    clean = analyze(read_run(logs(scenario, params, without_effect, reference, seed=seed, **clean_kw)),
+                    options=ZEROED)
     after, without = held_out_rms(result), held_out_rms(clean)
     for name, value in after.items():
         assert value <= 1.5 * without[name], (name, value, without[name], result.conclusion)

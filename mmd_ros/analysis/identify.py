@@ -65,6 +65,7 @@ from mmd_ros.analysis.glitches import Step, bar_residual, residual_steps
 from mmd_ros.analysis.uncertainty import (
     CLAIM_LEVEL, FittedEffect, ResidualRun, base_budget, beyond_claim, claimed_sigma,
     fitted_effects, measured_read_noise, calibration_constants, with_fit_uncertainty)
+from mmd_ros.core.accuracy import ABSOLUTE_WITHIN_SIGMAS, GROSS_ERROR, read_datum
 from mmd_ros.core.budget import LENGTH_TERMS, SAG_TERMS
 from mmd_ros.core.calibration import Calibration
 from mmd_ros.core.device import DeviceDescription
@@ -288,6 +289,8 @@ class RunSummary:
     given: list[ComponentError] | None = None
     #: the reference's lag behind the MMD, when taken as the reference's (else None)
     lag: ReferenceLag | None = None
+    #: whether the reference was compared zeroed or absolute, and why
+    datum: ReferenceDatum | None = None
 
     def as_dict(self) -> dict[str, Any]:
         def rows(stats: list[ComponentError] | None) -> list[dict[str, Any]] | None:
@@ -304,7 +307,8 @@ class RunSummary:
                 'log_problem': self.log_problem,
                 'reference_lag': None if self.lag is None else {
                     'delay_s': self.lag.delay_s, 'sd_s': self.lag.sd_s,
-                    'clock_stated_own': self.lag.stated}}
+                    'clock_stated_own': self.lag.stated},
+                'reference_datum': None if self.datum is None else self.datum.as_dict()}
 
 
 @dataclass
@@ -433,6 +437,8 @@ class _Run:
     res_given: FloatArray | None = None
     #: the reference's lag behind the MMD, when it is taken as the reference's
     lag: ReferenceLag | None = None
+    #: whether the reference is compared zeroed or absolute, and why
+    datum: ReferenceDatum | None = None
 
     def group(self, scope: str) -> str:
         return {'device': 'device', 'calibration': self.cal_key, 'run': self.ident}[scope]
@@ -457,8 +463,10 @@ def _check_one_device(runs: list[RunLog]) -> None:
 
 
 def _prepare(index: int, run: RunLog, model: Model, calibration: Calibration | None,
-             o: AnalysisOptions, say: Callable[[str], None], stated: tuple[ModelTerm, ...] = ()
-             ) -> _Run:
+             o: AnalysisOptions, say: Callable[[str], None], datum: ReferenceDatum,
+             stated: tuple[ModelTerm, ...] = (), before: Processed | None = None) -> _Run:
+    """One log made ready for the selection; ``before`` the pass of ``model`` over it, when
+    made already."""
     calibration = calibration or run.calibration
     if calibration is None:
         raise AnalysisError(f'{run.path} carries no calibration; pass --calibration FILE')
@@ -470,14 +478,15 @@ def _prepare(index: int, run: RunLog, model: Model, calibration: Calibration | N
                             'number; leave them out first (RunLog.without_flagged, as mmd '
                             'analyze does)')
     try:
-        obs = make_observation(run.reference_pose, run.reference_lengths, o.datum,
+        obs = make_observation(run.reference_pose, run.reference_lengths, datum.datum,
                                run.metadata.get('reference_sigma'),
                                o.reference_clock or run.metadata.get('reference_clock'))
     except AnalysisError as exc:
         raise AnalysisError(f'{run.path}: {exc}') from None
     times = run.times_s
-    say(f'{run.path.name}: running the current model over {times.size} samples')
-    before = run_pipeline(run.device, calibration, model, times, run.counts)
+    if before is None:
+        say(f'{run.path.name}: running the current model over {times.size} samples')
+        before = run_pipeline(run.device, calibration, model, times, run.counts)
     obs, lag = _reference_lag(obs, run.device, before, times)
     if lag is not None:
         say(f'{run.path.name}: {lag.text()}')
@@ -506,7 +515,7 @@ def _prepare(index: int, run: RunLog, model: Model, calibration: Calibration | N
         given = _datum_corrected(obs, raw - change, before.measured(obs.kind), split.train_idx)
     return _Run(index, run, str(run.path), run.content_hash(), calibration_key(calibration),
                 calibration, obs, ctx, split, floor, np.nan_to_num(raw), res_before, usable, datum_sigma,
-                axis, res_given=given, lag=lag)
+                axis, res_given=given, lag=lag, datum=datum)
 
 
 @dataclass
@@ -610,18 +619,129 @@ def _shifted(obs: Observation, times_s: FloatArray, shift: int, period: float) -
     return replace(obs, reference=reference, usable=ok & obs.usable[src])
 
 
-def _needs_statement(logs: list[RunLog], o: AnalysisOptions) -> bool:
+@dataclass
+class ReferenceDatum:
+    """Whether a log's reference is compared absolute or zeroed (an offset per component
+    removed), and why.
+
+    source : 'option' (AnalysisOptions.datum, ``mmd analyze --absolute-reference`` or
+        ``--zeroed-reference``), 'stated' (the log's metadata ``reference_absolute``), 'found'
+        (neither: decided from the offsets below), 'lengths' (a bar-length reference is
+        absolute: the bars' true centre distances)
+    offsets, within : when found, the median reference − MMD offset of each observed component
+        over the log and the bound :func:`~mmd_ros.core.accuracy.read_datum` held it to, the
+        claim for the MMD's error there times ``ABSOLUTE_WITHIN_SIGMAS`` (k,) [m, rad]; names
+        and units their components'
+    starts_at_zero : when found, the reference reads zero (within ``within``) in every
+        component at its first sample: it may have been zeroed there
+    """
+
+    zeroed: bool
+    source: str
+    offsets: FloatArray | None = None
+    within: FloatArray | None = None
+    names: tuple[str, ...] = ()
+    units: tuple[str, ...] = ()
+    starts_at_zero: bool = False
+
+    @property
+    def datum(self) -> str:
+        return 'offset' if self.zeroed else 'none'
+
+    def text(self) -> str:
+        what = ('zeroed (a constant offset per component removed)' if self.zeroed else
+                'absolute in {L} (compared as it is)')
+        if self.source == 'option':
+            return f'the reference is taken as {what}, as asked'
+        if self.source == 'stated':
+            return f'the reference is taken as {what}, as the log states (reference_absolute)'
+        if self.source == 'lengths':
+            return f'the bar-length reference is {what}'
+        if self.offsets is None:
+            return f'the log does not say whether its reference is absolute: taken as {what}'
+        report = np.array([ARCSEC_PER_RAD if u == 'arcsec' else 1.0 / M_PER_UM
+                           for u in self.units])
+        parts = ', '.join(f'{n} {o * s:.3g} {_unit(u)} (claim ×{ABSOLUTE_WITHIN_SIGMAS:g}: '
+                          f'{w * s:.3g})' for n, o, w, s, u in
+                          zip(self.names, self.offsets, self.within, report, self.units))
+        if np.all(np.abs(self.offsets) <= self.within):
+            why = 'all within what the MMD\'s error may be'
+        elif self.starts_at_zero:
+            why = ('not all within what the MMD\'s error may be, and the reference reads zero '
+                   'where the log starts (zeroed there)')
+        elif not self.zeroed:
+            why = (f'beyond what the budget claims, but within {GROSS_ERROR[0] / M_PER_UM:g} µm '
+                   f'and {GROSS_ERROR[1] * ARCSEC_PER_RAD:g}″ and the reference does not read '
+                   'zero where the log starts (an error of the MMD: what is there to find)')
+        else:
+            why = (f'beyond {GROSS_ERROR[0] / M_PER_UM:g} µm or '
+                   f'{GROSS_ERROR[1] * ARCSEC_PER_RAD:g}″ (the pose where it was zeroed)')
+        return (f'the log does not state whether its reference is absolute '
+                f'(reference_absolute); its offsets from the MMD, {parts}, are {why}: taken as '
+                f'{what} (mmd analyze --absolute-reference or --zeroed-reference says otherwise)')
+
+    def as_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {'zeroed': self.zeroed, 'source': self.source}
+        if self.offsets is not None:
+            out['offsets'] = dict(zip(self.names, self.offsets.tolist()))
+            out['within'] = dict(zip(self.names, self.within.tolist()))
+            out['starts_at_zero'] = self.starts_at_zero
+        return out
+
+
+def _reference_datum(run: RunLog, model: Model, calibration: Calibration | None,
+                     o: AnalysisOptions) -> tuple[ReferenceDatum, Processed | None]:
+    """Whether ``run``'s reference is zeroed or absolute: as the options say, else as the log
+    states, else as its offsets from the MMD show. An absolute reference differs from the MMD
+    by the MMD's error; a zeroed one by the pose where it was zeroed too. Compared zeroed, an
+    absolute reference's constant part (the calibration's points, the bars' common mode, a
+    per-bar offset) is lost; compared absolute, a zeroed reference's offset would be taken for
+    the MMD's error. A log that does not say is taken as absolute when every component is
+    within what the budget of the model as given claims, or beyond it when the reference does
+    not read zero where the log starts and no offset is a pose it could have been zeroed at
+    (:func:`~mmd_ros.core.accuracy.read_datum`). Also the pass of ``model`` over the log that decided it (None when
+    none was needed)."""
+    if o.datum in ('offset', 'none'):
+        return ReferenceDatum(o.datum == 'offset', 'option'), None
+    try:
+        obs = make_observation(run.reference_pose, run.reference_lengths, 'none',
+                               run.metadata.get('reference_sigma'))
+    except AnalysisError:     # (its preparation says what is wrong with it)
+        return ReferenceDatum(True, 'found'), None
+    if obs.kind == 'lengths':
+        return ReferenceDatum(False, 'lengths'), None
+    stated = run.metadata.get('reference_absolute')
+    if isinstance(stated, bool):
+        return ReferenceDatum(not stated, 'stated'), None
+    calibration = calibration or run.calibration
+    if calibration is None or run.counts.shape[0] == 0 or run.unreadable.any():
+        return ReferenceDatum(True, 'found'), None
+    before = run_pipeline(run.device, calibration, model, run.times_s, run.counts)
+    ok = obs.usable & before.measured('pose')
+    if not ok.any():
+        return ReferenceDatum(True, 'found'), before
+    offsets = -np.median(obs.residual(before)[ok], axis=0)
+    ctx = FitContext(run.device, calibration, model, run.times_s, run.counts, before, obs, o)
+    claim = claimed_sigma(ctx, np.flatnonzero(ok))
+    own = np.zeros_like(claim) if obs.sigma is None else obs.sigma
+    read = read_datum(offsets, np.hypot(claim, own), obs.reference[np.flatnonzero(ok)[0]],
+                      obs.components)
+    return (ReferenceDatum(not read.absolute, 'found', offsets, read.within, tuple(obs.names),
+                           tuple(obs.units), read.starts_at_zero), before)
+
+
+def _needs_statement(logs: list[RunLog], datums: list[ReferenceDatum]) -> bool:
     """Whether the analysis starts from what the device states (:func:`_stated_terms`): every
     log has a reference pose (a bar-length reference reads bars off the MMD, on which a
     pose-dependent term has no say) and none sees the bars' common mode (an absolute reference
     of every bar determines the sag: started from the statement there, the fitted sag no longer
     took the common-mode errors its signature shares, and new motion's errors grew by 10-36 %,
     24 twins)."""
-    for run in logs:
+    for run, datum in zip(logs, datums):
         if not run.has_reference_pose:
             return False
         try:
-            obs = make_observation(run.reference_pose, run.reference_lengths, o.datum)
+            obs = make_observation(run.reference_pose, run.reference_lengths, datum.datum)
         except AnalysisError:
             continue            # (its preparation says what is wrong with it)
         if obs.sees_every_bar and not obs.datum:
@@ -1878,11 +1998,19 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
     say = progress or (lambda text: None)
     _check_one_device(logs)
     model = model or logs[0].model or Model()
-    stated = _stated_terms(logs[0].device, model, o) if _needs_statement(logs, o) else []
-    if stated:
+    datums, passes = [], []
+    for run in logs:
+        datum, made = _reference_datum(run, model, calibration, o)
+        if datum.source == 'found':
+            say(f'{run.path.name}: {datum.text()}')
+        datums.append(datum)
+        passes.append(made)
+    stated = _stated_terms(logs[0].device, model, o) if _needs_statement(logs, datums) else []
+    if stated:      # (the passes made to decide were of the model without them)
         model = replace(model, terms=[*model.terms, *stated])
-    runs = [_prepare(k, run, model, calibration, o, say, tuple(stated))
-            for k, run in enumerate(logs)]
+        passes = [None] * len(logs)
+    runs = [_prepare(k, run, model, calibration, o, say, datum, tuple(stated), made)
+            for k, (run, datum, made) in enumerate(zip(logs, datums, passes))]
     stated_text = [_stated_text(t) for t in stated]
     seen: dict[str, str] = {}
     for r in runs:
@@ -2077,7 +2205,7 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
             component_errors(r.obs, res_after, r.split.test_idx) if res_after is not None else None,
             log_problem=r.run.problem.as_dict() if r.run.problem else None,
             given=(component_errors(r.obs, r.res_given, r.split.test_idx)
-                   if r.res_given is not None else None), lag=r.lag))
+                   if r.res_given is not None else None), lag=r.lag, datum=r.datum))
     final = [afters[k][1] if afters else r.res_before for k, r in enumerate(runs)]
     ratios = [np.sqrt(np.nanmean((res[r.split.fit_test] / r.floor) ** 2, axis=0)) for r, res in zip(runs, final)]
     at_floor = bool(all(np.all(x <= o.floor_factor) for x in ratios))
@@ -2575,6 +2703,10 @@ def _loro_worse(summaries: list[RunSummary]) -> list[str]:
     return out
 
 
+def _capital(text: str) -> str:
+    return text[:1].upper() + text[1:]
+
+
 def _unit(unit: str) -> str:
     return 'µm' if unit == 'um' else '″' if unit == 'arcsec' else unit
 
@@ -2583,8 +2715,9 @@ def _conclusion(runs: list[_Run], summaries: list[RunSummary], found: list[Found
                 not_claimed: list[Found], unchecked: list[Found], at_floor: bool,
                 structure: list[tuple[str, float]], validation: str, uncertainty_only: str = '',
                 stated: list[str] | None = None, glitches: list[tuple[str, Step]] = ()) -> str:
-    parts = [f'{r.run.path.name}: {r.lag.text()[0].upper()}{r.lag.text()[1:]}.' for r in runs
-             if r.lag is not None]
+    parts = [f'{r.run.path.name}: {_capital(r.datum.text())}.' for r in runs
+             if r.datum is not None and r.datum.source == 'found']
+    parts += [f'{r.run.path.name}: {_capital(r.lag.text())}.' for r in runs if r.lag is not None]
     if stated:
         parts.append(f'Started from {"; ".join(stated)}: the figures before include it (held-out '
                      'RMS of the model as given → with it: ' + '; '.join(

@@ -73,7 +73,7 @@ def run_command(args: argparse.Namespace) -> int:
     options = AnalysisOptions(
         effects=_names(args.effects), exclude=tuple(_names(args.exclude) or ()),
         n_blocks=args.blocks, max_samples=args.max_samples, min_gain=args.min_gain,
-        max_effects=args.max_effects, datum='none' if args.absolute_reference else 'auto',
+        max_effects=args.max_effects, datum=args.datum,
         seed=args.seed, cyclic_periods_m=periods, accept_unchecked=args.accept_unchecked,
         axis_motion=not args.no_axis_motion, stated_sag=not args.no_stated_sag,
         reference_clock=args.reference_clock)
@@ -139,9 +139,16 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help='start from the model as given (default: also from the bars\' gravity sag '
                    'the device description states, bars.gravity_sag_nm, when the model has none; '
                    'a zeroed reference does not see the common mode it moves)')
-    p.add_argument('--absolute-reference', action='store_true', dest='absolute_reference',
-                   help='the reference pose is absolute in {L} (default: zeroed, an offset per '
-                   'component is removed)')
+    datum = p.add_mutually_exclusive_group()
+    datum.add_argument('--absolute-reference', action='store_const', const='none', dest='datum',
+                       default='auto',
+                       help='every reference pose is absolute in {L}, over what the logs say '
+                       '(default: as a log says, metadata reference_absolute; a log that does '
+                       'not say is taken as absolute when its offsets from the MMD are within '
+                       'what the MMD\'s error may be)')
+    datum.add_argument('--zeroed-reference', action='store_const', const='offset', dest='datum',
+                       help='every reference was zeroed somewhere: a constant offset per '
+                       'component is removed, over what the logs say')
     p.add_argument('--reference-clock', choices=('shared', 'own'), dest='reference_clock',
                    help='whose clock the references ran on, over what the logs say (metadata '
                    'reference_clock): shared, the MMD\'s (a common delay is the channels\'), '

@@ -6,6 +6,7 @@ angle): unknown components are NaN and are left out of the statistics.
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -16,8 +17,9 @@ from mmd_ros.core.uncertainty import region_quantile
 from mmd_ros.core.units import arcsec, um
 
 __all__ = [
-    'ComponentStats', 'CoverageAccumulator', 'ErrorAccumulator', 'ReferenceNoise', 'coverage',
-    'error_stats', 'format_coverage', 'format_stats', 'length_error', 'pose_error', 'robust_std',
+    'ABSOLUTE_WITHIN_SIGMAS', 'GROSS_ERROR', 'ComponentStats', 'CoverageAccumulator',
+    'DatumReading', 'ErrorAccumulator', 'ReferenceNoise', 'coverage', 'error_stats',
+    'format_coverage', 'format_stats', 'length_error', 'pose_error', 'read_datum', 'robust_std',
     'smoothing_departures', 'white_noise',
 ]
 
@@ -123,6 +125,47 @@ class ReferenceNoise:
         ref = _white_scale(np.nan_to_num(e), 6) ** 2 - _white_scale(p, 6) ** 2
         out[known] = np.sqrt(np.maximum(ref[known], 0.0))
         return out
+
+
+#: A reference pose that does not say whether it is absolute in {L} (a log's metadata
+#: ``reference_absolute``) reads as absolute when every component's median offset from the MMD
+#: lies within this many times what the MMD claims for its error there (with the reference's
+#: own sigma): a zeroed reference is off by the pose at its zero as well (millimetres, unless
+#: zeroed exactly at the origin of {L}, where the two are one)
+ABSOLUTE_WITHIN_SIGMAS = 5.0
+#: Beyond that, a reference that does not read zero where the log starts (it was not zeroed
+#: there) still reads as absolute within these offsets [m, rad]: an MMD with an error its
+#: budget does not claim (what an analysis is for) is off by micrometres and arc-seconds, a
+#: pose a reference was zeroed at by the MMD's mounting, a tenth of a millimetre or more
+GROSS_ERROR = (20e-6, 20.0 * math.pi / (180.0 * 3600.0))
+
+
+@dataclass(frozen=True)
+class DatumReading:
+    """What the offsets of a reference pose from the MMD say of its zero
+    (:func:`read_datum`): ``absolute``; ``within`` (k,) the bound each offset was held to
+    [m, rad]; ``starts_at_zero``: the reference reads zero (within it) in every component
+    where the log starts."""
+
+    absolute: bool
+    within: FloatArray
+    starts_at_zero: bool
+
+
+def read_datum(offsets: FloatArray, sigma: FloatArray, start: FloatArray,
+               components: list[int]) -> DatumReading:
+    """Whether a reference pose that does not say so reads as absolute in {L}: its median
+    offsets from the MMD (reference - MMD) ``offsets`` (k,) of pose components ``components``
+    (0..5), ``sigma`` (k,) the MMD's claimed standard uncertainty there with the reference's
+    own, ``start`` (k,) the reference where the log starts [m, rad]. Absolute when every offset
+    is within :data:`ABSOLUTE_WITHIN_SIGMAS` sigma; beyond it, when the reference does not read
+    zero where it starts and no offset exceeds :data:`GROSS_ERROR`."""
+    off = np.abs(np.asarray(offsets, dtype=np.float64))
+    within = ABSOLUTE_WITHIN_SIGMAS * np.asarray(sigma, dtype=np.float64)
+    at_zero = bool(np.all(np.abs(np.asarray(start, dtype=np.float64)) <= within))
+    gross = np.array([GROSS_ERROR[0] if c < 3 else GROSS_ERROR[1] for c in components])
+    absolute = bool(np.all(off <= within) or (not at_zero and np.all(off <= gross)))
+    return DatumReading(absolute, within, at_zero)
 
 
 @dataclass(frozen=True)
@@ -372,6 +415,19 @@ class CoverageAccumulator:
                 self._tails = [np.concatenate(self._tails)[::2]]
             self.every *= 2
             self._kept = self._errors[0].shape[0]
+
+    def offsets(self) -> tuple[list[int], FloatArray, FloatArray] | None:
+        """The known components, the median of their errors (MMD - reference) over the kept
+        samples and the RMS of their predicted sigma [m, rad], or None when nothing is kept."""
+        if not self._kept:
+            return None
+        e, c = np.concatenate(self._errors), np.concatenate(self._cov)
+        known = [k for k in range(6) if np.isfinite(e[:, k]).mean() >= 0.5]
+        use = np.all(np.isfinite(e[:, known]), axis=1)
+        if not known or not use.any():
+            return None
+        var = np.diagonal(c[use][:, known][:, :, known], axis1=1, axis2=2)
+        return known, np.median(e[use][:, known], axis=0), np.sqrt(np.mean(var, axis=0))
 
     def report(self, *, absolute: bool, reference_sigma: FloatArray | None = None,
                level: float = 0.95, kind: str = 'pose') -> dict[str, object] | None:

@@ -26,6 +26,7 @@ from numpy.typing import NDArray
 
 from mmd_ros.core.accuracy import (
     POSE_NAMES, CoverageAccumulator, ErrorAccumulator, ReferenceNoise, length_error, pose_error,
+    read_datum,
 )
 from mmd_ros.core.calibration import Calibration, load_calibration
 from mmd_ros.core.device import DeviceDescription
@@ -207,6 +208,8 @@ class RunSummary:
         self.length_noise: ReferenceNoise | None = None
         self.covariance_every = covariance_every
         self.budget: dict[str, Any] | None = None
+        #: the reference pose where the log's first measurement has one (6,) [m, rad]
+        self.reference_start: NDArray[np.float64] | None = None
 
     def add(self, part: RunBlock, result: ProcessedRun) -> None:
         n = int(result.stamps_ns.size)
@@ -227,6 +230,10 @@ class RunSummary:
             self.pose_error = self.pose_error or ErrorAccumulator('pose')
             errors = pose_error(result.poses, part.reference_pose)
             self.pose_error.add(errors, result.valid)
+            if self.reference_start is None:
+                has = result.valid & np.any(np.isfinite(part.reference_pose), axis=1)
+                if has.any():
+                    self.reference_start = part.reference_pose[np.argmax(has)].copy()
             if result.covariance is not None:
                 self.coverage = self.coverage or CoverageAccumulator()
                 self.coverage.add(errors, result.covariance, result.valid, result.tails)
@@ -252,8 +259,9 @@ class RunSummary:
         covers the error (:func:`~mmd_ros.core.accuracy.coverage`).
 
         absolute_reference : the reference pose is absolute in {L} (no offset removed); None
-            takes what the log's metadata says (``reference_absolute``), else False (the
-            reference was zeroed at the start, its offset is removed)
+            takes what the log's metadata says (``reference_absolute``), else what the
+            reference's offsets from the MMD say (:func:`~mmd_ros.core.accuracy.read_datum`,
+            as ``mmd analyze`` reads them), else False (zeroed: its offset is removed)
         """
         summary: dict[str, Any] = {
             'log': str(source.path),
@@ -280,9 +288,6 @@ class RunSummary:
                     'by stamp), or all its values are NaN')
         if self.coverage is not None:
             metadata = getattr(source, 'metadata', {}) or {}
-            absolute = absolute_reference
-            if absolute is None:
-                absolute = bool(metadata.get('reference_absolute', False))
             sigma = metadata.get('reference_sigma')
             ref_sigma = (np.array([np.nan if v is None else float(v) for v in sigma])
                          if isinstance(sigma, list) and len(sigma) == 6 else np.full(6, np.nan))
@@ -290,6 +295,12 @@ class RunSummary:
             estimated = ~np.isfinite(ref_sigma)
             if self.reference_noise is not None:
                 ref_sigma = np.where(estimated, self.reference_noise.sigma(), ref_sigma)
+            absolute, datum = absolute_reference, 'option'
+            if absolute is None and isinstance(metadata.get('reference_absolute'), bool):
+                absolute, datum = metadata['reference_absolute'], 'stated'
+            if absolute is None:
+                absolute, datum = self._read_datum(ref_sigma), 'found'
+            summary['reference_datum'] = {'zeroed': not absolute, 'source': datum}
             report = self.coverage.report(absolute=absolute, reference_sigma=ref_sigma)
             if report is not None:
                 report['reference_sigma_estimated'] = [
@@ -313,6 +324,17 @@ class RunSummary:
                 report['every'] *= self.covariance_every
                 summary['length_uncertainty_coverage'] = report
         return summary
+
+
+    def _read_datum(self, reference_sigma: NDArray[np.float64]) -> bool:
+        """Whether the reference pose, its log not saying, reads as absolute."""
+        found = self.coverage.offsets() if self.coverage is not None else None
+        if found is None or self.reference_start is None:
+            return False
+        known, median, predicted = found
+        own = np.nan_to_num(reference_sigma[known])
+        return read_datum(-median, np.hypot(predicted, own), self.reference_start[known],
+                          known).absolute
 
 
 def summarize(run: RunLog, result: ProcessedRun, *, absolute_reference: bool | None = None
