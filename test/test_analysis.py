@@ -121,8 +121,8 @@ def _check_found_first(logs, effect, seed, with_effect, without_effect, scenario
     clean_kw = dict(kw)
     if effect in ('kinematic', 'gravity_sag'):
         clean_kw.pop('device')
-    clean = analyze(read_run(logs(scenario, params, without_effect, reference, seed=seed, **clean_kw)),
-                    options=ZEROED)
+    clean = analyze(read_run(logs(scenario, params, without_effect, reference, seed=seed,
+                                  **clean_kw)), options=ZEROED)
     after, without = held_out_rms(result), held_out_rms(clean)
     for name, value in after.items():
         assert value <= 1.5 * without[name], (name, value, without[name], result.conclusion)

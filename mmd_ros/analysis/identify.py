@@ -699,8 +699,8 @@ def _reference_datum(run: RunLog, model: Model, calibration: Calibration | None,
     the MMD's error. A log that does not say is taken as absolute when every component is
     within what the budget of the model as given claims, or beyond it when the reference does
     not read zero where the log starts and no offset is a pose it could have been zeroed at
-    (:func:`~mmd_ros.core.accuracy.read_datum`). Also the pass of ``model`` over the log that decided it (None when
-    none was needed)."""
+    (:func:`~mmd_ros.core.accuracy.read_datum`). Also the pass of ``model`` over the log that
+    decided it (None when none was needed)."""
     if o.datum in ('offset', 'none'):
         return ReferenceDatum(o.datum == 'offset', 'option'), None
     try:

@@ -144,8 +144,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                        default='auto',
                        help='every reference pose is absolute in {L}, over what the logs say '
                        '(default: as a log says, metadata reference_absolute; a log that does '
-                       'not say is taken as absolute when its offsets from the MMD are within '
-                       'what the MMD\'s error may be)')
+                       'not say is read from its offsets from the MMD: msg_docs/analysis.md, '
+                       'Absolute or zeroed)')
     datum.add_argument('--zeroed-reference', action='store_const', const='offset', dest='datum',
                        help='every reference was zeroed somewhere: a constant offset per '
                        'component is removed, over what the logs say')
