@@ -250,7 +250,6 @@ CASES = [
     ('log device not mapping', {}, 'process {logs}/device_list.mcap', 'device_description'),
     ('log device unknown key', {}, 'process {logs}/device_typo.mcap', 'did you mean fixed_length_mm'),
     ('log channel names', {}, 'process {logs}/wrong_names.mcap', 'do not match'),
-    ('log metadata json', {}, 'process {logs}/bad_metadata.mcap', 'not valid JSON'),
     ('log stamps backwards', {}, 'process {logs}/backwards.mcap', 'go backwards'),
     ('log stamps backwards analyze', {}, 'analyze {logs}/backwards.mcap --out {out}', 'go backwards'),
     ('log stamps backwards iso', {}, 'iso230-2 {logs}/backwards.mcap --axis x --out {out}', 'go backwards'),
@@ -411,6 +410,20 @@ def test_the_installed_command_prints_no_traceback(argv, expected, env, tmp_path
     assert done.returncode == 2, done.stderr
     assert 'Traceback' not in done.stderr and expected in done.stderr
     assert len(done.stdout) < 1000 and not any(out.iterdir())
+
+
+def test_a_run_description_of_plain_strings_is_read_as_text_and_said(env, tmp_path, capsys):
+    """Another program wrote a value of the run description as a plain string (an MCAP
+    metadata record is a map of strings): the log was refused whole ("not valid JSON"),
+    samples and all. It is read, the value kept as its text, and a warning names it."""
+    from mmd_ros.logs.layout import read_run
+    log = str(env['logs'] / 'bad_metadata.mcap')
+    assert main(['process', log, '--json', '--out', str(tmp_path / 'p.mcap')]) == 0
+    captured = capsys.readouterr()
+    assert json.loads(captured.out)['metadata_as_text'] == ['scenario']
+    assert 'not JSON, kept as their text: scenario' in captured.err
+    run = read_run(log)
+    assert run.metadata == {'scenario': '{not json'} and run.counts.shape[0] > 0
 
 
 def strict_json(text: str):

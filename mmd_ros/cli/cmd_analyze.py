@@ -17,7 +17,7 @@ from mmd_ros.core import jsonio, validate
 from mmd_ros.core.calibration import load_calibration
 from mmd_ros.core.model import Model, load_model
 from mmd_ros.core.units import M_PER_UM
-from mmd_ros.logs.layout import read_run
+from mmd_ros.logs.layout import metadata_note, read_run
 from mmd_ros.logs.outputs import check_output_folder
 
 __all__ = ['register']
@@ -56,6 +56,8 @@ def run_command(args: argparse.Namespace) -> int:
         run = read_run(path, segment=args.segment)
         if run.problem:
             print(f'warning: {path}: {run.problem}', file=sys.stderr)
+        if metadata_note(run):
+            print(f'warning: {metadata_note(run)}', file=sys.stderr)
         unreadable = int(run.unreadable.sum())
         run, flagged = run.without_flagged()
         flagged_samples[str(path)] = flagged

@@ -15,7 +15,7 @@ from mmd_ros.cli.log_args import add_segment_argument
 from mmd_ros.core import jsonio, validate
 from mmd_ros.core.model import Model, load_model
 from mmd_ros.core.progress import Progress
-from mmd_ros.logs.layout import read_run
+from mmd_ros.logs.layout import metadata_note, read_run
 from mmd_ros.logs.outputs import check_output_folder
 
 __all__ = ['register']
@@ -30,8 +30,9 @@ MAX_DWELL_S = 3600.0
 
 def _report_of_log(args: argparse.Namespace) -> Iso230Report:
     run = read_run(args.log, segment=args.segment)
-    if run.problem:
-        print(f'warning: {run.problem}', file=sys.stderr)
+    for problem in (run.problem, metadata_note(run)):
+        if problem:
+            print(f'warning: {problem}', file=sys.stderr)
     models: dict[str, Model] = {}
     models['MMD' if not args.after else 'MMD before'] = load_model(args.model) if args.model else (run.model or Model())
     if args.after:

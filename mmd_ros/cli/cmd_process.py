@@ -14,7 +14,7 @@ from mmd_ros.core.calibration import load_calibration
 from mmd_ros.core.model import Model, load_model
 from mmd_ros.core.progress import Progress
 from mmd_ros.logs.errors import StampsNotIncreasing
-from mmd_ros.logs.layout import open_run, read_run
+from mmd_ros.logs.layout import metadata_note, open_run, read_run
 from mmd_ros.logs.outputs import check_outputs
 from mmd_ros.logs.processing import process_log
 
@@ -55,6 +55,8 @@ def run_command(args: argparse.Namespace) -> int:
     model = chosen or run.model or Model()
     if summary.get('log_problem'):
         print(f'warning: {summary["log_problem"]["message"]}', file=sys.stderr)
+    if metadata_note(run):
+        print(f'warning: {metadata_note(run)}', file=sys.stderr)
     if summary.get('model_calibration'):
         print(f'warning: {summary["model_calibration"]}', file=sys.stderr)
     elapsed = time.perf_counter() - started

@@ -35,7 +35,7 @@ __all__ = [
     'TOPIC_CALIBRATION', 'TOPIC_DEVICE', 'TOPIC_DIAGNOSTICS', 'TOPIC_FK_STATUS', 'TOPIC_MODEL',
     'TOPIC_POSE', 'TOPIC_POSE_COV', 'TOPIC_RAW', 'TOPIC_REF_LENGTHS', 'TOPIC_REF_POSE',
     'TOPIC_MACHINE_JOINTS', 'TOPIC_THERMAL', 'MachineJoints', 'RunStream', 'flag_runs',
-    'monotonic_runs', 'open_run', 'read_run', 'write_run',
+    'metadata_note', 'monotonic_runs', 'open_run', 'read_run', 'write_run',
 ]
 
 TOPIC_DEVICE = '/mmd/device_description'
@@ -99,6 +99,7 @@ class RunLog:
     reference_pose : (N, 6) [m, rad] with NaN for components the reference does not give, or None
     reference_lengths : (N, 6) [m] bar lengths known from the set-up, or None
     metadata : the run's description (scenario, effects, seed...) if the log has one
+    metadata_as_text : the keys of ``metadata`` whose values were not JSON, kept as their text
     problem : what was lost reading the log (damage, an unclean end), or None
     segment : (k, n) — the k-th of the log's n segments of increasing stamps
     machine_joints : the machine tool's axis values (``/mmd/machine/joint_states``), or None
@@ -118,6 +119,7 @@ class RunLog:
     reference_pose: NDArray[np.float64] | None = None
     reference_lengths: NDArray[np.float64] | None = None
     metadata: dict[str, Any] = field(default_factory=dict)
+    metadata_as_text: tuple[str, ...] = ()
     problem: LogProblem | None = None
     segment: tuple[int, int] = (1, 1)
     machine_joints: MachineJoints | None = None
@@ -337,18 +339,36 @@ def read_run(path: str | os.PathLike[str], *, segment: int | None = None) -> Run
             (js.stamps_ns >= sel.stamps_ns[0] - 10**9) & (js.stamps_ns <= sel.stamps_ns[-1] + 10**9)
         if keep.any():
             run.machine_joints = MachineJoints(js.stamps_ns[keep], list(js.names), js.values[keep])
-    run.metadata = _run_metadata(reader, source)
+    run.metadata, run.metadata_as_text = _run_metadata(reader)
     return run
 
 
-def _run_metadata(reader: LogReader, source: str) -> dict[str, Any]:
-    """The run description (MCAP metadata ``mmd_run``, JSON values), or {}."""
+def _run_metadata(reader: LogReader) -> tuple[dict[str, Any], tuple[str, ...]]:
+    """The run description (MCAP metadata ``mmd_run``, JSON values), or {}; and the keys whose
+    value is not JSON, kept as its text (another program may write plain strings: the samples
+    do not depend on them, and a log whose description an MCAP map of strings holds otherwise
+    is read whole, :func:`metadata_note` saying so)."""
     meta = reader.metadata.get(RUN_METADATA, {})
-    try:
-        return {k: json.loads(v) for k, v in meta.items()}
-    except ValueError as exc:
-        raise LogFormatError(f'{source}: the run description (MCAP metadata {RUN_METADATA}) is not '
-                             f'valid JSON ({exc})') from None
+    out, text = {}, []
+    for key, value in meta.items():
+        try:
+            out[key] = json.loads(value)
+        except ValueError:
+            out[key] = value
+            text.append(key)
+    return out, tuple(text)
+
+
+def metadata_note(source: Any) -> str | None:
+    """What a command says of a log whose run description holds values that are not JSON
+    (``metadata_as_text``), or None."""
+    keys = getattr(source, 'metadata_as_text', ())
+    if not keys:
+        return None
+    return (f'{source.path}: the run description (MCAP metadata {RUN_METADATA}) holds values that '
+            f'are not JSON, kept as their text: {", ".join(keys)} (a statement such as '
+            'reference_absolute needs true or false, reference_sigma a list of six numbers; '
+            'msg_docs/topics.md)')
 
 
 class RunStream:
@@ -371,7 +391,7 @@ class RunStream:
                                      {TOPIC_RAW, TOPIC_REF_POSE, TOPIC_REF_LENGTHS})
         try:
             self.device, self.calibration, self.model = _run_header(self._reader, source)
-            self.metadata = _run_metadata(self._reader, source)
+            self.metadata, self.metadata_as_text = _run_metadata(self._reader)
             self.n_samples = self._reader.message_count(TOPIC_RAW) or 0
             self.channel_names = self.device.channel_names
         except BaseException:

@@ -276,6 +276,8 @@ class RunSummary:
         }
         if source.problem:
             summary['log_problem'] = source.problem.as_dict()
+        if getattr(source, 'metadata_as_text', ()):
+            summary['metadata_as_text'] = list(source.metadata_as_text)
         segment = getattr(source, 'segment', (1, 1))
         if segment[1] > 1:
             summary['segment'] = {'index': segment[0], 'of': segment[1]}
