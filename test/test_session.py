@@ -738,7 +738,7 @@ def test_a_reference_that_does_not_say_whether_it_is_absolute_is_read_from_its_o
     where the log starts, or half-way, is taken as zeroed; a statement or an option decides
     over the offsets. ``mmd process`` reads them alike for its coverage figures."""
     from mmd_ros.logs.processing import process_run, summarize
-    from mmd_ros.analysis.identify import _reference_datum
+    from mmd_ros.analysis.identify import ReferenceDatum, _reference_datum
     offsets = np.array([0.3, -0.2, 0.25, -0.3, 0.2, -0.25]) * 1e-6
 
     def error_of(d, q):
@@ -760,6 +760,8 @@ def test_a_reference_that_does_not_say_whether_it_is_absolute_is_read_from_its_o
         assert decided.starts_at_zero is (k == 0)
     stated = dataclasses.replace(run, metadata={**run.metadata, 'reference_absolute': False})
     assert _reference_datum(stated, Model(), None, NO_LORO)[0].zeroed
+    as_text = dataclasses.replace(run, metadata={'reference_absolute': 'False'})  # (not JSON)
+    assert _reference_datum(as_text, Model(), None, NO_LORO)[0] == ReferenceDatum(True, 'stated')
     asked = dataclasses.replace(NO_LORO, datum='offset')
     assert _reference_datum(run, Model(), None, asked)[0].zeroed
     processed = process_run(run, Model(), with_covariance=True)

@@ -73,7 +73,7 @@ from mmd_ros.core.kinematics import jacobian
 from mmd_ros.core.model import Model, ModelTerm, TermContext
 from mmd_ros.core.terms import GravitySagTerm, SamplingSkewTerm, limited_to_seen
 from mmd_ros.core.units import ARCSEC_PER_RAD, M_PER_MM, M_PER_UM
-from mmd_ros.logs.layout import RunLog
+from mmd_ros.logs.layout import RunLog, stated_absolute
 
 __all__ = ['Analysis', 'AnalysisOptions', 'Candidate', 'ComponentError', 'Found', 'RunSummary',
            'Unchecked', 'analyze', 'component_errors']
@@ -710,8 +710,8 @@ def _reference_datum(run: RunLog, model: Model, calibration: Calibration | None,
         return ReferenceDatum(True, 'found'), None
     if obs.kind == 'lengths':
         return ReferenceDatum(False, 'lengths'), None
-    stated = run.metadata.get('reference_absolute')
-    if isinstance(stated, bool):
+    stated = stated_absolute(run.metadata)
+    if stated is not None:
         return ReferenceDatum(not stated, 'stated'), None
     calibration = calibration or run.calibration
     if calibration is None or run.counts.shape[0] == 0 or run.unreadable.any():

@@ -35,7 +35,7 @@ __all__ = [
     'TOPIC_CALIBRATION', 'TOPIC_DEVICE', 'TOPIC_DIAGNOSTICS', 'TOPIC_FK_STATUS', 'TOPIC_MODEL',
     'TOPIC_POSE', 'TOPIC_POSE_COV', 'TOPIC_RAW', 'TOPIC_REF_LENGTHS', 'TOPIC_REF_POSE',
     'TOPIC_MACHINE_JOINTS', 'TOPIC_THERMAL', 'MachineJoints', 'RunStream', 'flag_runs',
-    'metadata_note', 'monotonic_runs', 'open_run', 'read_run', 'write_run',
+    'metadata_note', 'monotonic_runs', 'open_run', 'read_run', 'stated_absolute', 'write_run',
 ]
 
 TOPIC_DEVICE = '/mmd/device_description'
@@ -357,6 +357,16 @@ def _run_metadata(reader: LogReader) -> tuple[dict[str, Any], tuple[str, ...]]:
             out[key] = value
             text.append(key)
     return out, tuple(text)
+
+
+def stated_absolute(metadata: dict[str, Any]) -> bool | None:
+    """What a run description says of its reference pose's zero (``reference_absolute``):
+    True absolute in {L}, False zeroed, None not said (also a value that is neither a boolean
+    nor its text, true or false)."""
+    value = metadata.get('reference_absolute')
+    if isinstance(value, str):
+        value = {'true': True, 'false': False}.get(value.strip().lower())
+    return value if isinstance(value, bool) else None
 
 
 def metadata_note(source: Any) -> str | None:

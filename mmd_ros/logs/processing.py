@@ -39,6 +39,7 @@ from mmd_ros.core.validity import other_calibration
 from mmd_ros.logs.layout import (
     BAR_NAMES, FK_STATUS_NAMES, FRAME_LOWER, TOPIC_BAR_LENGTHS, TOPIC_CALIBRATION, TOPIC_DEVICE,
     TOPIC_FK_STATUS, TOPIC_MODEL, TOPIC_POSE, TOPIC_POSE_COV, TOPIC_THERMAL, RunBlock, RunLog,
+    stated_absolute,
 )
 from mmd_ros.logs.outputs import check_outputs, replacing
 from mmd_ros.logs.writer import FAST_ZSTD_LEVEL, LogWriter
@@ -298,8 +299,8 @@ class RunSummary:
             if self.reference_noise is not None:
                 ref_sigma = np.where(estimated, self.reference_noise.sigma(), ref_sigma)
             absolute, datum = absolute_reference, 'option'
-            if absolute is None and isinstance(metadata.get('reference_absolute'), bool):
-                absolute, datum = metadata['reference_absolute'], 'stated'
+            if absolute is None and stated_absolute(metadata) is not None:
+                absolute, datum = stated_absolute(metadata), 'stated'
             if absolute is None:
                 absolute, datum = self._read_datum(ref_sigma), 'found'
             summary['reference_datum'] = {'zeroed': not absolute, 'source': datum}
