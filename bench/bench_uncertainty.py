@@ -163,7 +163,7 @@ def run_case(device, name: str, scenario: str, runs: int, seconds: float, after:
 def fit(twin, room, calibration, k, datum: str = 'none', stated_sag: bool = True,
         clock: str = 'shared'):
     """mmd analyze on a 60 s random run with the full pose reference, absolute (``datum``
-    'none') or zeroed (an offset per component removed, 'offset': the default for a pose),
+    'none') or zeroed (an offset per component removed, 'offset'),
     started from the bars' stated gravity sag unless ``stated_sag`` is False; the log saying
     that its reference runs on the MMD's clock (``clock`` 'shared', the twin's) or its own."""
     from mmd_ros.analysis.identify import AnalysisOptions, analyze
@@ -214,7 +214,7 @@ def main() -> None:
     parser.add_argument('--after', action='store_true')
     parser.add_argument('--datum', default='none', choices=('none', 'offset'),
                         help='with --after: the fit\'s reference absolute (none, default) or zeroed '
-                        '(offset, mmd analyze\'s default for a pose)')
+                        '(offset, a laser or tracker zeroed at its start)')
     parser.add_argument('--approaches', type=int, default=2, choices=(1, 2),
                         help='the twin\'s calibration: 2 two-sided with the drift read (default), 1 '
                         'the paper\'s routine')

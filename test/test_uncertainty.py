@@ -554,7 +554,7 @@ def test_the_bars_lengths_are_covered():
 
 def test_after_a_one_sided_routine_a_bar_beyond_the_fitted_lengths_is_claimed_as_it_grows():
     """Two realistic twins calibrated with the paper's one-sided routine, ``mmd analyze``'s
-    default zeroed fit of 60 s of random motion, new motion's samples with a bar beyond the
+    zeroed fit of 60 s of random motion, new motion's samples with a bar beyond the
     lengths the fit saw (8 s, 423 and 800 of them). What the length terms corrected within those
     lengths was claimed whole from the bound on (a one-sided routine's points carry friction
     steps, which no smooth correlation carries), while the points a ``cdf_offsets`` term held
@@ -1083,7 +1083,7 @@ def _bowed_twin(k: int, reference: str):
 
 
 def test_after_a_zeroed_fit_the_constant_it_could_not_see_is_claimed_from_the_pose_s_variation(tmp_path):
-    """With ``mmd analyze``'s default zeroed reference (an offset per pose component removed)
+    """With a zeroed reference (an offset per pose component removed)
     the calibration-derived sources used to stay whole after the fit: 5-7 times the error in
     x, y and the rotations (6 twins in bench_uncertainty.py --after --datum offset), although
     the fit's length terms had corrected what they stand for. A constant error of the bars
@@ -1137,7 +1137,7 @@ def test_after_a_zeroed_fit_the_constant_it_could_not_see_is_claimed_from_the_po
 
 
 def test_a_zeroed_fit_starts_from_the_bars_stated_sag(tmp_path):
-    """A zeroed reference (mmd analyze's default for a pose) does not see the bars' common
+    """A zeroed reference (a laser or tracker zeroed at its start) does not see the bars' common
     mode, which their gravity sag moves most (z). Started from the model as given, the fit's
     terms of free constants moved that mode with the sag's sign, and the common mode's claim
     was the sag's: z's RMS error on new motion 0.104 um (24 twins calibrated two-sided, 0.189
@@ -1567,7 +1567,7 @@ def test_after_the_loop_a_scale_error_of_another_shape_is_covered_where_the_fit_
     claimed beyond them (growing from the bound as a smooth error's unknown share does), and a
     CDF point no sample came near is not fitted: measured 95.6 % (92.4 % there, 15 % of the
     samples; 95.8 % and 93.5 % with that size claimed whole from the bound on). With the
-    default zeroed reference the claim holds the constant per bar its residual suggests (the
+    zeroed reference the claim holds the constant per bar its residual suggests (the
     fit held its terms back from the means it could not see): 99.8 %, ratios 1.11-3.16 (89.1 %
     where every bar lay within the fitted lengths when that constant was not claimed)."""
     errors, covs, outside = [], [], []
@@ -1609,7 +1609,7 @@ def _bumped_twin(k: int):
 
 
 def test_a_zeroed_fit_of_a_localised_length_error_moves_no_mean_it_cannot_see():
-    """A zeroed reference (``--datum offset``, the default for a pose) sees how each component
+    """A zeroed reference (``--datum offset``) sees how each component
     varies, not its mean. A localised length error (a 4 mm Gaussian bump of up to 0.5 µm on
     each bar, a shape no term has) was fitted with the CDF points and harmonics, whose
     combination carried 2.4 µrad of constant pitch that the zeroed residual could not show
@@ -2122,14 +2122,14 @@ def test_a_cyclic_error_the_calibration_read_too_is_fitted_as_the_calibrated_bar
     """The twin's own encoder cyclic error, 80 nm at 13 µm: the calibration read the same
     scale, so each CDF point took the error at its count, and the CDF carries those values,
     up to 80 nm, between the points. Fitted as the error of the runs alone (with the CDF
-    points as a second effect), the default zeroed analysis could not see the mean those
+    points as a second effect), a zeroed analysis could not see the mean those
     points give a pose, and new motion of twins 1 and 3 had 77.3 % and 76.9 % of its samples
     in the 95 % ellipsoid (86.4 % over four twins; a constant 44 nm in z against 27 nm
     claimed). The term now carries the error through the calibration's points when the data
     say so (both are tried): one effect, whose law fixes the mean. Measured 99.9 % and 99.7 %
     (99.0 % over four twins, ratios 1.05-1.55, with the twin's encoder bound stated: the zeroed
     reference's claim holds what the runs leave unknown of a constant per bar)."""
-    from mmd_ros.analysis.identify import analyze
+    from mmd_ros.analysis.identify import AnalysisOptions, analyze
     room = ambient_profile('section_4_1')
     covered = []
     for k in (0, 2):
@@ -2137,7 +2137,8 @@ def test_a_cyclic_error_the_calibration_read_too_is_fitted_as_the_calibrated_bar
         calibration = twin.calibrate(-211.0 * k, room, approaches=2)
         run = twin.simulate(make_scenario('random_motion', ['duration_s=60', f'seed={100 + k}']), room,
                             start_s=600.0, reference='pose6')
-        result = analyze(run_log(twin, calibration, run, 600.0))    # the default: zeroed reference
+        result = analyze(run_log(twin, calibration, run, 600.0),      # a zeroed reference
+                         options=AnalysisOptions(datum='offset'))
         assert [f.effect for f in result.found] == ['cyclic_error'], result.conclusion
         period, in_calibration = result.found[0].hyper
         assert in_calibration and math.isclose(period, 13e-6, rel_tol=1e-3), result.found[0].hyper

@@ -31,7 +31,7 @@ claim in two ways (``msg_docs/frames.md``):
   ``validity.bar_range_mm``. Where a bar's residual depended on its length (a local defect of
   its scale), the part the references showed beyond the per-sample sources is claimed where
   along the bar it lay (:func:`_length_profile`). When the fit removed an offset per
-  component (a zeroed reference, ``--datum offset``, the default for a pose) the residual
+  component (a zeroed reference: a log that says so, ``--datum offset``) the residual
   lacks the constant part of the error; what the runs leave unknown of a constant error per
   bar is claimed with it:
   a posterior whose prior is those sources (scaled by k, ``systematic_scale``, never below 1,
