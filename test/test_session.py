@@ -693,8 +693,8 @@ def test_what_belongs_to_one_run_is_not_carried_to_a_longer_one(tmp_path, kind):
     belongs to the run fitted is now left out of the model's terms (its size is claimed as
     uncertainty): on 120 s of new motion the model makes no component worse by more than a
     tenth of the clean error. Against the reference absolute (the log does not say, and its
-    offsets from the MMD are within the MMD's claim) the lost counts are named for what they
-    are, a step in bar3's reading."""
+    offsets from the MMD read absolute) the lost counts are named for what they are, a step in
+    bar3's reading."""
     amp = np.array([0.30, -0.25, 0.35, -0.30, 0.28, -0.32]) * 1e-6
 
     def error_of(d, counts):
