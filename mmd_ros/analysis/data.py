@@ -36,7 +36,7 @@ from mmd_ros.core.units import ARCSEC_PER_RAD, M_PER_UM
 __all__ = [
     'BLOCK', 'DIRECTION_TRAVEL_M', 'FitContext', 'MOVING_M', 'Observation', 'Processed', 'Split',
     'bar_quantisation', 'binned_r2', 'effective_samples', 'make_observation', 'make_split', 'noise_floor',
-    'quantisation_floor', 'residual_features', 'run_pipeline', 'sample_noise',
+    'quantisation_floor', 'report_factors', 'residual_features', 'run_pipeline', 'sample_noise',
 ]
 
 FloatArray = NDArray[np.float64]
@@ -116,6 +116,11 @@ def run_pipeline(device: DeviceDescription, calibration: Calibration, model: Mod
     return Processed(*[np.concatenate([p[k] for p in parts]) for k in range(9)])
 
 
+def report_factors(units: Any) -> FloatArray:
+    """Factor from SI to report units for each unit ('um' or 'arcsec'): µm or arc-seconds."""
+    return np.array([ARCSEC_PER_RAD if u == 'arcsec' else 1.0 / M_PER_UM for u in units])
+
+
 @dataclass
 class Observation:
     """The reference's observation space.
@@ -153,7 +158,7 @@ class Observation:
     @property
     def to_report(self) -> FloatArray:
         """Factor from SI to report units per component (µm or arc-seconds), shape (k,)."""
-        return np.array([ARCSEC_PER_RAD if u == 'arcsec' else 1.0 / M_PER_UM for u in self.units])
+        return report_factors(self.units)
 
     @property
     def sees_every_bar(self) -> bool:

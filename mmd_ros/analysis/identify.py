@@ -57,7 +57,7 @@ from mmd_ros.analysis.axis_motion import AxisMotion, axis_motion
 from mmd_ros.analysis.data import (
     FitContext, Observation, Processed, Split, binned_r2, effective_samples, fit_lag,
     make_observation, make_split, noise_floor, observed_motion, quantisation_floor,
-    reference_noise, residual_features, run_pipeline, sample_noise,
+    reference_noise, report_factors, residual_features, run_pipeline, sample_noise,
 )
 from mmd_ros.analysis.effects import CATALOGUE, MAX_SKEW_S, Effect, Parameter, catalogue
 from mmd_ros.analysis.errors import AnalysisError
@@ -659,8 +659,7 @@ class ReferenceDatum:
             return f'the bar-length reference is {what}'
         if self.offsets is None:
             return f'the log does not say whether its reference is absolute: taken as {what}'
-        report = np.array([ARCSEC_PER_RAD if u == 'arcsec' else 1.0 / M_PER_UM
-                           for u in self.units])
+        report = report_factors(self.units)
         parts = ', '.join(f'{n} {o * s:.3g} {_unit(u)} (claim ×{ABSOLUTE_WITHIN_SIGMAS:g}: '
                           f'{w * s:.3g})' for n, o, w, s, u in
                           zip(self.names, self.offsets, self.within, report, self.units))

@@ -701,7 +701,7 @@ class LengthBudget:
                 t.bias['hysteresis'] = hysteresis[0]
             t.diag['hysteresis'] = hysteresis[1]
         if self._fitted_range_m is not None:
-            t.diag['unchecked_range'] = self._unchecked_beyond_points(
+            t.diag['unchecked_range'] = self._unchecked(
                 x, bar_error_m, eps, temp_change_c, t.diag.get('calibration_points', 0.0))
         if self.latch_skew_s and observed is not None and observed.velocity_m_s is not None:
             v = observed.velocity_m_s
@@ -901,25 +901,9 @@ class LengthBudget:
             return ((x >= lo) & (x <= hi)
                     & ((x < self._fit_range_m[:, 0]) | (x > self._fit_range_m[:, 1])))
 
-    def _unchecked_beyond_points(self, x: FloatArray, bar_error_m: FloatArray, eps: FloatArray,
-                                 temp_change_c: FloatArray, points_m2: FloatArray | float
-                                 ) -> FloatArray:
-        """The unchecked_range source (:meth:`_unchecked`) where it exceeds, beyond the lengths
-        the fit saw, what the calibration_points source ``points_m2`` (N, 6) claims there: the
-        error after the length terms beyond the bound is that of the points no data checked
-        (their hat-weighted errors, which the points' source claims where no data checked a
-        point) or a smooth error's continuation (what :meth:`_unchecked` claims), two
-        descriptions of one error, claimed as the larger, not as their sum (one-sided realistic
-        twins, absolute fits, 12: samples beyond 1.32 1.86 2.15 1.20 1.63 1.17 times their
-        error, 95.1 %; as the larger 1.16 1.63 1.95 1.08 1.44 1.03, 94.5 %)."""
-        unchecked = self._unchecked(x, bar_error_m, eps, temp_change_c)
-        cdf = x + bar_error_m
-        with np.errstate(invalid='ignore'):
-            beyond = (cdf < self._fitted_range_m[:, 0]) | (cdf > self._fitted_range_m[:, 1])
-        return np.where(beyond, np.maximum(unchecked - points_m2, 0.0), unchecked)
-
     def _unchecked(self, x: FloatArray, bar_error_m: FloatArray, eps: FloatArray,
-                   temp_change_c: FloatArray) -> FloatArray:
+                   temp_change_c: FloatArray, points_m2: FloatArray | float = 0.0
+                   ) -> FloatArray:
         """The unchecked_range source, (N, 6) [m^2]. Within the lengths the fit saw, where a
         bar lies in a CDF segment whose middle the fit did not see (:meth:`flank`): what the
         fit's residual held there beyond the model's claim (``FitUncertainty.flank_m2``: a bar's
@@ -954,7 +938,14 @@ class LengthBudget:
         the points a ``cdf_offsets`` term held at zero as checked (24 such twins, samples
         beyond the fitted lengths: zeroed 1.47-2.21 times their error, 98.8 %, now 1.23-1.90,
         98.4 %; absolute 1.45-2.14, 98.0 %, now 1.20-1.71, 96.8 %; the growing share alone,
-        before those points counted as unchecked, 87.0 % on 12 twins)."""
+        before those points counted as unchecked, 87.0 % on 12 twins). Beyond those lengths,
+        only what exceeds the calibration_points source's claim there, ``points_m2`` (N, 6):
+        the error after the length terms beyond the bound is that of the points no data
+        checked (their hat-weighted errors, which that source claims where no data checked a
+        point) or a smooth error's continuation (claimed here), two descriptions of one error,
+        claimed as the larger, not as their sum (one-sided realistic twins, absolute fits, 12:
+        samples beyond 1.32 1.86 2.15 1.20 1.63 1.17 times their error, 95.1 %; as the larger
+        1.16 1.63 1.95 1.08 1.44 1.03, 94.5 %)."""
         n = x.shape[0]
         cdf = x + bar_error_m       # before the thermal compensation (the terms' shift is small)
         lo, hi = self._fitted_range_m[:, 0], self._fitted_range_m[:, 1]
@@ -975,7 +966,8 @@ class LengthBudget:
         trend = self._trend(cdf) - self._trend(bound)
         moved = np.maximum(c * c, (c - trend) ** 2)
         rho = self._correlation_beyond(cdf, self._fitted_range_m)
-        return np.where(out, moved + self._seen_var_m2 * (1.0 - rho * rho), flank)
+        grown = moved + self._seen_var_m2 * (1.0 - rho * rho)
+        return np.where(out, np.maximum(grown - points_m2, 0.0), flank)
 
     def _hysteresis(self, n: int, observed: Observed | None
                     ) -> tuple[FloatArray | None, FloatArray] | None:
@@ -1143,7 +1135,7 @@ class LengthBudget:
                 bias += hysteresis[0]
             diag += hysteresis[1]
         if self._fitted_range_m is not None:
-            diag += self._unchecked_beyond_points(x, bar_error_m, eps, temp_change_c, pts)
+            diag += self._unchecked(x, bar_error_m, eps, temp_change_c, pts)
         common = None
         if self.latch_skew_s and observed is not None and observed.velocity_m_s is not None:
             v = observed.velocity_m_s
