@@ -15,19 +15,18 @@ component (fitted on the training part only), unless told the reference is absol
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.signal import savgol_filter
 
 from mmd_ros.analysis.errors import AnalysisError
 from mmd_ros.core.accuracy import robust_std, white_noise
 from mmd_ros.core.calibration import Calibration
 from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.kinematics import jacobian
+from mmd_ros.core.lag import effective_samples, fit_delay, smoothed_motion
 from mmd_ros.core.model import HysteresisTerm, Model
 from mmd_ros.core.pipeline import Pipeline
 from mmd_ros.core.terms import MAX_GAP_S, SamplingSkewTerm, dahl_state, play_positions
@@ -306,25 +305,6 @@ def make_split(times_s: FloatArray, usable: BoolArray, n_blocks: int = 24, max_s
     return Split(block, test, train_idx, test_idx, pick(train_idx), pick(test_idx), n_blocks)
 
 
-def effective_samples(series: FloatArray) -> float:
-    """Effective number of independent samples of a residual series (AR(1) approximation,
-    n (1 - rho) / (1 + rho) with rho the lag-1 autocorrelation), summed over columns.
-
-    series : ndarray, shape (n,) or (n, k) in time order
-    """
-    s = np.asarray(series, dtype=np.float64)
-    if s.ndim == 1:
-        s = s[:, None]
-    total = 0.0
-    for col in s.T:
-        c = col - col.mean()
-        den = float(c @ c)
-        rho = float(c[1:] @ c[:-1]) / den if den > 0 and c.size > 2 else 0.0
-        rho = min(max(rho, 0.0), 0.999)
-        total += c.size * (1 - rho) / (1 + rho)
-    return max(total, 1.0)
-
-
 #: Mean variance of a linear interpolation between two independent points of equal variance,
 #: relative to that variance: the mean of (1 - w)^2 + w^2 over the segment.
 INTERPOLATED_SHARE = 2.0 / 3.0
@@ -411,10 +391,6 @@ def reference_noise(obs: Observation, processed: Processed, residual: FloatArray
     return np.sqrt(np.maximum(white_noise(residual, idx) ** 2 - mmd ** 2, 0.0))
 
 
-#: Samples of the Savitzky-Golay fit of a lagging reference's motion (:func:`observed_motion`)
-LAG_WINDOW = 21
-
-
 def observed_motion(obs: Observation, device: DeviceDescription, processed: Processed,
                     times_s: FloatArray, smooth: bool,
                     rows: NDArray[np.int64] | None = None) -> FloatArray:
@@ -428,26 +404,16 @@ def observed_motion(obs: Observation, device: DeviceDescription, processed: Proc
     Without ``smooth`` the velocity is the skew term's backward difference (the sum of its
     signatures: a common skew and this lag are then one direction); its noise, about
     sqrt(2) sigma / dt per bar, times δ is a nanometre at 10 µs but 34 nm at 2.4 ms. With
-    ``smooth``, a cubic Savitzky-Golay fit over :data:`LAG_WINDOW` samples within each
-    stretch of evenly spaced samples; NaN in a stretch shorter than that (a lag there cannot
-    be taken out: with zeros beside a 1 s gap the residual there was claimed as an error).
+    ``smooth``, a cubic Savitzky-Golay fit over :data:`~mmd_ros.core.lag.LAG_WINDOW` samples
+    within each stretch of evenly spaced samples (:func:`~mmd_ros.core.lag.smoothed_motion`);
+    NaN in a stretch shorter than that (a lag there cannot be taken out: with zeros beside a
+    1 s gap the residual there was claimed as an error).
     ``rows``: those samples only, (len(rows), k, c)."""
     lengths = processed.cdf_lengths_m
     if not smooth:
         bars = [-SamplingSkewTerm.features(lengths, times_s, MAX_GAP_S, None)[0]]
     else:
-        n = times_s.size
-        dt = np.diff(times_s)
-        period = float(np.median(dt)) if dt.size else 1.0
-        cuts = np.flatnonzero((np.abs(dt - period) > 0.25 * period)
-                              | ~np.all(np.isfinite(lengths[1:]), axis=1)
-                              | ~np.all(np.isfinite(lengths[:-1]), axis=1)) + 1
-        bars = [np.full_like(lengths, np.nan), np.full_like(lengths, np.nan)]
-        for a, b in zip(np.concatenate(([0], cuts)), np.concatenate((cuts, [n]))):
-            if b - a >= LAG_WINDOW and np.all(np.isfinite(lengths[a:b])):
-                for d in (1, 2):
-                    bars[d - 1][a:b] = savgol_filter(lengths[a:b], LAG_WINDOW, 3, deriv=d,
-                                                     delta=period, axis=0)
+        bars = list(smoothed_motion(times_s, lengths))
     poses, valid = processed.poses, processed.valid
     if rows is not None:
         bars, poses, valid = [b[rows] for b in bars], poses[rows], valid[rows]
@@ -474,29 +440,7 @@ def fit_lag(obs: Observation, residual: FloatArray, idx: NDArray[np.int64]
     delay's standard deviation (the residual's correlation counted: :func:`effective_samples`)
     and the offsets (k,) [m, rad]. Components are weighted by the inverse of the residual's
     spread in each."""
-    k, c = len(obs.components), obs.lag.shape[2]
-    r, v = residual[idx], obs.lag[idx]
-    ok = np.all(np.isfinite(r), axis=1) & np.all(np.isfinite(v), axis=(1, 2))
-    r, v = r[ok], v[ok]
-    if r.shape[0] < 3 + c:
-        return np.zeros(c), math.inf, np.zeros(k)
-    mean_r, mean_v = r.mean(axis=0), v.mean(axis=0)
-    if obs.datum:
-        r, v = r - mean_r, v - mean_v
-    scale = np.std(r, axis=0)
-    w = np.where(scale > 0, 1.0 / np.where(scale > 0, scale, 1.0), 0.0)
-    rw = (r * w).reshape(-1)
-    vw = (v * w[None, :, None]).reshape(-1, c)
-    gram = vw.T @ vw
-    if gram[0, 0] <= 0:
-        return np.zeros(c), math.inf, np.zeros(k)
-    inv = np.linalg.pinv(gram)
-    coef = inv @ (vw.T @ rw)
-    e = (rw - vw @ coef).reshape(-1, k)
-    dof = max(e.size - c - (k if obs.datum else 0), 1)
-    inflation = max(e.size / effective_samples(e), 1.0)
-    sd = math.sqrt(max(float(np.sum(e * e)) / dof * inflation * inv[0, 0], 0.0))
-    offsets = mean_r - mean_v @ coef if obs.datum else np.zeros(k)
+    coef, sd, offsets = fit_delay(residual[idx], obs.lag[idx], obs.datum)
     return coef, sd, offsets
 
 

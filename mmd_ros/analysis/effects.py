@@ -38,6 +38,7 @@ from numpy.typing import NDArray
 
 from mmd_ros.analysis.data import DIRECTION_TRAVEL_M, MOVING_M, FitContext
 from mmd_ros.analysis.errors import AnalysisError
+from mmd_ros.core.lag import MAX_SKEW_S
 from mmd_ros.core.model import ModelTerm
 from mmd_ros.core.terms import (
     DERIVATIVE_FILTER_S, CdfOffsetsTerm, CyclicErrorTerm, DriftTerm, FrictionTerm, GravitySagTerm,
@@ -692,13 +693,6 @@ class CyclicError(Effect):
                  'not read by the calibration (its points do not carry it)')
         return [f'amplitude {amp.min():.0f} … {amp.max():.0f} nm at a {hyper[0] / M_PER_UM:g} µm period '
                 f'(second harmonic {amp2.min():.0f} … {amp2.max():.0f} nm), {where}']
-
-
-#: The largest delay a channel of the MMD's terminal can latch its count with [s]: two sample
-#: periods at 1 kHz (a terminal that stamps a packet with the tick after the one it latched
-#: reads a whole period late). A common delay between the MMD and a reference beyond it is
-#: the reference's (identify.py, _reference_lag).
-MAX_SKEW_S = 2e-3
 
 
 class SamplingSkew(Effect):

@@ -59,7 +59,7 @@ from mmd_ros.analysis.data import (
     make_observation, make_split, noise_floor, observed_motion, quantisation_floor,
     reference_noise, report_factors, residual_features, run_pipeline, sample_noise,
 )
-from mmd_ros.analysis.effects import CATALOGUE, MAX_SKEW_S, Effect, Parameter, catalogue
+from mmd_ros.analysis.effects import CATALOGUE, Effect, Parameter, catalogue
 from mmd_ros.analysis.errors import AnalysisError
 from mmd_ros.analysis.glitches import Step, bar_residual, residual_steps
 from mmd_ros.analysis.uncertainty import (
@@ -70,6 +70,9 @@ from mmd_ros.core.budget import LENGTH_TERMS, SAG_TERMS
 from mmd_ros.core.calibration import Calibration
 from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.kinematics import jacobian
+from mmd_ros.core.lag import (
+    LAG_SAMPLES, ReferenceLag, is_reference_lag, paired_rows,
+)
 from mmd_ros.core.model import Model, ModelTerm, TermContext
 from mmd_ros.core.terms import GravitySagTerm, SamplingSkewTerm, limited_to_seen
 from mmd_ros.core.units import ARCSEC_PER_RAD, M_PER_MM, M_PER_UM
@@ -305,9 +308,7 @@ class RunSummary:
                 'leave_one_run_out_after_in_range': rows(self.loro_in_range),
                 'leave_one_run_out_in_range_share': self.loro_in_range_share,
                 'log_problem': self.log_problem,
-                'reference_lag': None if self.lag is None else {
-                    'delay_s': self.lag.delay_s, 'sd_s': self.lag.sd_s,
-                    'clock_stated_own': self.lag.stated},
+                'reference_lag': None if self.lag is None else self.lag.as_dict(),
                 'reference_datum': None if self.datum is None else self.datum.as_dict()}
 
 
@@ -489,7 +490,7 @@ def _prepare(index: int, run: RunLog, model: Model, calibration: Calibration | N
         before = run_pipeline(run.device, calibration, model, times, run.counts)
     obs, lag = _reference_lag(obs, run.device, before, times)
     if lag is not None:
-        say(f'{run.path.name}: {lag.text()}')
+        say(f'{run.path.name}: {lag.text(LAG_TAKEN)}')
     usable = obs.usable & before.measured(obs.kind)
     try:
         split = make_split(times, usable, o.n_blocks, o.max_samples, o.seed + index)
@@ -518,43 +519,11 @@ def _prepare(index: int, run: RunLog, model: Model, calibration: Calibration | N
                 axis, res_given=given, lag=lag, datum=datum)
 
 
-@dataclass
-class ReferenceLag:
-    """A delay between a log's reference and the MMD taken as the reference's.
-
-    delay_s, sd_s : the delay [s] (positive: the reference reads late) as the residual of the
-        model as given shows it, and its standard deviation
-    stated : the log states that its reference runs on a clock of its own (else the delay is
-        beyond what the MMD's channels can latch, :data:`MAX_SKEW_S`)
-    """
-
-    delay_s: float
-    sd_s: float
-    stated: bool
-    #: the part of it taken out by pairing samples (a whole number of sample periods) [s]
-    shifted_s: float = 0.0
-
-    def text(self) -> str:
-        why = ('the log states that its reference runs on a clock of its own '
-               '(reference_clock: own), so a delay between the two is not the MMD\'s'
-               if self.stated else
-               f'beyond the {MAX_SKEW_S * 1e3:g} ms any channel of the MMD\'s terminal can '
-               'latch late (a logger on another clock, time stamps taken on receipt); a log '
-               'states reference_clock: own or shared to say whose a delay is')
-        return (f'the reference reads {_duration(abs(self.delay_s))} '
-                f'{"late" if self.delay_s >= 0 else "early"} (± {_duration(self.sd_s)}): '
-                f'{why}; fitted per log beside the effects and taken out of every figure')
-
-
-def _duration(seconds: float) -> str:
-    return f'{seconds * 1e3:.3g} ms' if seconds >= 1e-3 else f'{seconds * 1e6:.3g} µs'
-
-
+#: What the analysis does with a reference's lag
+LAG_TAKEN = 'fitted per log beside the effects and taken out of every figure'
 #: A reference's lag left to the nuisance (after pairing samples) from which its second order,
 #: the acceleration's, is fitted too [s]
 SECOND_ORDER_LAG_S = 2e-4
-#: Samples whose residual decides whether a log's reference lags (evenly spread over it)
-LAG_DECISION_SAMPLES = 20_000
 
 
 def _reference_lag(obs: Observation, device: DeviceDescription, processed: Processed,
@@ -562,9 +531,10 @@ def _reference_lag(obs: Observation, device: DeviceDescription, processed: Proce
     """The observation with the reference's lag behind the MMD taken as a nuisance of the
     log (``Observation.lag``), when it is the reference's: the log says that its reference
     runs on a clock of its own, or, not saying, the common delay between the two is beyond
-    what the MMD's channels can latch (:data:`MAX_SKEW_S`). A common delay within that is the
-    MMD's (the skew term's common mode): a reference sampled at the MMD's instants has none,
-    and the twin's logs say ``reference_clock: shared``. A reference on its own clock 10 µs
+    what the MMD's channels can latch (:func:`~mmd_ros.core.lag.is_reference_lag`). A common
+    delay within that is the MMD's (the skew term's common mode): a reference sampled at the
+    MMD's instants has none, and the twin's logs say ``reference_clock: shared``. A
+    reference on its own clock 10 µs
     late had a common skew of 10 µs written, and the model made new motion 2.7-18 times worse
     against the true pose; 5 ms late, no skew could hold it, and a false 230 µm step and an
     uncertainty of 2000-10000 times the error were reported.
@@ -580,15 +550,13 @@ def _reference_lag(obs: Observation, device: DeviceDescription, processed: Proce
     # (whether there is a lag to take, from evenly spread samples: the inverse Jacobians of a
     # 10-minute 1 kHz log took 3.3 s)
     every = np.flatnonzero(obs.usable & processed.measured(obs.kind))
-    few = every[np.unique(np.linspace(0, every.size - 1, min(every.size, LAG_DECISION_SAMPLES))
+    few = every[np.unique(np.linspace(0, every.size - 1, min(every.size, LAG_SAMPLES))
                           .astype(np.int64))] if every.size else every
     seen = replace(obs, reference=obs.reference[few], usable=obs.usable[few],
                    lag=observed_motion(obs, device, processed, times_s, False, few))
     coef, sd, _ = fit_lag(seen, obs.residual(processed)[few], np.arange(few.size))
     delay = float(coef[0])
-    if not sd <= MAX_SKEW_S:
-        return obs, None        # (the reference hardly moves: no lag shows, none matters)
-    if obs.clock != 'own' and abs(delay) - 3.0 * sd <= MAX_SKEW_S:
+    if not is_reference_lag(delay, sd, obs.clock):
         return obs, None
     timed = replace(obs, lag=observed_motion(obs, device, processed, times_s, False))
     period = float(np.median(np.diff(times_s))) if times_s.size > 1 else 0.0
@@ -608,13 +576,8 @@ def _reference_lag(obs: Observation, device: DeviceDescription, processed: Proce
 def _shifted(obs: Observation, times_s: FloatArray, shift: int, period: float) -> Observation:
     """The observation with each sample's reference taken ``shift`` samples later (earlier
     when negative): where the two samples are not ``shift`` periods apart (a gap, the log's
-    ends) the reference is unknown."""
-    n = times_s.size
-    src = np.arange(n) + shift
-    inside = (src >= 0) & (src < n)
-    src = np.clip(src, 0, n - 1)
-    apart = np.abs(times_s[src] - times_s - shift * period) <= 0.25 * period
-    ok = inside & apart
+    ends) the reference is unknown (:func:`~mmd_ros.core.lag.paired_rows`)."""
+    src, ok = paired_rows(times_s, shift, period)
     reference = np.where(ok[:, None], obs.reference[src], np.nan)
     return replace(obs, reference=reference, usable=ok & obs.usable[src])
 
@@ -2735,7 +2698,8 @@ def _conclusion(runs: list[_Run], summaries: list[RunSummary], found: list[Found
                 stated: list[str] | None = None, glitches: list[tuple[str, Step]] = ()) -> str:
     parts = [f'{r.run.path.name}: {_capital(r.datum.text())}.' for r in runs
              if r.datum is not None and r.datum.source == 'found']
-    parts += [f'{r.run.path.name}: {_capital(r.lag.text())}.' for r in runs if r.lag is not None]
+    parts += [f'{r.run.path.name}: {_capital(r.lag.text(LAG_TAKEN))}.'
+              for r in runs if r.lag is not None]
     if stated:
         parts.append(f'Started from {"; ".join(stated)}: the figures before include it (held-out '
                      'RMS of the model as given → with it: ' + '; '.join(
