@@ -11,6 +11,7 @@ from mmd_ros.cli.log_args import add_segment_argument
 from mmd_ros.core import jsonio
 from mmd_ros.core.accuracy import format_stats
 from mmd_ros.core.calibration import load_calibration
+from mmd_ros.core.lag import MAX_SKEW_S, ReferenceLag
 from mmd_ros.core.model import Model, load_model
 from mmd_ros.core.progress import Progress
 from mmd_ros.logs.errors import StampsNotIncreasing
@@ -19,6 +20,15 @@ from mmd_ros.logs.outputs import check_outputs
 from mmd_ros.logs.processing import process_log
 
 __all__ = ['register']
+
+#: What ``mmd process`` does with a reference's lag
+LAG_TAKEN_OUT = ('each MMD sample is compared with the reference\'s reading of its instant '
+                 '(its reading a whole number of periods away, moved on along the MMD\'s '
+                 'motion by the rest)')
+
+
+def _capital(text: str) -> str:
+    return text[:1].upper() + text[1:]
 
 
 def run_command(args: argparse.Namespace) -> int:
@@ -37,8 +47,8 @@ def run_command(args: argparse.Namespace) -> int:
         summary = process_log(run, out, chosen or run.model or Model(), calibration=cal,
                               with_covariance=args.covariance,
                               csv=Path(args.csv) if args.csv else None, progress=progress,
-                              absolute_reference=True if args.absolute_reference else None,
-                              coverage=args.coverage)
+                              absolute_reference=args.absolute_reference,
+                              coverage=args.coverage, reference_clock=args.reference_clock)
         progress.close()
         return summary
 
@@ -73,6 +83,15 @@ def run_command(args: argparse.Namespace) -> int:
              if summary['no_signal'] else ''))
     print(f'wrote {out}' + (f' and {args.csv}' if args.csv else '')
           + f' in {elapsed:.2f} s ({summary["samples_per_s"]:.0f} samples/s)')
+    lag = summary.get('reference_lag')
+    if lag is not None:
+        read = ReferenceLag(lag['delay_s'], lag['sd_s'], lag['clock_stated_own'])
+        if lag['taken_out']:
+            print(_capital(read.text(LAG_TAKEN_OUT)) + '.')
+        elif read.sd_s <= MAX_SKEW_S:
+            print(f'the reference reads {read.delay_s * 1e6:+.3g} ± {read.sd_s * 1e6:.2g} µs '
+                  'against the MMD: within what its channels can latch, so left in the error '
+                  '(the MMD\'s own sampling skew; --reference-clock own says otherwise)')
     if summary.get('pose_error_note'):
         print(f'pose error against the reference: none, {summary["pose_error_note"]}')
     elif 'pose_error' in summary:
@@ -109,9 +128,21 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help='also write /mmd/pose_with_covariance (the propagated uncertainty, '
                    'msg_docs/frames.md); with a reference pose in the log it is always computed '
                    'and compared with the error')
-    p.add_argument('--absolute-reference', action='store_true', dest='absolute_reference',
-                   help='the reference pose is absolute in {L} (default: what the log\'s metadata '
-                   'says, else zeroed at the start: an offset per component is removed)')
+    datum = p.add_mutually_exclusive_group()
+    datum.add_argument('--absolute-reference', action='store_const', const=True,
+                       dest='absolute_reference',
+                       help='the reference pose is absolute in {L} (default: as the log says, '
+                       'metadata reference_absolute; a log that does not say is read from its '
+                       'offsets from the MMD: msg_docs/analysis.md, Absolute or zeroed)')
+    datum.add_argument('--zeroed-reference', action='store_const', const=False,
+                       dest='absolute_reference',
+                       help='the reference was zeroed somewhere: a constant offset per component '
+                       'is removed, over what the log says')
+    p.add_argument('--reference-clock', choices=('shared', 'own'), dest='reference_clock',
+                   help='whose clock the reference pose ran on, over what the log says (metadata '
+                   'reference_clock): shared, the MMD\'s instants, or own; unless shared, a '
+                   'delay between the two beyond what the MMD\'s channels can latch, or any on '
+                   'a clock of its own, is taken out of the comparison (msg_docs/analysis.md)')
     p.add_argument('--no-coverage', action='store_false', dest='coverage',
                    help='with a reference pose in the log, do not compute the covariance to report '
                    'how well it covers the error (faster on long logs)')

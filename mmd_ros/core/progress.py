@@ -38,7 +38,9 @@ class Progress:
         self.stream.flush()
 
     def close(self) -> None:
+        """Say the work is done (once: a second call says nothing)."""
         if self.enabled:
+            self.enabled = False
             elapsed = time.monotonic() - self._start
             end = '\r' if self.stream.isatty() else ''
             self.stream.write(f'{end}{self.label}: done in {elapsed:.1f} s{" " * 20}\n')

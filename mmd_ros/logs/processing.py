@@ -17,7 +17,7 @@ import itertools
 import queue
 import threading
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import IO, Any, Iterable, Iterator, Protocol
 
@@ -32,6 +32,9 @@ from mmd_ros.core.calibration import Calibration, load_calibration
 from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.errors import CalibrationError
 from mmd_ros.core.kinematics import FkStatus
+from mmd_ros.core.lag import (
+    LAG_WINDOW, LagAccumulator, ReferenceLag, aligned_reference, is_reference_lag,
+)
 from mmd_ros.core.model import Model
 from mmd_ros.core.pipeline import Pipeline
 from mmd_ros.core.progress import Progress
@@ -45,8 +48,8 @@ from mmd_ros.logs.outputs import check_outputs, replacing
 from mmd_ros.logs.writer import FAST_ZSTD_LEVEL, LogWriter
 
 __all__ = [
-    'BLOCK', 'ProcessedLogWriter', 'ProcessedRun', 'RunSummary', 'process_blocks', 'process_log',
-    'process_run', 'summarize', 'write_csv', 'write_processed',
+    'BLOCK', 'LagAligner', 'ProcessedLogWriter', 'ProcessedRun', 'RunSummary', 'process_blocks',
+    'process_log', 'process_run', 'summarize', 'write_csv', 'write_processed',
 ]
 
 #: Samples per block: bounds memory, keeps the working arrays small, paces the progress.
@@ -211,6 +214,11 @@ class RunSummary:
         self.budget: dict[str, Any] | None = None
         #: the reference pose where the log's first measurement has one (6,) [m, rad]
         self.reference_start: NDArray[np.float64] | None = None
+        #: what reads the delay between a reference pose and the MMD (:meth:`reference_lag`),
+        #: when the log does not say that its reference was sampled at the MMD's instants
+        self.lag: LagAccumulator | None = None
+        #: the reference's lag as read, and whether the comparison has it taken out
+        self.lag_read: tuple[ReferenceLag, bool] | None = None
 
     def add(self, part: RunBlock, result: ProcessedRun) -> None:
         n = int(result.stamps_ns.size)
@@ -231,6 +239,9 @@ class RunSummary:
             self.pose_error = self.pose_error or ErrorAccumulator('pose')
             errors = pose_error(result.poses, part.reference_pose)
             self.pose_error.add(errors, result.valid)
+            if self.lag is not None:
+                times = (result.stamps_ns - self.first_ns).astype(np.float64) * 1e-9
+                self.lag.add(times, result.poses, errors, result.valid)
             if self.reference_start is None:
                 has = result.valid & np.any(np.isfinite(part.reference_pose), axis=1)
                 if has.any():
@@ -277,6 +288,9 @@ class RunSummary:
         }
         if source.problem:
             summary['log_problem'] = source.problem.as_dict()
+        if self.lag_read is not None:
+            summary['reference_lag'] = {**self.lag_read[0].as_dict(),
+                                        'taken_out': self.lag_read[1]}
         if getattr(source, 'metadata_as_text', ()):
             summary['metadata_as_text'] = list(source.metadata_as_text)
         segment = getattr(source, 'segment', (1, 1))
@@ -329,6 +343,19 @@ class RunSummary:
         return summary
 
 
+    def reference_lag(self, clock: str | None) -> ReferenceLag | None:
+        """The delay between the reference pose and the MMD as the samples added show it
+        (:class:`~mmd_ros.core.lag.LagAccumulator`), kept in :attr:`lag_read`, and returned
+        when it is the reference's (:func:`~mmd_ros.core.lag.is_reference_lag`; ``clock`` as
+        the log's ``reference_clock`` says): None when it is not, or not read."""
+        found = self.lag.estimate() if self.lag is not None else None
+        if found is None or not np.isfinite(found[1]):
+            return None
+        lag = ReferenceLag(found[0], found[1], clock == 'own')
+        taken = is_reference_lag(found[0], found[1], clock)
+        self.lag_read = (lag, taken)
+        return lag if taken else None
+
     def _read_datum(self, reference_sigma: NDArray[np.float64]) -> bool:
         """Whether the reference pose, its log not saying, reads as absolute."""
         found = self.coverage.offsets() if self.coverage is not None else None
@@ -340,14 +367,113 @@ class RunSummary:
                           known).absolute
 
 
-def summarize(run: RunLog, result: ProcessedRun, *, absolute_reference: bool | None = None
-              ) -> dict[str, Any]:
+def summarize(run: RunLog, result: ProcessedRun, *, absolute_reference: bool | None = None,
+              reference_clock: str | None = None) -> dict[str, Any]:
     """Counts of samples and, with a reference in the log, the error statistics and, with the
-    covariance computed, its coverage (:meth:`RunSummary.as_dict`)."""
-    summary = RunSummary()
-    summary.add(RunBlock(run.stamps_ns, run.counts, run.reference_pose, run.reference_lengths),
-                result)
+    covariance computed, its coverage (:meth:`RunSummary.as_dict`); a reference pose that lags
+    the MMD compared at the MMD's instants (``reference_clock`` as for :func:`process_log`)."""
+    block = RunBlock(run.stamps_ns, run.counts, run.reference_pose, run.reference_lengths)
+    summary = _summary(run, 1, reference_clock)
+    summary.add(block, result)
+    lag = summary.reference_lag(_clock(run, reference_clock))
+    if lag is not None:
+        summary = _compared_again(summary, lag, [(block, result)], 1)
     return summary.as_dict(run, absolute_reference=absolute_reference)
+
+
+def _clock(source: RunSource, reference_clock: str | None) -> str | None:
+    """Whose clock a log's reference pose runs on: ``reference_clock`` if given, else what
+    the log says (metadata ``reference_clock``: 'own' or 'shared'), else None."""
+    said = reference_clock or (getattr(source, 'metadata', None) or {}).get('reference_clock')
+    return said if said in ('own', 'shared') else None
+
+
+def _summary(source: RunSource, covariance_every: int, reference_clock: str | None
+             ) -> RunSummary:
+    """A summary that reads the reference's lag unless the log's reference has none."""
+    summary = RunSummary(covariance_every=covariance_every)
+    if source.has_reference_pose and _clock(source, reference_clock) != 'shared':
+        summary.lag = LagAccumulator(source.n_samples)
+    return summary
+
+
+def _compared_again(first: RunSummary, lag: ReferenceLag,
+                    blocks: Iterable[tuple[RunBlock, ProcessedRun]], covariance_every: int
+                    ) -> RunSummary:
+    """A summary of ``blocks`` (the run once more) with the reference's ``lag`` taken out
+    (:class:`LagAligner`), saying what ``first`` read of it."""
+    summary = RunSummary(covariance_every=covariance_every)
+    summary.lag_read = first.lag_read
+    aligner = LagAligner(lag, first.lag.period or 1.0)     # (read: ``first`` has a lag)
+    for part, result in blocks:
+        for given in aligner.push(part, result):
+            summary.add(*given)
+    for given in aligner.finish():
+        summary.add(*given)
+    return summary
+
+
+class LagAligner:
+    """Blocks of a run whose reference pose reads ``lag`` late, given out with the reference
+    as it read at each MMD sample's instant (:func:`~mmd_ros.core.lag.aligned_reference`):
+    the reading a whole number of periods later, moved on by the rest of the delay along the
+    MMD's smoothed motion. A block is given out once the samples after it that this needs
+    have come (the last ones at :meth:`finish`), in bounded memory.
+
+    period : the run's sample period [s]
+    """
+
+    def __init__(self, lag: ReferenceLag, period: float) -> None:
+        self.period = period
+        self.shift = int(round(lag.delay_s / period))
+        self.remainder_s = lag.delay_s - self.shift * period
+        #: samples either side a block's alignment reads
+        self.margin = LAG_WINDOW + abs(self.shift)
+        self._held: list[tuple[RunBlock, ProcessedRun]] = []
+        #: the last samples given out, (stamps, reference, poses)
+        self._before: tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]] | None
+        self._before = None
+
+    def push(self, part: RunBlock, result: ProcessedRun) -> list[tuple[RunBlock, ProcessedRun]]:
+        """The blocks that can be given out now that ``part`` has come."""
+        self._held.append((part, result))
+        out = []
+        while len(self._held) > 1 and sum(
+                p.stamps_ns.size for p, _ in self._held[1:]) >= self.margin:
+            out.append(self._give())
+        return out
+
+    def finish(self) -> list[tuple[RunBlock, ProcessedRun]]:
+        """The blocks still held."""
+        return [self._give() for _ in range(len(self._held))]
+
+    def _give(self) -> tuple[RunBlock, ProcessedRun]:
+        part, result = self._held.pop(0)
+        own = [] if self._before is None else [self._before]
+        own.append(_samples(part, result))
+        after, left = [], self.margin
+        for p, r in self._held:
+            if left <= 0:
+                break
+            after.append(tuple(a[:left] for a in _samples(p, r)))
+            left -= p.stamps_ns.size
+        stamps, reference, poses = (np.concatenate(a) for a in zip(*own, *after))
+        times = (stamps - stamps[0]).astype(np.float64) * 1e-9
+        aligned = aligned_reference(times, reference, poses, self.shift, self.remainder_s,
+                                    self.period)
+        start = 0 if self._before is None else self._before[0].shape[0]
+        self._before = tuple(np.concatenate(a)[-self.margin:] for a in zip(*own))
+        n = part.stamps_ns.size
+        return replace(part, reference_pose=aligned[start:start + n]), result
+
+
+def _samples(part: RunBlock, result: ProcessedRun
+             ) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
+    """A block's stamps, reference pose (NaN where it has none) and the MMD's poses (NaN
+    where a sample is not a measurement)."""
+    reference = (part.reference_pose if part.reference_pose is not None
+                 else np.full((part.stamps_ns.size, 6), np.nan))
+    return part.stamps_ns, reference, _masked(result.poses, result.valid)
 
 
 class ProcessedLogWriter:
@@ -424,7 +550,8 @@ def process_log(source: RunSource, out: Path, model: Model, *,
                 calibration: Calibration | str | None = None, with_covariance: bool = False,
                 csv: Path | None = None, progress: Progress | None = None,
                 compiled: bool | None = None, block: int = BLOCK,
-                absolute_reference: bool | None = None, coverage: bool = True) -> dict[str, Any]:
+                absolute_reference: bool | None = None, coverage: bool = True,
+                reference_clock: str | None = None) -> dict[str, Any]:
     """``mmd process``: every sample of ``source`` through the pipeline into the processed log
     ``out`` (and ``csv``), block by block in bounded memory; returns the summary
     (:class:`RunSummary`). Reading, computing and writing overlap (module docstring). The
@@ -439,6 +566,12 @@ def process_log(source: RunSource, out: Path, model: Model, *,
     absolute_reference : see :meth:`RunSummary.as_dict`
     coverage : False: no covariance for the coverage report (with a reference and without
         ``with_covariance``, the budget's covariance costs a few µs per sample)
+    reference_clock : whose clock the reference pose runs on, 'own' or 'shared' (the MMD's
+        instants); None: what the log says (metadata ``reference_clock``), else not known.
+        Unless shared, the delay between the two is read (:meth:`RunSummary.reference_lag`);
+        when it is the reference's the run is computed once more, the poses compared with the
+        reference's readings of their instants (:class:`LagAligner`; the processed log is
+        written by the first pass only)
     """
     check_outputs([('out', out), ('csv', csv)], [source.path], force=True)
     if isinstance(calibration, str):
@@ -450,7 +583,7 @@ def process_log(source: RunSource, out: Path, model: Model, *,
     # and the size of its coverage region, from where the budget's error is light-tailed
     tails_every = (max(1, source.n_samples // CoverageAccumulator.MAX_SAMPLES)
                    if coverage and source.has_reference_pose else 0)
-    summary = RunSummary(covariance_every=every)
+    summary = _summary(source, every, reference_clock)
     writer: ProcessedLogWriter | None = None
     handle: IO[str] | None = None
     pending: Future[None] | None = None
@@ -486,11 +619,35 @@ def process_log(source: RunSource, out: Path, model: Model, *,
             pending.result()
     if summary.samples == 0:
         raise CalibrationError(f'{source.path} has no samples')
+    lag = summary.reference_lag(_clock(source, reference_clock))
+    if lag is not None:
+        again = Progress('comparing with the reference, its lag taken out', source.n_samples,
+                         enabled=progress.enabled) if progress else None
+        if progress:
+            progress.close()
+        blocks = process_blocks(source, model, calibration=calibration,
+                                with_covariance=with_covariance or coverage_only,
+                                covariance_every=every, compiled=compiled, block=block,
+                                tails_every=tails_every)
+        if again:
+            blocks = _counted(blocks, again)
+        summary = _compared_again(summary, lag, blocks, every)
+        if again:
+            again.close()
     out_summary = summary.as_dict(source, absolute_reference=absolute_reference)
     mismatch = other_calibration(model, _resolve_calibration(source, calibration))
     if mismatch:
         out_summary['model_calibration'] = mismatch
     return out_summary
+
+
+def _counted(blocks: Iterator[tuple[RunBlock, ProcessedRun]], progress: Progress
+             ) -> Iterator[tuple[RunBlock, ProcessedRun]]:
+    done = 0
+    for part, result in blocks:
+        yield part, result
+        done += part.stamps_ns.size
+        progress.update(done)
 
 
 def _masked(poses: NDArray[np.float64], valid: NDArray[np.bool_]) -> NDArray[np.float64]:
