@@ -506,6 +506,29 @@ SYSTEMATIC_DOF = 6
 CLAIM_LEVEL = 0.99
 
 
+#: Width of the bins of a bar's length over which its residual's mean is taken out before its
+#: independent samples are counted along it [m]
+OFF_LENGTH_BIN_M = 1e-3
+
+
+def _off_length(residual: FloatArray, lengths: FloatArray) -> FloatArray:
+    """A bar's residual (n,) in time order less its mean in bins of its length (n,) [m] of
+    :data:`OFF_LENGTH_BIN_M`: what of it is not a function of the length, whose correlation
+    in time says how many independent looks at each length the run took. A residual that
+    follows the length (a bump of the scale, a point the fit could not reach) is correlated
+    in time only because the bar moves smoothly; counted on the residual itself, a bar whose
+    fit left +90 to +180 nm over 12 mm (held-out samples, 4287) was 11 independent samples,
+    and what it left there, 4 to 16 times the bar's mean excess, was not claimed."""
+    finite = np.isfinite(lengths) & np.isfinite(residual)
+    out = np.where(finite, residual, 0.0)
+    if not finite.any():
+        return out
+    at = np.floor((lengths[finite] - np.min(lengths[finite])) / OFF_LENGTH_BIN_M).astype(np.intp)
+    mean = np.bincount(at, residual[finite]) / np.maximum(np.bincount(at), 1)
+    out[finite] = residual[finite] - mean[at]
+    return out
+
+
 def _independent_samples(series: FloatArray) -> float:
     """Effective number of independent samples of a series in time order: n over its
     integrated autocorrelation time 1 + 2 sum rho_k, summed up to the first lag where rho
@@ -672,7 +695,8 @@ def _sized_from(fit: FitUncertainty, ctx: FitContext, found: list[FittedEffect],
             claim = np.diagonal(kept if replacing else kept + replaceable, axis1=1, axis2=2)[few]
             bars_along.append(_AlongBars(run.after.cdf_lengths_m[sub[few]], dd[few * step],
                                     ref_var[few * step] + claim,
-                                    np.array([_independent_samples(dd[:, b]) / idx.size
+                                    np.array([_independent_samples(_off_length(
+                                        dd[:, b], run.after.cdf_lengths_m[idx, b])) / idx.size
                                               for b in range(6)])))
         excess = _psd(observed_cov / n - predicted / n)
         excess[~seen, :] = 0.0
