@@ -320,3 +320,19 @@ def test_compiled_friction_state_equals_python():
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-14)
     turns = np.count_nonzero(np.diff(np.sign(np.diff(pos[0][:, 0]))[np.diff(pos[0][:, 0]) != 0]))
     assert turns > 100 and whole.min() < -0.8 and whole.max() > 0.8   # the state swings
+
+
+def test_the_bars_vertical_cosines_are_their_legs_unit_vectors_along_the_vertical():
+    """The gravity sag's features from the rotation's entries alone equal those of the legs
+    themselves (leg_geometry), for any pose and any vertical."""
+    from mmd_ros.core.device import find_config, load_device
+    from mmd_ros.core.terms import leg_geometry, vertical_cosines
+    geometry = load_device(find_config('mmd_prototype.yaml')).geometry
+    rng = np.random.default_rng(4)
+    poses = np.column_stack([rng.uniform(-0.1, 0.1, (500, 2)), rng.uniform(0.2, 0.3, 500),
+                             rng.uniform(-0.5, 0.5, (500, 3))])
+    for vertical in ([0.0, 0.0, 1.0], [0.3, -0.2, 0.93]):
+        v = np.asarray(vertical) / np.linalg.norm(vertical)
+        _, units, _ = leg_geometry(geometry.upper, geometry.lower, poses)
+        assert np.allclose(vertical_cosines(geometry.upper, geometry.lower, poses, v), units @ v,
+                           rtol=0, atol=1e-13)

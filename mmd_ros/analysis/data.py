@@ -503,6 +503,18 @@ class FitContext:
         return self.cached(('dir', travel_m), lambda: HysteresisTerm(np.ones(6), travel_m).directions(
             self.base.pre_lengths_m))
 
+    def both_ways(self, travel_m: float, idx: NDArray[np.int64]) -> NDArray[np.bool_]:
+        """Which bars move each way (:meth:`directions`) at more than 1 % of the samples
+        ``idx``, (6,). Kept for the last ``idx`` asked: the same for every turn-over travel a
+        friction fit tries (126 times 17 ms on a 10-minute 1 kHz log)."""
+        last = self.cache.get(('both_ways', travel_m))
+        if last is not None and np.array_equal(last[0], idx):
+            return last[1].copy()
+        d = self.directions(travel_m)[idx]
+        ok = (np.mean(d > 0, axis=0) > 0.01) & (np.mean(d < 0, axis=0) > 0.01)
+        self.cache[('both_ways', travel_m)] = (np.array(idx, copy=True), ok)
+        return ok.copy()
+
     def friction(self, travel_m: float) -> FloatArray:
         """Dahl friction state of each bar (the friction term's), (N, 6)."""
         def make() -> FloatArray:

@@ -230,8 +230,7 @@ class Hysteresis(Effect):
         return _diag(-ctx.friction(hyper)[idx])
 
     def coverage(self, ctx, hyper, idx):
-        d = ctx.directions(DIRECTION_TRAVEL_M)[idx]
-        ok = (np.mean(d > 0, axis=0) > 0.01) & (np.mean(d < 0, axis=0) > 0.01)
+        ok = ctx.both_ways(DIRECTION_TRAVEL_M, idx)
         return ok, '' if ok.all() else 'bars that do not move both ways: ' + _bars(~ok)
 
     def make_term(self, ctx, hyper, theta):
