@@ -959,6 +959,13 @@ def test_mmd_process_takes_a_small_lag_out_only_when_the_reference_is_on_its_own
     said = json.loads(capsys.readouterr().out)
     assert 'reference_lag' not in said, said
     assert said['uncertainty_coverage']['ellipsoid_coverage'] < 0.5, said
+    # (and, as mmd analyze, the option says whether the reference is zeroed over the log)
+    assert said['reference_datum'] == {'zeroed': False, 'source': 'found'}
+    assert main(['process', str(shared), '--out', str(tmp_path / 'd.mcap'), '--json',
+                 '--zeroed-reference']) == 0
+    zeroed = json.loads(capsys.readouterr().out)
+    assert zeroed['reference_datum'] == {'zeroed': True, 'source': 'option'}
+    assert zeroed['uncertainty_coverage']['offset_removed']
 
 
 def test_one_log_on_the_mmd_s_clock_determines_the_common_skew_of_a_session(tmp_path):

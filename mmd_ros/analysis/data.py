@@ -440,8 +440,7 @@ def fit_lag(obs: Observation, residual: FloatArray, idx: NDArray[np.int64]
     delay's standard deviation (the residual's correlation counted: :func:`effective_samples`)
     and the offsets (k,) [m, rad]. Components are weighted by the inverse of the residual's
     spread in each."""
-    coef, sd, offsets = fit_delay(residual[idx], obs.lag[idx], obs.datum)
-    return coef, sd, offsets
+    return fit_delay(residual[idx], obs.lag[idx], obs.datum)
 
 
 def binned_r2(values: FloatArray, feature: FloatArray, n_bins: int = 20) -> float:

@@ -342,7 +342,6 @@ class RunSummary:
                 summary['length_uncertainty_coverage'] = report
         return summary
 
-
     def reference_lag(self, clock: str | None) -> ReferenceLag | None:
         """The delay between the reference pose and the MMD as the samples added show it
         (:class:`~mmd_ros.core.lag.LagAccumulator`), kept in :attr:`lag_read`, and returned
