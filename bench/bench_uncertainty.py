@@ -14,7 +14,7 @@ about +-4 %), and a JSON line.
 
 Usage: ``python bench/bench_uncertainty.py [--cases ideal,noeffect,realistic,realistic_sagspread]
 [--scenario random|iso_y|rotary|thermal] [--runs 6] [--seconds 8] [--after] [--datum none|offset]
-[--approaches 2] [--no-stated-sag] [--build 0]``. ``--build N`` instead times the construction
+[--approaches 2] [--no-stated-sag] [--session] [--build 0]``. ``--build N`` instead times the construction
 of a realistic calibration's budget N times each way, its interpolation fit made anew (the kept
 fits cleared) and kept from the first (every pipeline and every trial budget of an analysis
 builds one): medians and their ratio, measured in the same run. ``--after`` first runs
@@ -102,7 +102,7 @@ def judge(errors: list[np.ndarray], covs: list[np.ndarray], tails: list[np.ndarr
 
 def run_case(device, name: str, scenario: str, runs: int, seconds: float, after: bool,
              approaches: int = 2, datum: str = 'none', stated_sag: bool = True,
-             lengths: bool = False, clock: str = 'shared') -> dict:
+             lengths: bool = False, clock: str = 'shared', session: bool = False) -> dict:
     preset, effect_params, ambient = CASES[name]
     kind, params, rate = SCENARIOS[scenario]
     room = ambient_profile(ambient)
@@ -114,7 +114,8 @@ def run_case(device, name: str, scenario: str, runs: int, seconds: float, after:
         start = 600.0
         if after:
             # each twin's own extended model, judged on new motion of that twin
-            model, found, start = fit(twin, room, calibration, k, datum, stated_sag, clock)
+            model, found, start = (fit_session(twin, room, calibration, k, datum) if session
+                                   else fit(twin, room, calibration, k, datum, stated_sag, clock))
             notes.append(found)
         p = [v.format(seconds=seconds, k=k) for v in params]
         run = twin.simulate(make_scenario(kind, p), room, start_s=start, reference='pose6',
@@ -144,6 +145,7 @@ def run_case(device, name: str, scenario: str, runs: int, seconds: float, after:
         out['datum'] = datum
         out['stated_sag'] = stated_sag
         out['reference_clock'] = clock
+        out['session'] = session
         # every bar inside the lengths its model's fit saw, and the rest (judged apart); and of
         # the first, those with a bar where its fitted lengths end inside a CDF segment
         groups = (('inside_fit_range', inside, True), ('outside_fit_range', inside, False),
@@ -174,6 +176,29 @@ def fit(twin, room, calibration, k, datum: str = 'none', stated_sag: bool = True
     result = analyze(run_log(twin, calibration, run, 600.0), options=options)
     found = '+'.join(f.effect for f in result.found) or 'nothing'
     return result.model or Model(), found, 700.0
+
+
+#: A session of each twin for ``--session``: (name, scenario, parameters, reference); 200 Hz
+SESSION = [('x', 'iso_linear', ['n_cycles=5', 'axis=x'], None),
+           ('y', 'iso_linear', ['n_cycles=5', 'axis=y'], None),
+           ('c', 'iso_rotary', ['n_cycles=5', 'axis=psi'], None),
+           ('pose', 'random_motion', ['duration_s=60', 'seed={seed}'], 'pose6')]
+
+
+def fit_session(twin, room, calibration, k, datum: str = 'none'):
+    """mmd analyze on a session of the twin as ``make demo`` records one (x and y lasers, a C
+    rotary calibrator, 60 s of 6-DOF motion, each on its own reference; leave-one-run-out),
+    the references absolute (``datum`` 'none') or zeroed ('offset')."""
+    from mmd_ros.analysis.identify import AnalysisOptions, analyze
+    logs, start = [], 600.0
+    for name, kind, params, reference in SESSION:
+        run = twin.simulate(make_scenario(kind, [p.format(seed=100 + k) for p in params]), room,
+                            start_s=start, reference=reference, sample_rate_hz=200.0)
+        logs.append(run_log(twin, calibration, run, start, name=f'{name}.mcap'))
+        start += 400.0
+    result = analyze(logs, options=AnalysisOptions(datum=datum))
+    found = '+'.join(f.effect for f in result.found) or 'nothing'
+    return result.model or Model(), found, start
 
 
 def spread(r: dict, what: str) -> str:
@@ -228,6 +253,10 @@ def main() -> None:
     parser.add_argument('--lengths', action='store_true',
                         help='judge the six bars\' length covariance against their true lengths '
                         '(what a log with reference bar lengths reports) instead of the pose')
+    parser.add_argument('--session', action='store_true',
+                        help='with --after: each twin\'s model fitted on a session as make demo '
+                        'records one (x, y lasers, a C rotary run, 60 s of 6-DOF motion; '
+                        'leave-one-run-out) instead of one 60 s 6-DOF run')
     parser.add_argument('--build', type=int, default=0, metavar='N',
                         help='time a budget\'s construction N times, its interpolation fit anew '
                         'and kept (instead of the coverage cases)')
@@ -243,7 +272,7 @@ def main() -> None:
     for name in args.cases.split(','):
         t0 = time.perf_counter()
         r = run_case(device, name, args.scenario, args.runs, args.seconds, args.after, args.approaches,
-                     args.datum, not args.no_stated_sag, args.lengths, args.clock)
+                     args.datum, not args.no_stated_sag, args.lengths, args.clock, args.session)
         r['seconds'] = round(time.perf_counter() - t0, 1)
         results.append(r)
         print(f'{name:17s} {args.scenario:8s} ratio ' + ' '.join(f'{v:.2f}' for v in r['ratio'])
