@@ -22,7 +22,8 @@ builds one): medians and their ratio, measured in the same run. ``--after`` firs
 the bars' stated gravity sag unless ``--no-stated-sag``, on a 60 s random run of each twin and
 judges that twin's extended model on a new run of it, also apart where every bar lies inside
 the lengths the fit saw and where one does not, and apart those inside with a bar where its
-fitted lengths end inside a CDF segment (``LengthBudget.flank``).
+fitted lengths end inside a CDF segment (``LengthBudget.flank``), each of those with every
+run's coverage there (a pooled figure hides one twin's miss among others' surplus).
 """
 
 from __future__ import annotations
@@ -151,14 +152,17 @@ def run_case(device, name: str, scenario: str, runs: int, seconds: float, after:
         groups = (('inside_fit_range', inside, True), ('outside_fit_range', inside, False),
                   ('in_a_segment_s_flank', flank, True))
         for key, masks, want in groups:
-            parts = [(e[m == want], c[m == want], None if t is None else t[m == want])
-                     for e, c, t, m in zip(errors, covs, tails, masks)]
-            parts = [p for p in parts if p[0].shape[0]]
+            parts = [(k, (e[m == want], c[m == want], None if t is None else t[m == want]))
+                     for k, (e, c, t, m) in enumerate(zip(errors, covs, tails, masks))]
+            parts = [(k, p) for k, p in parts if p[0].shape[0]]
             if parts:
-                r = judge(*(list(z) for z in zip(*parts)))
+                r = judge(*(list(z) for z in zip(*(p for _, p in parts))))
                 out[key] = {k: r[k] for k in ('ratio', 'coverage', 'ratio_interval',
                                               'coverage_interval', 'region', 'region_interval',
                                               'samples')}
+                # (each run's coverage there and its samples, by the run's number)
+                out[key]['runs'] = {str(k + 1): [c, p[0].shape[0]] for (k, p), c
+                                    in zip(parts, r['coverage_per_run'])}
     return out
 
 
@@ -282,8 +286,12 @@ def main() -> None:
         print(spread(r, 'over the runs'))
         for key in ('inside_fit_range', 'outside_fit_range', 'in_a_segment_s_flank'):
             if key in r:
-                print(f'  {key:17s} ratio ' + ' '.join(f'{v:.2f}' for v in r[key]['ratio'])
-                      + f'   ellipsoid {100 * r[key]["coverage"]:.1f} % ({r[key]["samples"]} samples)')
+                part = r[key]
+                runs = ' '.join(f'{k}: {100 * c:.0f} % of {n}'
+                                for k, (c, n) in part['runs'].items())
+                print(f'  {key:17s} ratio ' + ' '.join(f'{v:.2f}' for v in part['ratio'])
+                      + f'   ellipsoid {100 * part["coverage"]:.1f} % ({part["samples"]} samples;'
+                      f' runs {runs})')
                 print(spread(r[key], ''))
     print(json.dumps({'benchmark': 'uncertainty', 'results': results}))
 
