@@ -89,8 +89,9 @@ def test_a_session_model_claims_the_residual_of_its_own_terms_where_others_could
     scale terms (they do not determine them); its leave-one-run-out residual is not the written
     model's, and sizing the model's uncertainty from it claimed 3.0-10.5 times the error of
     another 6-DOF run (the demo's session: 2.9-17.4). That log's held-out blocks stand for it
-    now: 95.8 % of the other run in the 95 % ellipsoid, ratios 0.66-0.96 (the demo's three new
-    runs 95.4-96.0 %, 0.93-1.11; inside the fitted lengths ~1, beyond them under-claimed)."""
+    now: 97.5 % of the other run in the 95 % ellipsoid, ratios 0.73-0.95 (95.8 %, 0.66-0.96,
+    while the residual's parts along each bar's length were claimed between the bars as the
+    fitted runs' motion tied them; the demo's three new runs 95.4-97.7 %, 0.91-1.27)."""
     from mmd_ros.logs.processing import process_run, summarize
     result = analyze([read_run(session[k]) for k in ('x', 'y', 'c', 'pose_a')])
     assert all(r.datum.source == 'stated' and not r.datum.zeroed for r in result.runs)
@@ -143,8 +144,9 @@ def test_a_session_with_a_6dof_run_improves_every_component_of_another(session):
     default); applied to a second 6-DOF run of the same device (other motion, not in the fit):
     every component improves, and the pose covariance covers that run's error against its
     absolute reference. It covered 55.3 % when the calibration's sources stayed whole beside
-    the zeroed residual, before the claim of the constant error the runs leave unknown; now
-    98.2 % (ratios 0.77-1.60). The session's length terms are not written (they would move
+    the zeroed residual, before the claim of the constant error the runs leave unknown; then
+    98.2 % (ratios 0.77-1.72), and 100.0 % (0.66-1.96) since the residual's parts along each
+    bar's length are claimed independent between the bars. The session's length terms are not written (they would move
     components its runs cannot check), and they leave the friction state each point of its
     one-sided calibration was captured in (+-0.15-0.45 µm per bar and pair). While the budget
     did not claim that, the error was 7-12 times (in sigma) what the calibration described,
