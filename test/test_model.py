@@ -322,6 +322,23 @@ def test_compiled_friction_state_equals_python():
     assert turns > 100 and whole.min() < -0.8 and whole.max() > 0.8   # the state swings
 
 
+def test_the_compiled_friction_state_far_past_its_turn_over_is_numpy_s():
+    """Bars that move millimetres between reversals, the state turning within micrometres: the
+    compiled recursion skips the exp where the state has turned (past 40 travels, where what
+    is left is below the last bit of +-1) and gives numpy's states there exactly, elsewhere to
+    the last bits of an exp."""
+    from mmd_ros.core.terms import dahl_state, play_positions
+    t = np.linspace(0.0, 6.0 * np.pi, 30000)
+    lengths = 0.3 + 1e-3 * np.sin(t)[:, None] * np.linspace(0.5, 1.0, 6)
+    pos = play_positions(lengths, 50e-9, None, compiled=False)
+    start = (pos[0].copy(), np.zeros(6), pos[0].copy(), np.full(6, 0.3))
+    out = [dahl_state(pos, 2e-6, start, compiled=c)[0] for c in (False, True)]
+    turned = np.abs(out[0]) == 1.0
+    assert 0.5 < turned.mean() < 1.0                # (most samples, not all: reversals)
+    np.testing.assert_array_equal(out[1][turned], out[0][turned])
+    np.testing.assert_allclose(out[1], out[0], rtol=0, atol=1e-14)
+
+
 def test_the_bars_vertical_cosines_are_their_legs_unit_vectors_along_the_vertical():
     """The gravity sag's features from the rotation's entries alone equal those of the legs
     themselves (leg_geometry), for any pose and any vertical."""

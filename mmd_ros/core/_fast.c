@@ -898,6 +898,17 @@ PyDoc_STRVAR(dahl_state_doc,
 "anchor state), each (k,) float64, is updated in place; out (N, k) float64 gets s in [-1, 1].\n"
 "Releases the GIL.");
 
+/* d - (d - a) exp(-y): the Dahl state y travels after an anchor of state a, direction d. Past
+ * DAHL_TURNED travels what is left, |d - a| exp(-y) <= 2 exp(-40) < 1e-17, is below half a
+ * unit in the last place of d = +-1, and the sum rounds to d: the exp is skipped (a bar moves
+ * millimetres between reversals and the state turns within micrometres; the same numbers). */
+#define DAHL_TURNED 40.0
+
+static inline double turned(double d, double a, double y)
+{
+    return y > DAHL_TURNED ? d : d - (d - a) * exp(-y);
+}
+
 static PyObject *dahl_state(PyObject *self, PyObject *args)
 {
     (void)self;
@@ -925,31 +936,31 @@ static PyObject *dahl_state(PyObject *self, PyObject *args)
     const double *x = ptr[0];
     double *last = ptr[1], *dir = ptr[2], *anchor_x = ptr[3], *anchor_s = ptr[4], *out = ptr[5];
     Py_BEGIN_ALLOW_THREADS
-    for (Py_ssize_t j = 0; j < k; j++) {
-        double prev = last[j], d = dir[j], ax = anchor_x[j], as = anchor_s[j], s = 0.0;
-        for (Py_ssize_t i = 0; i < n; i++) {
-            const double p = x[i * k + j];
-            if (i > 0 && p == prev) {   /* at rest (the play holds): the same state */
-                out[i * k + j] = out[(i - 1) * k + j];
+    /* row by row, each column's state in last/dir/anchor_x/anchor_s: one pass over the rows
+     * (column by column, the 10-minute ISO run's (596441, 6) positions took 61 ms a call) */
+    for (Py_ssize_t i = 0; i < n; i++) {
+        const double *row = x + i * k;
+        double *o = out + i * k;
+        for (Py_ssize_t j = 0; j < k; j++) {
+            const double p = row[j];
+            if (i > 0 && p == last[j]) {   /* at rest (the play holds): the same state */
+                o[j] = o[j - k];
                 continue;
             }
-            const double step = (p > prev) - (p < prev);
+            double d = dir[j];
+            const double step = (p > last[j]) - (p < last[j]);
             const double now = step != 0.0 ? step : d;
-            if (now != d) {         /* a new direction begins at prev: its anchor */
+            if (now != d) {         /* a new direction begins at the last position: its anchor */
                 if (d != 0.0)
-                    as = d - (d - as) * exp(-d * (prev - ax) / travel);
-                ax = prev;
-                d = now;
+                    anchor_s[j] = turned(d, anchor_s[j], d * (last[j] - anchor_x[j]) / travel);
+                anchor_x[j] = last[j];
+                dir[j] = d = now;
             }
-            s = d == 0.0 ? as : d - (d - as) * exp(-d * (p - ax) / travel);
-            out[i * k + j] = s < -1.0 ? -1.0 : (s > 1.0 ? 1.0 : s);
-            prev = p;
+            const double s = d == 0.0 ? anchor_s[j]
+                                      : turned(d, anchor_s[j], d * (p - anchor_x[j]) / travel);
+            o[j] = s < -1.0 ? -1.0 : (s > 1.0 ? 1.0 : s);
+            last[j] = p;
         }
-        if (n > 0)
-            last[j] = prev;
-        dir[j] = d;
-        anchor_x[j] = ax;
-        anchor_s[j] = as;
     }
     Py_END_ALLOW_THREADS
     release(&bufs);
