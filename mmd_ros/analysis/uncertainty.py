@@ -544,6 +544,7 @@ def _between_bars_along_lengths(dd: FloatArray, lengths: FloatArray) -> FloatArr
     constants of alternating sign (a twist, yaw 0.9″ off) that the fitted runs' motion had
     tied otherwise (99 % now)."""
     off = np.column_stack([_off_length(dd[:, b], lengths[:, b]) for b in range(dd.shape[1])])
+    off = np.where(np.isfinite(lengths), off, dd)     # (no length read: nothing follows it)
     along = dd.T @ dd - off.T @ off
     mean = np.mean(dd - off, axis=0)
     along -= dd.shape[0] * np.outer(mean, mean)
