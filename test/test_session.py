@@ -146,8 +146,8 @@ def test_a_session_with_a_6dof_run_improves_every_component_of_another(session):
     absolute reference. It covered 55.3 % when the calibration's sources stayed whole beside
     the zeroed residual, before the claim of the constant error the runs leave unknown; then
     98.2 % (ratios 0.77-1.72), and 100.0 % (0.66-1.96) since the residual's parts along each
-    bar's length are claimed independent between the bars. The session's length terms are not written (they would move
-    components its runs cannot check), and they leave the friction state each point of its
+    bar's length are claimed independent between the bars. The session's length terms are
+    not written (they would move components its runs cannot check), and they leave the friction state each point of its
     one-sided calibration was captured in (+-0.15-0.45 µm per bar and pair). While the budget
     did not claim that, the error was 7-12 times (in sigma) what the calibration described,
     its mean read from its variation did not hold, and a new run was covered 89.3 % with the
