@@ -146,15 +146,15 @@ def test_a_session_with_a_6dof_run_improves_every_component_of_another(session):
     absolute reference. It covered 55.3 % when the calibration's sources stayed whole beside
     the zeroed residual, before the claim of the constant error the runs leave unknown; then
     98.2 % (ratios 0.77-1.72), and 100.0 % (0.66-1.96) since the residual's parts along each
-    bar's length are claimed independent between the bars. The session's length terms are
-    not written (they would move components its runs cannot check), and they leave the friction state each point of its
-    one-sided calibration was captured in (+-0.15-0.45 µm per bar and pair). While the budget
-    did not claim that, the error was 7-12 times (in sigma) what the calibration described,
-    its mean read from its variation did not hold, and a new run was covered 89.3 % with the
-    fitted run's block means for how far a run's mean moves (83.2 % with four blocks; 99.4 %
-    with the shape's whole spread claimed for where a run dwells). The points' friction is now
-    claimed from the bars' stated friction (the device description): the calibration
-    describes the error, and the runs read its mean."""
+    bar's length are claimed independent between the bars. The session's length terms are not
+    written (they would move components its runs cannot check), and they leave the friction
+    state each point of its one-sided calibration was captured in (+-0.15-0.45 µm per bar and
+    pair). While the budget did not claim that, the error was 7-12 times (in sigma) what the
+    calibration described, its mean read from its variation did not hold, and a new run was
+    covered 89.3 % with the fitted run's block means for how far a run's mean moves (83.2 % with
+    four blocks; 99.4 % with the shape's whole spread claimed for where a run dwells). The
+    points' friction is now claimed from the bars' stated friction (the device description):
+    the calibration describes the error, and the runs read its mean."""
     result = analyze([read_run(session[k]) for k in ('x', 'y', 'z', 'c', 'pose_a')],
                      options=dataclasses.replace(NO_LORO, datum='offset'))
     assert result.model is not None, result.conclusion
