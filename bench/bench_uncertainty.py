@@ -14,10 +14,10 @@ about +-4 %), and a JSON line.
 
 Usage: ``python bench/bench_uncertainty.py [--cases ideal,noeffect,realistic,realistic_sagspread]
 [--scenario random|iso_y|rotary|thermal] [--runs 6] [--seconds 8] [--after] [--datum none|offset]
-[--approaches 2] [--no-stated-sag] [--session] [--build 0]``. ``--build N`` instead times the construction
-of a realistic calibration's budget N times each way, its interpolation fit made anew (the kept
-fits cleared) and kept from the first (every pipeline and every trial budget of an analysis
-builds one): medians and their ratio, measured in the same run. ``--after`` first runs
+[--approaches 2] [--no-stated-sag] [--session] [--build 0]``. ``--build N`` instead times the
+construction of a realistic calibration's budget N times each way, its interpolation fit made
+anew (the kept fits cleared) and kept from the first (every pipeline and every trial budget of
+an analysis builds one): medians and their ratio, measured in the same run. ``--after`` first runs
 ``mmd analyze`` (full pose reference, absolute, or zeroed with ``--datum offset``), started from
 the bars' stated gravity sag unless ``--no-stated-sag``, on a 60 s random run of each twin and
 judges that twin's extended model on a new run of it, also apart where every bar lies inside

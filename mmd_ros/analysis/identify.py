@@ -535,8 +535,8 @@ def _reference_lag(obs: Observation, device: DeviceDescription, processed: Proce
     delay within that is the MMD's (the skew term's common mode): a reference sampled at the
     MMD's instants has none, and the twin's logs say ``reference_clock: shared``. A reference
     on its own clock 10 µs late had a common skew of 10 µs written, and the model made new
-    motion 2.7-18 times worse against the true pose; 5 ms late, no skew could hold it, and a false 230 µm step and an
-    uncertainty of 2000-10000 times the error were reported.
+    motion 2.7-18 times worse against the true pose; 5 ms late, no skew could hold it, and a
+    false 230 µm step and an uncertainty of 2000-10000 times the error were reported.
 
     A delay of a sample period or more is taken out by pairing each MMD sample with the
     reference's that many samples later (no interpolation: the reference's noise stays as

@@ -529,21 +529,24 @@ def _off_length(residual: FloatArray, lengths: FloatArray) -> FloatArray:
     return out
 
 
-def _between_bars_along_lengths(dd: FloatArray, lengths: FloatArray) -> FloatArray:
+def _between_bars_along_lengths(dd: FloatArray, lengths: FloatArray,
+                                off: FloatArray | None = None) -> FloatArray:
     """What a run's residual ``dd`` (n, 6) [m] holds between the bars, sum over its samples
     (6, 6) [m^2], through its parts that follow each bar's own CDF length ``lengths`` (n, 6)
-    [m] (its mean in bins of that length, :func:`_off_length`), beyond the product of their
-    means; 0 on the diagonal. Those parts are errors of each bar's scale along its length (a
-    point's friction step, the interpolation between points, a bump), functions of that bar's
-    length alone: between two bars they go together only as the run's motion took the two
-    lengths together, and another run's motion takes them otherwise. Of independent functions
-    of lengths that move independently, what stays between the bars is the product of their
-    means, which this keeps. On four twins' sessions (one-sided routines, each model judged on
-    another 60 s 6-DOF run) one twin's new run was covered 83 % while the residual's
-    covariance between the bars was claimed as the fitted runs showed it: its bars ran
-    constants of alternating sign (a twist, yaw 0.9″ off) that the fitted runs' motion had
-    tied otherwise (99 % now)."""
-    off = np.column_stack([_off_length(dd[:, b], lengths[:, b]) for b in range(dd.shape[1])])
+    [m] (its mean in bins of that length: ``off`` is the rest, each bar's :func:`_off_length`, made
+    here when not given), beyond the product of their means; 0 on the diagonal. Those parts are
+    errors of each bar's scale along its length (a point's friction step, the interpolation
+    between points, a bump), functions of that bar's length alone: between two bars they go
+    together only as the run's motion took the two lengths together, and another run's motion
+    takes them otherwise. Of independent functions of lengths that move independently, what
+    stays between the bars is the product of their means, which this keeps. On four twins'
+    sessions (one-sided routines, each model judged on another 60 s 6-DOF run) one twin's new
+    run was covered 83 % while the residual's covariance between the bars was claimed as the
+    fitted runs showed it: its bars ran constants of alternating sign (a twist, yaw 0.9″ off)
+    that the fitted runs' motion had tied otherwise (99 % now)."""
+    if off is None:
+        off = np.column_stack([_off_length(dd[:, b], lengths[:, b])
+                               for b in range(dd.shape[1])])
     off = np.where(np.isfinite(lengths), off, dd)     # (no length read: nothing follows it)
     along = dd.T @ dd - off.T @ off
     mean = np.mean(dd - off, axis=0)
@@ -701,8 +704,11 @@ def _sized_from(fit: FitUncertainty, ctx: FitContext, found: list[FittedEffect],
                 dd = np.zeros((idx.size, 6))
                 dd[:, obs.components] = r
             parts.append((run, idx, dd, ref_var))
-            # (what follows each bar's own length is claimed independent between the bars)
-            observed_cov -= _between_bars_along_lengths(dd, run.after.cdf_lengths_m[idx])
+            # (what follows each bar's own length is claimed independent between the bars;
+            # what does not, counts its independent samples along it below)
+            lengths = run.after.cdf_lengths_m[idx]
+            off = np.column_stack([_off_length(dd[:, b], lengths[:, b]) for b in range(6)])
+            observed_cov -= _between_bars_along_lengths(dd, lengths, off)
             sub = _spread(idx)
             kept, replaceable = _predicted(run, model, fit, sub)
             observed_cov += dd.T @ dd
@@ -720,8 +726,7 @@ def _sized_from(fit: FitUncertainty, ctx: FitContext, found: list[FittedEffect],
             claim = np.diagonal(kept if replacing else kept + replaceable, axis1=1, axis2=2)[few]
             bars_along.append(_AlongBars(run.after.cdf_lengths_m[sub[few]], dd[few * step],
                                     ref_var[few * step] + claim,
-                                    np.array([_independent_samples(_off_length(
-                                        dd[:, b], run.after.cdf_lengths_m[idx, b])) / idx.size
+                                    np.array([_independent_samples(off[:, b]) / idx.size
                                               for b in range(6)])))
         excess = _psd(observed_cov / n - predicted / n)
         excess[~seen, :] = 0.0
