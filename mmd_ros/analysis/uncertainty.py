@@ -542,8 +542,8 @@ def _between_bars_along_lengths(dd: FloatArray, lengths: FloatArray,
     stays between the bars is the product of their means, which this keeps. On four twins'
     sessions (one-sided routines, each model judged on another 60 s 6-DOF run) one twin's new
     run was covered 83 % while the residual's covariance between the bars was claimed as the
-    fitted runs showed it: its bars ran constants of alternating sign (a twist, yaw 0.9″ off)
-    that the fitted runs' motion had tied otherwise (99 % now)."""
+    fitted runs showed it: its bars ran constants of alternating sign (a twist; yaw 0.9″ off,
+    as traced on 2026-11-28) that the fitted runs' motion had tied otherwise (99 % now)."""
     if off is None:
         off = np.column_stack([_off_length(dd[:, b], lengths[:, b])
                                for b in range(dd.shape[1])])
