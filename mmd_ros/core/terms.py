@@ -938,9 +938,10 @@ class DriftTerm(_Replayable):
         if times_s.shape[0] == 0:
             return np.zeros((0, 6)), np.zeros((0, 6)), state
         t0 = float(times_s[0]) if state is None else state
-        elapsed = np.repeat((times_s - t0)[:, None], 6, axis=1)
+        elapsed = times_s - t0
+        # (one exp per sample, then the six bars: a settling search scores tens of settings)
         shape = elapsed if settling_s is None else np.exp(-elapsed / settling_s)
-        return -np.ones_like(elapsed), -shape, t0
+        return -np.ones((elapsed.size, 6)), np.repeat(-shape[:, None], 6, axis=1), t0
 
     def correction(self, ctx: TermContext) -> FloatArray:
         self._begin(ctx)
