@@ -3,8 +3,9 @@ the 10-minute ISO x-axis run of ``bench_process.py`` (pose reference) and on a 1
 6-DOF run with a full pose reference: time of each stage (wall and CPU: the machine is shared),
 and ``mmd iso230-2``'s evaluation of the ISO runs.
 
-Prints the figures and a final JSON line. ``--quick`` uses shorter runs. Never fails on timing.
-Target (issue 12): ``mmd analyze`` on the 10-minute log under 20 s.
+Prints the figures and a final JSON line, with the process' peak resident memory after each
+case (a peak so far: the cases run in one process). ``--quick`` uses shorter runs. Never fails
+on timing. Target (issue 12): ``mmd analyze`` on the 10-minute log under 20 s.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import tempfile
 import time
 from pathlib import Path
@@ -42,7 +44,9 @@ def one(name: str, spec: SimulationSpec, folder: Path, iso: bool) -> dict:
         iso230_of_run(run)
         out['iso230_s'], out['iso230_cpu_s'] = time.perf_counter() - t4, time.process_time() - c4
         text += f'; iso230-2 {out["iso230_s"]:.2f} s (CPU {out["iso230_cpu_s"]:.2f} s)'
-    print(text + f'; found {out["found"]}')
+    # (ru_maxrss is in kB on Linux)
+    out['peak_rss_mb'] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    print(text + f'; found {out["found"]}; peak memory so far {out["peak_rss_mb"]:,.0f} MB')
     return out
 
 

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from mmd_ros.analysis import AnalysisOptions, analyze, write_report
+from mmd_ros.analysis.data import FRICTION_STATES_KEPT, FitContext, run_pipeline
 from mmd_ros.twin.recording import SimulationSpec, simulate_to_log
 from mmd_ros.cli.main import main
 from mmd_ros.core.device import find_config, load_device
@@ -411,6 +412,25 @@ def test_term_signatures_are_what_the_terms_apply(short_run):
     geo = DEVICE.geometry
     unsolved = GravitySagTerm(geo.upper, geo.lower, np.ones(6)).correction(ctx)
     assert np.all(unsolved[1::2] == 0) and np.allclose(unsolved[::2], sag[::2])  # no pose: flat
+
+
+def test_a_context_keeps_the_friction_states_of_the_last_travels_only(short_run):
+    """A friction fit scores tens of turn-over travels, each an N x 6 state: a context keeps
+    those of the last few asked for (kept all, 85 states were 2.4 GB of a 10-minute 1 kHz
+    log's 4 GB peak), and a state asked for again is made again the same."""
+    calibration, run = short_run
+    before = run_pipeline(DEVICE, calibration, Model(), run.times_s, run.counts)
+    ctx = FitContext(DEVICE, calibration, Model(), run.times_s, run.counts, before, None)
+    travels = [0.1e-6 * 2.0 ** k for k in range(10)]
+    first = {t: ctx.friction(t).copy() for t in travels}
+    assert len({float(np.abs(v).sum()) for v in first.values()}) == len(travels)   # (all differ)
+    kept = ctx.cache['friction']
+    assert list(kept) == travels[-FRICTION_STATES_KEPT:]
+    assert ctx.friction(travels[-1]) is kept[travels[-1]]      # (kept: not made again)
+    for t in travels:
+        np.testing.assert_array_equal(ctx.friction(t), first[t])
+    assert len(ctx.cache['friction']) == FRICTION_STATES_KEPT
+    assert sum(isinstance(v, np.ndarray) for v in ctx.cache.values()) <= 1      # (the play)
 
 
 def test_a_setting_search_follows_a_minimum_beyond_its_first_bracket():

@@ -473,6 +473,10 @@ def binned_r2(values: FloatArray, feature: FloatArray, n_bins: int = 20) -> floa
     return explained / total
 
 
+#: Friction states a :class:`FitContext` keeps, of the turn-over travels last asked for.
+FRICTION_STATES_KEPT = 4
+
+
 @dataclass
 class FitContext:
     """Everything the effect signatures need, with caches of the stateful features."""
@@ -515,12 +519,20 @@ class FitContext:
         return ok.copy()
 
     def friction(self, travel_m: float) -> FloatArray:
-        """Dahl friction state of each bar (the friction term's), (N, 6)."""
-        def make() -> FloatArray:
+        """Dahl friction state of each bar (the friction term's), (N, 6). The states of the
+        last :data:`FRICTION_STATES_KEPT` turn-over travels asked for are kept: a search scores
+        tens of travels, each state N x 6 values (kept all, 85 of them were 2.4 GB of a
+        10-minute 1 kHz log's 4 GB peak), and one is made again in 15-50 ms."""
+        kept = self.cache.setdefault('friction', {})
+        state = kept.pop(travel_m, None)
+        if state is None:
             x = self.base.pre_lengths_m
             pos = self.cached('play', lambda: play_positions(x, self.device.encoder_resolution_m, None))
-            return dahl_state(pos, travel_m, (x[0], np.zeros(6), x[0], np.zeros(6)))[0]
-        return self.cached(('friction', travel_m), make)
+            state = dahl_state(pos, travel_m, (x[0], np.zeros(6), x[0], np.zeros(6)))[0]
+            while len(kept) >= FRICTION_STATES_KEPT:
+                kept.pop(next(iter(kept)))          # (the least recently asked for)
+        kept[travel_m] = state
+        return state
 
     def velocities(self) -> FloatArray:
         """Bar velocities (backward differences of the CDF lengths, the skew term's), (N, 6) [m/s]."""
