@@ -10,7 +10,9 @@ pooled and per run, and in the budget's own 95 % region (the same ellipsoid size
 sources' forms, :func:`~mmd_ros.core.uncertainty.region_quantile`), their 95 % intervals over
 the runs (the runs drawn again with replacement: a run's samples share one draw of its
 calibration's constant error, so with 24 realistic runs a coverage near 95 % is known to
-about +-4 %), and a JSON line.
+about +-4 %), each run's mean bar-length error along the bars' common mode over the sigma
+claimed along it (one draw per run of what a zeroed reference cannot see: about +-1 when the
+claim is true), and a JSON line.
 
 Usage: ``python bench/bench_uncertainty.py [--cases ideal,noeffect,realistic,realistic_sagspread]
 [--scenario random|iso_y|rotary|thermal] [--runs 6] [--seconds 8] [--after] [--datum none|offset]
@@ -108,6 +110,7 @@ def run_case(device, name: str, scenario: str, runs: int, seconds: float, after:
     kind, params, rate = SCENARIOS[scenario]
     room = ambient_profile(ambient)
     errors, covs, tails, notes, inside, flank = [], [], [], [], [], []
+    common = []     # per run: the bars' mean error along their common mode, and its claim
     model = Model()
     for k in range(runs):
         twin = TwinDevice(device, Effects.preset(preset).with_assignments(effect_params), seed=k + 1)
@@ -123,8 +126,10 @@ def run_case(device, name: str, scenario: str, runs: int, seconds: float, after:
                             sample_rate_hz=rate)
         pipeline = Pipeline(twin.documented_device, calibration, model)
         res = pipeline.process(run.times_s, run.counts, with_covariance=True, tails_every=1,
-                               with_length_covariance=lengths)
+                               with_length_covariance=True)
         ok = res.valid & np.all(np.isfinite(run.true_poses), axis=1)
+        common.append(common_mode(res.compensated.lengths_m[ok] - run.true_lengths[ok],
+                                  res.length_covariance[ok]))
         if lengths:   # the bars' lengths and their covariance against the twin's true ones
             errors.append((res.compensated.lengths_m - run.true_lengths)[ok])
             covs.append(res.length_covariance[ok])
@@ -140,7 +145,8 @@ def run_case(device, name: str, scenario: str, runs: int, seconds: float, after:
         flank.append(inside[-1] & np.any(pipeline.budget.flank(cdf), axis=1))
     out = {'case': name, 'scenario': scenario, 'runs': runs, 'after_analysis': after,
            'calibration_approaches': approaches, 'judged': 'lengths' if lengths else 'pose',
-           **judge(errors, covs, tails)}
+           **judge(errors, covs, tails),
+           'common_mode_nm': [[round(m * 1e9, 1), round(c * 1e9, 1)] for m, c in common]}
     if notes:
         out['analysis'] = '; '.join(notes)
         out['datum'] = datum
@@ -164,6 +170,14 @@ def run_case(device, name: str, scenario: str, runs: int, seconds: float, after:
                 out[key]['runs'] = {str(k + 1): [c, p[0].shape[0]] for (k, p), c
                                     in zip(parts, r['coverage_per_run'])}
     return out
+
+
+def common_mode(error: np.ndarray, cov: np.ndarray) -> tuple[float, float]:
+    """A run's mean bar-length error along the bars' common mode u = (1, ..., 1)/sqrt(6) (what
+    a zeroed reference cannot see: temperature, the reference bar, a drift alike on all bars)
+    and the sigma Sigma_d claims along it, RMS over the samples [m]."""
+    u = np.full(6, 1.0 / np.sqrt(6.0))
+    return float(np.mean(error @ u)), float(np.sqrt(np.mean(np.einsum('i,nij,j->n', u, cov, u))))
 
 
 def fit(twin, room, calibration, k, datum: str = 'none', stated_sag: bool = True,
@@ -284,6 +298,10 @@ def main() -> None:
               + ' '.join(f'{100 * v:.0f}' for v in r['coverage_per_run']) + ')'
               + (f'   [{r["analysis"]}]' if 'analysis' in r else ''), flush=True)
         print(spread(r, 'over the runs'))
+        z = [m / c for m, c in r['common_mode_nm'] if c > 0]
+        print('    the bars\' common mode, each run\'s mean error over its claimed sigma: '
+              + ' '.join(f'{v:+.2f}' for v in z)
+              + (f' (RMS {np.sqrt(np.mean(np.square(z))):.2f})' if z else ''))
         for key in ('inside_fit_range', 'outside_fit_range', 'in_a_segment_s_flank'):
             if key in r:
                 part = r[key]
