@@ -11,8 +11,10 @@ sources' forms, :func:`~mmd_ros.core.uncertainty.region_quantile`), their 95 % i
 the runs (the runs drawn again with replacement: a run's samples share one draw of its
 calibration's constant error, so with 24 realistic runs a coverage near 95 % is known to
 about +-4 %), each run's mean bar-length error along the bars' common mode over the sigma
-claimed along it (one draw per run of what a zeroed reference cannot see: about +-1 when the
-claim is true), and a JSON line.
+claimed along it (what a zeroed reference cannot see): a check one way only, beyond +-2 or so
+a constant the claim lacks; the claim's per-sample parts (quantisation, read noise) average
+out of a run's mean, so a true claim gives less than 1 in RMS, by how much they weigh), and a
+JSON line.
 
 Usage: ``python bench/bench_uncertainty.py [--cases ideal,noeffect,realistic,realistic_sagspread]
 [--scenario random|iso_y|rotary|thermal] [--runs 6] [--seconds 8] [--after] [--datum none|offset]
