@@ -130,10 +130,10 @@ def run_case(device, name: str, scenario: str, runs: int, seconds: float, after:
         res = pipeline.process(run.times_s, run.counts, with_covariance=True, tails_every=1,
                                with_length_covariance=True)
         ok = res.valid & np.all(np.isfinite(run.true_poses), axis=1)
-        common.append(common_mode(res.compensated.lengths_m[ok] - run.true_lengths[ok],
-                                  res.length_covariance[ok]))
+        length_error = (res.compensated.lengths_m - run.true_lengths)[ok]
+        common.append(common_mode(length_error, res.length_covariance[ok]))
         if lengths:   # the bars' lengths and their covariance against the twin's true ones
-            errors.append((res.compensated.lengths_m - run.true_lengths)[ok])
+            errors.append(length_error)
             covs.append(res.length_covariance[ok])
             tails.append(None)
         else:
