@@ -1,20 +1,21 @@
 """How well the pose covariance covers the twin's true pose (issue 10, section 2).
 
 For each case, several independent calibrations of the twin (seeds 1.., calibrated 211 s apart
-on the room's temperature course, so that each sees another draw of every systematic error)
-run a scenario; the pipeline's poses and covariances are compared with the twin's true pose
-(not its reference instrument, which has noise of its own). Printed per case: predicted /
-observed sigma per axis (x y z roll pitch yaw; observed = RMS of the error, the twin's pose is
-absolute), the share of samples in the 95 % ellipsoid (Mahalanobis distance^2 <= chi^2_6(0.95))
-pooled and per run, and in the budget's own 95 % region (the same ellipsoid sized by its
-sources' forms, :func:`~mmd_ros.core.uncertainty.region_quantile`), their 95 % intervals over
-the runs (the runs drawn again with replacement: a run's samples share one draw of its
-calibration's constant error, so with 24 realistic runs a coverage near 95 % is known to
+on the room's temperature course, so that each sees another draw of every systematic error) run
+a scenario; the pipeline's poses and covariances are compared with the twin's true pose (not its
+reference instrument, which has noise of its own), each sample's time counted from its
+calibration's, as a log of the twin states them (the readings' drift since then). Printed per
+case: predicted / observed sigma per axis (x y z roll pitch yaw; observed = RMS of the error,
+the twin's pose is absolute), the share of samples in the 95 % ellipsoid (Mahalanobis distance^2
+<= chi^2_6(0.95)) pooled and per run, and in the budget's own 95 % region (the same ellipsoid
+sized by its sources' forms, :func:`~mmd_ros.core.uncertainty.region_quantile`), their 95 %
+intervals over the runs (the runs drawn again with replacement: a run's samples share one draw
+of its calibration's constant error, so with 24 realistic runs a coverage near 95 % is known to
 about +-4 %), each run's mean bar-length error along the bars' common mode over the sigma
-claimed along it (what a zeroed reference cannot see): a check one way only, beyond +-2 or so
-a constant the claim lacks; the claim's per-sample parts (quantisation, read noise) average
-out of a run's mean, so a true claim gives less than 1 in RMS, by how much they weigh), and a
-JSON line.
+claimed along it (what a zeroed reference cannot see): a check one way only, beyond +-2 or so a
+constant the claim lacks; the claim's per-sample parts (quantisation, read noise) average out of
+a run's mean, so a true claim gives less than 1 in RMS, by how much they weigh), and a JSON
+line.
 
 Usage: ``python bench/bench_uncertainty.py [--cases ideal,noeffect,realistic,realistic_sagspread]
 [--scenario random|iso_y|rotary|thermal] [--runs 6] [--seconds 8] [--after] [--datum none|offset]
@@ -46,7 +47,7 @@ from mmd_ros.core.pipeline import Pipeline
 from mmd_ros.core.uncertainty import region_quantile
 from mmd_ros.core.validity import Validity
 from mmd_ros.twin import Effects, TwinDevice, make_scenario
-from mmd_ros.twin.recording import ambient_profile, run_log
+from mmd_ros.twin.recording import EPOCH_S, ambient_profile, run_log
 
 LIMIT = chi2.ppf(0.95, 6)
 BOOTSTRAP = 2000       # resamples of the runs for the intervals
@@ -116,7 +117,7 @@ def run_case(device, name: str, scenario: str, runs: int, seconds: float, after:
     model = Model()
     for k in range(runs):
         twin = TwinDevice(device, Effects.preset(preset).with_assignments(effect_params), seed=k + 1)
-        calibration = twin.calibrate(-211.0 * k, room, approaches=approaches)
+        calibration = twin.calibrate(-211.0 * k, room, approaches=approaches, epoch_s=EPOCH_S)
         start = 600.0
         if after:
             # each twin's own extended model, judged on new motion of that twin
@@ -128,7 +129,7 @@ def run_case(device, name: str, scenario: str, runs: int, seconds: float, after:
                             sample_rate_hz=rate)
         pipeline = Pipeline(twin.documented_device, calibration, model)
         res = pipeline.process(run.times_s, run.counts, with_covariance=True, tails_every=1,
-                               with_length_covariance=True)
+                               with_length_covariance=True, epoch_s=EPOCH_S + start)
         ok = res.valid & np.all(np.isfinite(run.true_poses), axis=1)
         length_error = (res.compensated.lengths_m - run.true_lengths)[ok]
         common.append(common_mode(length_error, res.length_covariance[ok]))

@@ -65,6 +65,7 @@ def _set(data, path, value):
     (('bars', 'gravity_sag_nm'), -100, 'bars.gravity_sag_nm'),
     (('bars', 'gravity_sag_nm'), 'long', 'bars.gravity_sag_nm'),
     (('bars', 'gravity_sag_uncertainty_nm'), 15, 'bars.gravity_sag_uncertainty_nm'),  # no figure
+    (('bars', 'drift_nm_per_h'), -20, 'bars.drift_nm_per_h'),
     (('reference_plate', 'seating_repeatability_nm'), -30,
      'reference_plate.seating_repeatability_nm'),
     (('reference_plate', 'seating_repeatability_nm'), 'x',
@@ -110,6 +111,16 @@ def test_a_stated_sag_carries_its_uncertainty_when_stated():
     with pytest.raises(ConfigError) as info:
         parse_device(data, 'bad.yaml')
     assert info.value.key == 'bars.gravity_sag_uncertainty_nm'
+
+
+def test_a_stated_drift_rate_is_kept_per_second_and_written_back_per_hour():
+    """``bars.drift_nm_per_h``: the bound on a bar's reading drift rate, kept in m/s; None
+    unless stated."""
+    device = parse_device(copy.deepcopy(RAW), 'plain.yaml')
+    assert device.drift_m_per_s is None
+    stated = device.with_reading_drift(20e-9 / 3600.0)
+    assert stated.raw['bars']['drift_nm_per_h'] == pytest.approx(20.0)
+    assert parse_device(stated.raw, 'again.yaml').drift_m_per_s == pytest.approx(20e-9 / 3600.0)
 
 
 def test_a_signal_period_given_in_metres_is_caught():

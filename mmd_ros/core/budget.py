@@ -126,6 +126,8 @@ class Observed:
         with a compensating term the turnover is FRICTION_FORGET_TRAVELS of its travel
     n_z2 : (N, 6) — each bar's n_z^2 at the sample's pose (its axis' vertical component,
         squared: its gravity sag reads it g n_z^2 short; None without a stated sag or a pose)
+    since_calibration_s : (N,) — how long before or after the calibration each sample was
+        taken [s, >= 0]; None when that is not known (or no drift rate is stated)
     """
 
     read_noise_m: FloatArray
@@ -133,10 +135,12 @@ class Observed:
     velocity_m_s: FloatArray | None = None
     settled: FloatArray | None = None
     n_z2: FloatArray | None = None
+    since_calibration_s: FloatArray | None = None
 
     def __getitem__(self, index: Any) -> Observed:
         return Observed(*(None if v is None else v[index] for v in (
-            self.read_noise_m, self.directions, self.velocity_m_s, self.settled, self.n_z2)))
+            self.read_noise_m, self.directions, self.velocity_m_s, self.settled, self.n_z2,
+            self.since_calibration_s)))
 
 
 @dataclass(frozen=True)
@@ -236,7 +240,7 @@ class _Friction:
 
 
 #: The budget's sources, in the order reports list them.
-SOURCES = ('quantisation', 'read_noise', 'reference_bar', 'calibration_points',
+SOURCES = ('quantisation', 'read_noise', 'reference_bar', 'reading_drift', 'calibration_points',
            'calibration_drift', 'reference_distances', 'interpolation', 'subdivision',
            'thermal_approximation',
            'thermal_mismatch', 'hysteresis', 'latch_skew', 'gravity_sag', 'unchecked_range',
@@ -442,6 +446,22 @@ class LengthBudget:
         self.zero_noise_m = s_cal
         self.zero_var_m2 = capture_var(res, s_cal, int(figures.capture_samples or 1))
 
+        # -- the readings' drift since the calibration: at constant length and temperature a
+        # channel's reading moves at a rate anywhere within the stated bound r (rectangular,
+        # GUM 4.3.7), r t / sqrt(3) after a time t; the reference bar's through Eq. 13 into
+        # every bar. Counted from the calibration's time (``created``): the samples' times on
+        # the same clock come with them (:meth:`observe`)
+        rate = device.drift_m_per_s
+        self.drift_rate_m_per_s = float(rate or 0.0)
+        self.calibrated_s = calibration.created_s
+        if rate is None:
+            self.notes.append('reading drift: the device description does not state the bars\' '
+                              'drift rate (bars.drift_nm_per_h); the drift of the readings since '
+                              'the calibration is not claimed')
+        elif rate > 0.0 and self.calibrated_s is None:
+            self.notes.append('reading drift: the calibration does not say when it was made '
+                              '(created); the drift of the readings since then is not claimed')
+
         # (a compensating term starts from state 0, the start state's mean; its error is the
         # start state times exp(-path / travel), its own travel: the Dahl state's turn-over, or
         # a relay's play half-width; the path counted through the term's own play)
@@ -585,7 +605,8 @@ class LengthBudget:
         return eps[:, :1] + frac * (eps[:, -1:] - eps[:, :1])
 
     def observe(self, cdf_lengths_m: FloatArray, reference_error_m: FloatArray,
-                times_s: FloatArray | None = None, poses: FloatArray | None = None) -> Observed:
+                times_s: FloatArray | None = None, poses: FloatArray | None = None,
+                epoch_s: float | None = None) -> Observed:
         """What the budget learns from N consecutive samples (call once per sample, in time
         order): the read-noise estimate from the CDF lengths (or the lengths plus the thermal
         error subtracted, which differ by terms that do not change while a bar stands still)
@@ -595,6 +616,9 @@ class LengthBudget:
         times_s : (N,) the samples' times [s]; None: the device's sample period apart
         poses : (N, 6) the samples' poses [m, rad] (NaN where unsolved: no sag claimed there);
             None: the sag's error is not known (not claimed)
+        epoch_s : the Unix time [s] of ``times_s`` = 0 (a log's first stamp; 0 when the times
+            are Unix times): with the calibration's ``created``, how long after it each sample
+            was taken (the readings' drift since then); None: not known (not claimed)
 
         returns : what :meth:`covariance` needs of these samples
         """
@@ -613,7 +637,12 @@ class LengthBudget:
         if (self.gravity_sag_m or self.gravity_sag_sigma_m) and poses is not None:
             n_z2 = np.nan_to_num(GravitySagTerm.features(
                 *self._joints, np.asarray(poses, dtype=np.float64), self._up))
-        return Observed(self._resolve(est), directions, velocity, settled, n_z2)
+        since = None
+        if self.drift_rate_m_per_s and self.calibrated_s is not None and epoch_s is not None:
+            t = (np.arange(n) / self.device.sample_rate_hz if times_s is None
+                 else np.asarray(times_s, dtype=np.float64))
+            since = np.abs(t + (float(epoch_s) - self.calibrated_s))
+        return Observed(self._resolve(est), directions, velocity, settled, n_z2, since)
 
     def _resolve(self, estimate: FloatArray) -> FloatArray:
         if self.fixed_noise_m is not None:
@@ -662,6 +691,9 @@ class LengthBudget:
                 frac = (x - lo) / (hi - lo)
                 t.weights = np.stack([1.0 - frac, frac], axis=2)
                 t.weight_var = ref_var[:, [0, -1]]
+        drift = self._reading_drift(observed)
+        if drift is not None:
+            t.full['reading_drift'] = self._reading_drift_cov(drift, t.weights)
         # what depends on a bar's length only, through the hat functions of Eq. (10):
         # tabulated once per bar on a fine grid, read by linear interpolation
         tables = self._tables()
@@ -727,6 +759,25 @@ class LengthBudget:
             else:
                 t.full['residual'] = self.residual_m2 + self._profile.added(x + bar_error_m)
         return t
+
+    def _reading_drift(self, observed: Observed | None) -> FloatArray | None:
+        """The variance of a channel's reading drift since the calibration, (N,) [m^2]: each
+        channel's rate anywhere within the stated bound r, (r t)^2 / 3 after a time t; None
+        when not claimed (no rate stated, or the calibration's or the samples' time unknown)."""
+        if observed is None or observed.since_calibration_s is None:
+            return None
+        return (self.drift_rate_m_per_s * observed.since_calibration_s) ** 2 / 3.0
+
+    def _reading_drift_cov(self, var: FloatArray, weights: FloatArray | None) -> FloatArray:
+        """Its covariance over the six bars, (N, 6, 6) [m^2]: each measuring bar's own, and
+        the reference bar's, which Eq. (13) subtracts from every bar (Eq. (12): each reference
+        bar's with its interpolation weights)."""
+        out = var[:, None, None] * np.eye(6)
+        if self.thermal_mode == 'single':
+            out += var[:, None, None]
+        elif weights is not None:
+            out += var[:, None, None] * np.einsum('nik,njk->nij', weights, weights)
+        return out
 
     def _tables(self) -> dict[str, FloatArray]:
         """Per bar, on a grid of lengths (G,) over the calibrated span and 10 mm beyond: the
@@ -1157,6 +1208,9 @@ class LengthBudget:
         total[:, rows[0], rows[0]] += diag
         if drift is not None:
             total += drift[:, :, None] * drift[:, None, :]
+        drift_var = self._reading_drift(observed)
+        if drift_var is not None:
+            total += self._reading_drift_cov(drift_var, None)
         if self.thermal_mode == 'single':
             cross = self._cross(noise[-1, 6:], eps)[:, 0]
             ref = (np.maximum(fast['q12'] + noise[:, 6] ** 2 + self.zero_var_m2 - 2.0 * cross, 0.0)
@@ -1236,6 +1290,8 @@ class LengthBudget:
             'gravity_sag_nm': round(self.gravity_sag_m * 1e9, 3),
             'gravity_sag_uncertainty_nm': round(self.gravity_sag_sigma_m * 1e9, 3),
             'vertical': [round(float(v), 6) for v in self._up],
+            'drift_nm_per_h': round(self.drift_rate_m_per_s * 1e9 * 3600.0, 6),
+            'calibrated_unix_s': self.calibrated_s,
             'subdivision_nm': round(self.subdivision_m * 1e9, 3),
             'signal_period_um': round(self.signal_period_m * 1e6, 6),
             'subdivision_left_nm': [round(math.sqrt(2.0 * v) * 1e9, 3) for v in self.subdivision_left_m2],

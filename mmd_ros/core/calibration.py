@@ -16,6 +16,7 @@ from __future__ import annotations
 import hashlib
 import os
 from dataclasses import dataclass, field
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
@@ -236,6 +237,18 @@ class Calibration:
     quality: dict[str, Any] = field(default_factory=dict)
     terminal: TerminalBinding | None = None
     uncertainty: CalibrationUncertainty = field(default_factory=CalibrationUncertainty)
+
+    @property
+    def created_s(self) -> float | None:
+        """When the calibration was made (``created``) as a Unix time [s] (a time without a
+        zone taken as UTC), or None when it does not say."""
+        try:
+            when = datetime.fromisoformat(self.created)
+        except (TypeError, ValueError):
+            return None
+        if when.tzinfo is None:
+            when = when.replace(tzinfo=timezone.utc)
+        return when.timestamp()
 
     def cdfs(self, channels: list[str], growth: float = 1.0) -> list[CentreDistanceFunction]:
         missing = [c for c in channels if c not in self.bars]

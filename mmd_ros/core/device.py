@@ -42,7 +42,7 @@ SECTION_KEYS = {
     'bars': ('range_mm', 'encoder_resolution_nm', 'scale_cte_ppm_per_c', 'rod_cte_ppm_per_c',
              'fixed_length_mm', 'thermal_mismatch_fraction', 'subdivision_error_nm',
              'signal_period_um', 'friction_hysteresis_nm', 'gravity_sag_nm',
-             'gravity_sag_uncertainty_nm'),
+             'gravity_sag_uncertainty_nm', 'drift_nm_per_h'),
     'plates': ('position_layer_cte_ppm_per_c', 'vertical'),
     'limits': ('upper_tilt_deg', 'lower_tilt_deg', 'min_bar_separation_mm'),
     'terminal': ('sample_rate_hz', 'counter_bits', 'latch_skew_us', 'channels'),
@@ -134,6 +134,11 @@ class DeviceDescription:
     #: characterisation states it: the standard deviation of a placement's centre distance [m];
     #: None when the description does not say (a two-sided calibration measures it)
     seating_repeatability_m: float | None = None
+    #: the bound on how fast a bar's reading drifts at constant length and temperature (its
+    #: encoder's and its assembly's long-term stability, as their characterisation states it):
+    #: each channel's rate lies anywhere within +-this [m/s]; None when the description does not
+    #: say (the drift of the readings since calibration is then not claimed)
+    drift_m_per_s: float | None = None
 
     @property
     def up(self) -> NDArray[np.float64]:
@@ -194,6 +199,11 @@ class DeviceDescription:
         if sigma_m is not None:
             values['gravity_sag_uncertainty_nm'] = round(float(sigma_m) * 1e9, 6)
         return self._stating('bars', **values)
+
+    def with_reading_drift(self, rate_m_per_s: float) -> DeviceDescription:
+        """A copy that states the bound on the bars' reading drift rate (``bars.drift_nm_per_h``)
+        [m/s]."""
+        return self._stating('bars', drift_nm_per_h=round(float(rate_m_per_s) * 1e9 * 3600.0, 6))
 
     def with_vertical(self, up: Any) -> DeviceDescription:
         """A copy that states the upward vertical in {L} as mounted (``plates.vertical``)."""
@@ -384,6 +394,7 @@ def parse_device(data: dict[str, Any], source: str = '<device>') -> DeviceDescri
         seating_repeatability_m=_stated(r, plate, 'seating_repeatability_nm', 'reference_plate',
                                         M_PER_NM, 1e5),
         vertical=_vertical(r, plates),
+        drift_m_per_s=_stated(r, bars, 'drift_nm_per_h', 'bars', M_PER_NM / 3600.0, 1e6),
         **_subdivision(r, bars, resolution),
     )
 

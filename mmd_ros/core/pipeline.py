@@ -235,7 +235,8 @@ class Pipeline:
                 with_covariance: bool = False, covariance_every: int = 1,
                 compiled: bool | None = None,
                 status: NDArray[np.uint8] | None = None, tails_every: int = 0,
-                with_length_covariance: bool = False) -> ProcessResult:
+                with_length_covariance: bool = False, epoch_s: float | None = None
+                ) -> ProcessResult:
         """Poses of N consecutive samples (one run, in time order).
 
         covariance_every : with the covariance, that of every k-th sample only (the others NaN):
@@ -254,6 +255,9 @@ class Pipeline:
         with_length_covariance : with the covariance, also the bars' length covariance it
             propagates (``ProcessResult.length_covariance``, at the same samples): what a
             reference of bar lengths judges
+        epoch_s : the Unix time [s] of ``times_s`` = 0 (a log's first stamp): with it the
+            covariance claims the readings' drift since the calibration was made
+            (:meth:`LengthBudget.observe`); None: that time is not known
         """
         times_s = np.asarray(times_s, dtype=np.float64)
         lost = None if status is None else bars_without_signal(self.device, status)
@@ -275,7 +279,7 @@ class Pipeline:
         cov = tails = sigma_d = None
         if with_covariance and sol.jacobian_inverse is not None:
             observed = self.budget.observe(comp.cdf_lengths_m, comp.thermal.reference_error_m,
-                                           times_s, sol.poses)
+                                           times_s, sol.poses, epoch_s)
             rows = slice(None, None, covariance_every)
             cov = np.full((times_s.size, 6, 6), np.nan)
             lengths = self.length_covariance(measured, observed, rows=rows)

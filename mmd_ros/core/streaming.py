@@ -22,7 +22,6 @@ import math
 import threading
 import time
 from dataclasses import dataclass, field
-from datetime import datetime, timezone
 
 import numpy as np
 from numpy.typing import NDArray
@@ -44,13 +43,8 @@ FloatArray = NDArray[np.float64]
 
 def calibration_created_ns(calibration: Calibration) -> int | None:
     """When the calibration was made [ns since the epoch], or None when it does not say."""
-    try:
-        when = datetime.fromisoformat(calibration.created)
-    except (TypeError, ValueError):
-        return None
-    if when.tzinfo is None:
-        when = when.replace(tzinfo=timezone.utc)
-    return int(when.timestamp() * 1e9)
+    when = calibration.created_s
+    return None if when is None else int(when * 1e9)
 
 
 @dataclass(frozen=True)
@@ -340,8 +334,10 @@ class _CovarianceInputs:
 
     def observe(self) -> Observed:
         if self.observed is None:
+            # (the stamps' times are Unix times: the drift since the calibration is claimed)
             self.observed = self.budget.observe(self.lengths_m + self.bar_error_m,
-                                                self.reference_error_m, self.times_s, self.poses)
+                                                self.reference_error_m, self.times_s, self.poses,
+                                                None if self.times_s is None else 0.0)
         return self.observed
 
 

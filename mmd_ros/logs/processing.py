@@ -160,7 +160,8 @@ def process_blocks(source: RunSource, model: Model, *, calibration: Calibration 
         res = pipeline.process(times, part.counts, with_covariance=with_covariance,
                                covariance_every=covariance_every, compiled=compiled,
                                status=part.status, tails_every=tails_every,
-                               with_length_covariance=part.reference_lengths is not None)
+                               with_length_covariance=part.reference_lengths is not None,
+                               epoch_s=t0 * 1e-9)
         comp = res.compensated
         yield part, ProcessedRun(
             part.stamps_ns, comp.lengths_m, res.poses, res.converged, res.valid, res.status,

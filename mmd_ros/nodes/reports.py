@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import math
 import time
-from datetime import datetime, timezone
 
 import numpy as np
 
@@ -18,15 +17,8 @@ __all__ = ['calibration_age_s', 'compensation_report', 'kinematics_report']
 
 def calibration_age_s(calibration: Calibration | None) -> float:
     """Seconds since the calibration was made (``created``), NaN when unknown."""
-    if calibration is None or not calibration.created:
-        return math.nan
-    try:
-        when = datetime.fromisoformat(calibration.created)
-    except ValueError:
-        return math.nan
-    if when.tzinfo is None:
-        when = when.replace(tzinfo=timezone.utc)
-    return time.time() - when.timestamp()
+    when = None if calibration is None else calibration.created_s
+    return math.nan if when is None else time.time() - when
 
 
 def compensation_report(comp: Compensator, thermal_warn_c: float, model_source: str) -> Report:

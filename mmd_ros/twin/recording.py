@@ -104,12 +104,16 @@ def spec_inputs(spec: SimulationSpec) -> list[Path]:
 
 
 def run_log(twin: TwinDevice, calibration: Calibration, run: Any, start_s: float,
-            counts: np.ndarray | None = None, name: str = 'twin') -> RunLog:
+            counts: np.ndarray | None = None, name: str = 'twin', epoch_s: int = EPOCH_S
+            ) -> RunLog:
     """A run of ``twin`` (:meth:`TwinDevice.simulate`, begun at ``start_s`` [s]) as the log
     :func:`mmd_ros.logs.layout.read_run` would give, in memory, with the documented device and
-    ``calibration``; ``counts`` (N, channels) in place of the run's (an effect added to them)."""
+    ``calibration``; ``counts`` (N, channels) in place of the run's (an effect added to them).
+    Stamped as :func:`simulate_to_log` stamps, from the Unix time ``epoch_s`` of the twin's
+    clock 0 (the ``epoch_s`` a calibration of it states its time on)."""
     return RunLog(Path(name), twin.documented_device, calibration, None,
-                  np.round((start_s + run.times_s) * 1e9).astype(np.int64),
+                  int(epoch_s) * 1_000_000_000
+                  + np.round((start_s + run.times_s) * 1e9).astype(np.int64),
                   np.asarray(run.counts if counts is None else counts, dtype=np.float64),
                   twin.device.channel_names, run.reference, metadata=run.metadata)
 
@@ -126,7 +130,8 @@ def simulate_to_log(spec: SimulationSpec, out: Path, *, progress: bool = True
     twin = TwinDevice(device, effects, seed=spec.seed)
     device = twin.documented_device      # what the log says of the device, its terminal included
     room = ambient_profile(spec.ambient)
-    calibration = twin.calibrate(spec.calibrate_at_s, room, approaches=spec.calibration_approaches)
+    calibration = twin.calibrate(spec.calibrate_at_s, room, approaches=spec.calibration_approaches,
+                                 epoch_s=spec.epoch_s)
     scenario = make_scenario(spec.scenario, spec.scenario_params)
     chunks = twin.stream(scenario, room, start_s=spec.start_s, reference=spec.reference,
                          sample_rate_hz=spec.sample_rate_hz, chunk_samples=CHUNK)

@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass
+from datetime import datetime, timezone
 from typing import Any, ClassVar
 
 import numpy as np
@@ -178,6 +179,11 @@ class SimulatedRun:
                    machine_joint_names=first.machine_joint_names)
 
 
+def _iso_utc(unix_s: float) -> str:
+    """A Unix time [s] as ISO 8601 text in UTC, to the millisecond."""
+    return datetime.fromtimestamp(unix_s, timezone.utc).isoformat(timespec='milliseconds')
+
+
 def _stating(effects: tuple[str, ...], values: Effects, stating: Any, *figures: float
              ) -> DeviceDescription:
     """``stating(*figures)``: the description stating figures of the effects named, or a
@@ -231,7 +237,9 @@ class TwinDevice:
         (``bars.gravity_sag_uncertainty_nm``) their spread times it (0 without a spread: the
         twin's sag is then its figure; with one, this twin's own sag, alike for its bars, stays
         hidden), and the vertical it sags along (``plates.vertical``) the one the twin stands
-        in: the description's, else level (+z of {L}). What a description states, it keeps.
+        in: the description's, else level (+z of {L}); the bound on the bars' reading drift rate
+        (``bars.drift_nm_per_h``) the effects' largest (each bar's own rate stays hidden). What a
+        description states, it keeps.
         Raises :class:`TwinError` naming the effect whose figure no description may state."""
         device = self.device
         fx = self.effects
@@ -253,6 +261,9 @@ class TwinDevice:
                               sag, sag * fx.gravity_sag_spread)
         if device.vertical is None:
             device = device.with_vertical(device.up)
+        if device.drift_m_per_s is None:
+            device = _stating(('drift_m_per_s',), fx, device.with_reading_drift,
+                              abs(fx.drift_m_per_s))
         return device
 
     # -- bars on the reference plate -----------------------------------------------------------
@@ -387,7 +398,8 @@ class TwinDevice:
         return out
 
     def calibrate(self, at_s: float, ambient: AmbientProfile, settle_s: float = 3.0,
-                  average_s: float = 2.0, approaches: int = 1) -> Calibration:
+                  average_s: float = 2.0, approaches: int = 1, epoch_s: float | None = None
+                  ) -> Calibration:
         """Run the calibration routine of section 3.2 (see :meth:`calibration_schedule`).
 
         Each calibration point is the mean count over its averaging window (of both
@@ -397,8 +409,11 @@ class TwinDevice:
         rests there afterwards without being moved. ``ambient_c`` is the room temperature at
         ``at_s``. The ``uncertainty`` section holds what the captures measured (read noise;
         with two approaches the friction hysteresis and the seating repeatability,
-        :func:`~mmd_ros.core.calibration_routine.capture_uncertainty`). No time stamp or
-        quality figures are invented: ``created`` is empty and ``quality`` is empty.
+        :func:`~mmd_ros.core.calibration_routine.capture_uncertainty`). ``epoch_s``: the Unix
+        time [s] of the twin's clock 0 (what a log of the twin stamps its samples from); with
+        it ``created`` is when the routine ended on that clock (ISO 8601, UTC), what the
+        budget counts the readings' drift from; None leaves it empty. No quality figures are
+        invented: ``quality`` is empty.
         """
         check_clock(at_s, 'the calibration time')
         rate = self.device.sample_rate_hz
@@ -439,7 +454,9 @@ class TwinDevice:
         uncertainty = capture_uncertainty(self.device, captures, readers)
         return Calibration(
             device=self.device.name, bars=bars, thermal_zero_m=zero,
-            ambient_c=float(ambient(at_s)), created='', valid=True, quality={},
+            ambient_c=float(ambient(at_s)),
+            created='' if epoch_s is None else _iso_utc(float(epoch_s) + schedule[-1].end_s),
+            valid=True, quality={},
             uncertainty=uncertainty)
 
     # -- runs ----------------------------------------------------------------------------------
