@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from mmd_ros.analysis import AnalysisOptions, analyze, write_report
+from mmd_ros.analysis.report import format_summary
 from mmd_ros.analysis.data import FRICTION_STATES_KEPT, FitContext, run_pipeline
 from mmd_ros.twin.recording import SimulationSpec, simulate_to_log
 from mmd_ros.cli.main import main
@@ -148,6 +149,31 @@ def test_an_undeclared_effect_is_named_first_and_removed(logs, effect):
         assert 'Not in the model\'s terms: slow drift' in result.conclusion, result.conclusion
     else:
         assert result.model.terms and added['in_terms']
+
+
+@pytest.mark.parametrize('effect', ['sampling_skew', 'hysteresis'])
+def test_logs_longer_than_the_analysis_holds_are_analysed_at_a_lower_rate(logs, effect, capsys):
+    """The analysis holds about 2.7 kB per sample (an hour at 1 kHz would be 10 GB): logs
+    longer together than ``max_log_samples`` are read at every k-th sample. The effects are of
+    the bars' lengths and motion, which a third of the rate still samples: a latch skew and a
+    friction found first as at the full rate, their parameters within 10 % of its fit; the
+    JSON and the report say how many samples were analysed of how many."""
+    scenario, params, with_effect, _, reference, opts = CASES[effect]
+    path = logs(scenario, params, with_effect, reference, **opts)
+    run = read_run(path)
+    full = analyze(run, options=ZEROED)
+    thin = analyze(run, options=AnalysisOptions(datum='offset', max_log_samples=4001))
+    assert thin.every == 3 and thin.recorded_samples == run.n_samples
+    assert thin.times_s.size == -(-run.n_samples // 3)
+    assert [f.effect for f in thin.found][:1] == [effect] == [f.effect for f in full.found][:1]
+    np.testing.assert_allclose(thin.found[0].value, full.found[0].value, rtol=0.1,
+                               atol=0.1 * np.max(np.abs(full.found[0].value)))
+    assert main(['analyze', str(path), '--zeroed-reference', '--json', '--max-log-samples',
+                 '4001']) == 0
+    samples = json.loads(capsys.readouterr().out)['samples']
+    assert samples['analysed_every'] == 3 and samples['recorded_in_all_logs'] == run.n_samples
+    assert 'one sample in 3' in format_summary(thin)
+    assert full.every == 1
 
 
 @pytest.mark.parametrize('effect,seed,with_effect', VARIANTS)

@@ -28,6 +28,7 @@ OUTPUT_FILES = ('report.md', 'analysis.json', 'model.yaml', '*.png')
 MAX_BLOCKS = 10_000
 MAX_SAMPLES = 10_000_000
 MAX_PERIOD_UM = 10_000.0
+MAX_LOG_SAMPLES = 1_000_000_000
 
 
 def _names(text: str | None) -> list[str] | None:
@@ -78,7 +79,7 @@ def run_command(args: argparse.Namespace) -> int:
         max_effects=args.max_effects, datum=args.datum,
         seed=args.seed, cyclic_periods_m=periods, accept_unchecked=args.accept_unchecked,
         axis_motion=not args.no_axis_motion, stated_sag=not args.no_stated_sag,
-        reference_clock=args.reference_clock)
+        reference_clock=args.reference_clock, max_log_samples=args.max_log_samples)
     result = analyze(runs, model, calibration, options, progress=say)
     written = {}
     if args.out:
@@ -123,6 +124,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    default=0.05, dest='min_gain',
                    help='smallest relative fall of the held-out RMS for an effect, in [0, 1) '
                    '(default 0.05)')
+    p.add_argument('--max-log-samples', dest='max_log_samples', default=1_200_000,
+                   type=validate.arg_number(low=1000, high=MAX_LOG_SAMPLES, integer=True),
+                   help='the most samples the analysis holds over all its logs (about 2.7 kB '
+                   'each): longer logs are analysed at every k-th sample, k the smallest that '
+                   'fits (default 1200000: 20 minutes at 1 kHz, about 3.2 GB)')
     p.add_argument('--max-effects', type=validate.arg_number(low=0, high=len(CATALOGUE), integer=True),
                    default=6, dest='max_effects', help='most effects added (default 6)')
     p.add_argument('--cyclic-period-um', dest='cyclic_period_um',

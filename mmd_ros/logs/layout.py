@@ -153,6 +153,23 @@ class RunLog:
         software that marks a missing reading so): not measurements either."""
         return ~np.all(np.isfinite(self.counts), axis=1)
 
+    def every(self, k: int) -> RunLog:
+        """Every k-th sample of the run, the first kept (a lower sample rate), as one log of
+        it; the run itself when k is 1. It keeps the recorded run's hash (a model fitted on it
+        names the run as recorded). The machine's axis values, stamped on their own, stay
+        whole."""
+        if k < 1:
+            raise ValueError(f'k must be a positive integer, got {k!r}')
+        if k == 1:
+            return self
+        rows = slice(None, None, int(k))
+        return replace(
+            self, stamps_ns=self.stamps_ns[rows], counts=self.counts[rows],
+            reference_pose=None if self.reference_pose is None else self.reference_pose[rows],
+            reference_lengths=None if self.reference_lengths is None else self.reference_lengths[rows],
+            status=None if self.status is None else self.status[rows],
+            recorded_hash=self.content_hash())
+
     def without_flagged(self) -> tuple[RunLog, int]:
         """The run without the samples the terminal flagged (:attr:`no_signal`) or with a
         count that is not a number (:attr:`unreadable`): not measurements, and how many were
