@@ -495,6 +495,9 @@ class FitContext:
     residual: FloatArray | None = None
     floor: FloatArray | None = None
     train_idx: NDArray[np.int64] | None = None
+    #: the Unix time of ``times_s`` = 0 (the log's first stamp) [s], or None: not known (the
+    #: budget then claims no drift of the readings since the calibration)
+    epoch_s: float | None = None
 
     def cached(self, key: Any, make: Callable[[], Any]) -> Any:
         if key not in self.cache:

@@ -154,7 +154,8 @@ def _markdown(a: Analysis, figs: dict[str, str], model_path: Path | None) -> str
     L += [f'Log: `{a.log}`  ', f'Reference: {o.description}'
           + (' (a constant offset per component removed: the instrument is zeroed)' if o.datum else '') + '  ',
           f'Samples: {a.times_s.size} over {a.times_s[-1]:.1f} s; {a.split.train_idx.size} for fitting, '
-          f'{a.split.test_idx.size} held out ({a.split.n_blocks} time blocks, one of each pair held out)'
+          f'{a.split.test_idx.size} held out ({a.split.n_blocks} time blocks, one of each pair '
+          'held out)'
           + (f'; one sample in {a.every} of the logs\' {a.recorded_samples} analysed (at most '
              f'{a.options.max_log_samples} held: `--max-log-samples`)' if a.every > 1 else ''),
           '']

@@ -336,7 +336,7 @@ def _observing(ctx: FitContext, processed: Processed, model: Model) -> tuple[Len
     def make() -> tuple[LengthBudget, Observed]:
         budget = LengthBudget(ctx.device, ctx.calibration, model)
         observed = budget.observe(processed.cdf_lengths_m, processed.reference_error_m,
-                                  ctx.times_s, processed.poses)
+                                  ctx.times_s, processed.poses, ctx.epoch_s)
         if ctx.obs.lag is not None:
             # a residual with the reference's lag taken out holds nothing of a common delay
             # of the bars' channels (one direction with it): the latch skew's claim, which
@@ -637,7 +637,8 @@ def fit_uncertainty(ctx: FitContext, found: list[FittedEffect], runs: list[Resid
     fit = FitUncertainty(run_own, (), 1.0, directions, mean_terms,
                          {'residual_from': ('logs the fit did not see (leave-one-run-out)' if unseen
                                             else 'held-out blocks of the fitted logs')},
-                         measured_read_noise([run.ctx for run in runs]), rest_terms_m2=rest)
+                         measured_read_noise([run.ctx for run in runs]), rest_terms_m2=rest,
+                         measured_unix_s=_measured_at(runs))
     _sized_from(fit, ctx, found, runs, model, unseen, growing)
     # a form of an effect the logs could not rule out (a cyclic error the calibration read,
     # fitted from one component): the change to it is claimed too, after the residual and the
@@ -649,6 +650,18 @@ def fit_uncertainty(ctx: FitContext, found: list[FittedEffect], runs: list[Resid
             fit.directions.append(terms)
             fit.mean_terms_m2 = fit.mean_terms_m2 + mean
     return fit
+
+
+def _measured_at(runs: list[ResidualRun]) -> float | None:
+    """The mean Unix time of the samples the residual is measured on [s], or None when a
+    log's time is not known."""
+    if not runs or any(run.ctx.epoch_s is None for run in runs):
+        return None
+    total = sum(run.idx.size for run in runs)
+    if not total:
+        return None
+    return sum(run.ctx.epoch_s * run.idx.size + float(np.sum(run.ctx.times_s[run.idx]))
+               for run in runs) / total
 
 
 def _sized_from(fit: FitUncertainty, ctx: FitContext, found: list[FittedEffect],

@@ -127,7 +127,8 @@ class Observed:
     n_z2 : (N, 6) — each bar's n_z^2 at the sample's pose (its axis' vertical component,
         squared: its gravity sag reads it g n_z^2 short; None without a stated sag or a pose)
     since_calibration_s : (N,) — how long before or after the calibration each sample was
-        taken [s, >= 0]; None when that is not known (or no drift rate is stated)
+        taken (or a fit measured its residual, when later) [s, >= 0]; None when that is not
+        known (or no drift rate is stated)
     """
 
     read_noise_m: FloatArray
@@ -449,16 +450,26 @@ class LengthBudget:
         # -- the readings' drift since the calibration: at constant length and temperature a
         # channel's reading moves at a rate anywhere within the stated bound r (rectangular,
         # GUM 4.3.7), r t / sqrt(3) after a time t; the reference bar's through Eq. 13 into
-        # every bar. Counted from the calibration's time (``created``): the samples' times on
-        # the same clock come with them (:meth:`observe`)
+        # every bar. Counted from the calibration's time (``created``), or, when a fit's
+        # residual replaced it, from when that residual was measured (the later of the two):
+        # the residual holds what had drifted by then. The samples' times on the same clock
+        # come with them (:meth:`observe`)
         rate = device.drift_m_per_s
         self.drift_rate_m_per_s = float(rate or 0.0)
         self.calibrated_s = calibration.created_s
+        measured = None if fit is None else fit.measured_unix_s
+        if fit is not None and 'reading_drift' in fit.replaces and measured is not None:
+            self.drift_from_s: float | None = (measured if self.calibrated_s is None
+                                               else max(measured, self.calibrated_s))
+            self._drift_factor = 1.0
+        else:
+            self.drift_from_s = self.calibrated_s
+            self._drift_factor = 1.0 if fit is None else fit.systematic_scale
         if rate is None:
             self.notes.append('reading drift: the device description does not state the bars\' '
                               'drift rate (bars.drift_nm_per_h); the drift of the readings since '
                               'the calibration is not claimed')
-        elif rate > 0.0 and self.calibrated_s is None:
+        elif rate > 0.0 and self.drift_from_s is None:
             self.notes.append('reading drift: the calibration does not say when it was made '
                               '(created); the drift of the readings since then is not claimed')
 
@@ -638,10 +649,10 @@ class LengthBudget:
             n_z2 = np.nan_to_num(GravitySagTerm.features(
                 *self._joints, np.asarray(poses, dtype=np.float64), self._up))
         since = None
-        if self.drift_rate_m_per_s and self.calibrated_s is not None and epoch_s is not None:
+        if self.drift_rate_m_per_s and self.drift_from_s is not None and epoch_s is not None:
             t = (np.arange(n) / self.device.sample_rate_hz if times_s is None
                  else np.asarray(times_s, dtype=np.float64))
-            since = np.abs(t + (float(epoch_s) - self.calibrated_s))
+            since = np.abs(t + (float(epoch_s) - self.drift_from_s))
         return Observed(self._resolve(est), directions, velocity, settled, n_z2, since)
 
     def _resolve(self, estimate: FloatArray) -> FloatArray:
@@ -766,7 +777,8 @@ class LengthBudget:
         when not claimed (no rate stated, or the calibration's or the samples' time unknown)."""
         if observed is None or observed.since_calibration_s is None:
             return None
-        return (self.drift_rate_m_per_s * observed.since_calibration_s) ** 2 / 3.0
+        rate = self.drift_rate_m_per_s
+        return self._drift_factor * (rate * observed.since_calibration_s) ** 2 / 3.0
 
     def _reading_drift_cov(self, var: FloatArray, weights: FloatArray | None) -> FloatArray:
         """Its covariance over the six bars, (N, 6, 6) [m^2]: each measuring bar's own, and
@@ -1292,6 +1304,7 @@ class LengthBudget:
             'vertical': [round(float(v), 6) for v in self._up],
             'drift_nm_per_h': round(self.drift_rate_m_per_s * 1e9 * 3600.0, 6),
             'calibrated_unix_s': self.calibrated_s,
+            'drift_counted_from_unix_s': self.drift_from_s,
             'subdivision_nm': round(self.subdivision_m * 1e9, 3),
             'signal_period_um': round(self.signal_period_m * 1e6, 6),
             'subdivision_left_nm': [round(math.sqrt(2.0 * v) * 1e9, 3) for v in self.subdivision_left_m2],

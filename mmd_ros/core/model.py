@@ -222,12 +222,13 @@ class HysteresisTerm(ModelTerm):
 
 
 #: Sources of the uncertainty budget that a fit's measured residual may stand in for: the
-#: systematic errors derived from the calibration (msg_docs/frames.md).
+#: systematic errors derived from the calibration (msg_docs/frames.md), and what the readings
+#: had drifted since it by the time the residual was measured (they drift on from there).
 FIT_REPLACEABLE = ('calibration_points', 'calibration_drift', 'reference_distances', 'interpolation',
-                   'subdivision', 'hysteresis', 'gravity_sag')
+                   'subdivision', 'hysteresis', 'gravity_sag', 'reading_drift')
 #: Keys of a model file's ``uncertainty.fit`` section.
 FIT_KEYS = ('residual_nm2', 'replaces', 'systematic_scale', 'mean_terms_nm2', 'directions', 'from',
-            'read_noise_nm', 'flank_nm2', 'rest_terms_nm2', 'profile')
+            'read_noise_nm', 'flank_nm2', 'rest_terms_nm2', 'profile', 'measured_unix_s')
 #: Most lengths per bar of a residual's length profile in a model file.
 PROFILE_POINTS = 1000
 
@@ -343,6 +344,9 @@ class FitUncertainty:
         is claimed [m^2]
     profile : where along each bar's length the residual lay (:class:`LengthProfile`), or None:
         the residual claimed alike at every length
+    measured_unix_s : when the residual was measured: the mean Unix time of the samples it
+        was measured on [s], or None (not known). It holds what the readings had drifted by
+        then; the budget counts their drift from there (the later of it and the calibration)
     """
 
     residual_m2: FloatArray = field(default_factory=lambda: np.zeros((6, 6)))
@@ -355,6 +359,7 @@ class FitUncertainty:
     flank_m2: FloatArray = field(default_factory=lambda: np.zeros(6))
     rest_terms_m2: FloatArray = field(default_factory=lambda: np.zeros((6, 6)))
     profile: LengthProfile | None = None
+    measured_unix_s: float | None = None
 
     def reset(self) -> None:
         for group in self.directions:
@@ -378,6 +383,8 @@ class FitUncertainty:
             **({} if not np.any(self.rest_terms_m2) else
                {'rest_terms_nm2': (self.rest_terms_m2 * nm2).tolist()}),
             **({} if self.profile is None else {'profile': self.profile.to_dict()}),
+            **({} if self.measured_unix_s is None else
+               {'measured_unix_s': round(float(self.measured_unix_s), 3)}),
         }
 
     @classmethod
@@ -419,8 +426,11 @@ class FitUncertainty:
                         f'{path}.rest_terms_nm2') * 1e-18
         profile = (None if data.get('profile') is None
                    else LengthProfile.from_dict(data['profile'], source, f'{path}.profile'))
+        measured = (None if data.get('measured_unix_s') is None
+                    else f.number(data, 'measured_unix_s', path, low=0.0, high=1e11))
         return cls(residual, tuple(replaces), scale, directions, mean_terms,
-                   dict(record) if isinstance(record, dict) else {}, noise, flank, rest, profile)
+                   dict(record) if isinstance(record, dict) else {}, noise, flank, rest, profile,
+                   measured)
 
 
 @dataclass

@@ -166,7 +166,8 @@ class RunLog:
         return replace(
             self, stamps_ns=self.stamps_ns[rows], counts=self.counts[rows],
             reference_pose=None if self.reference_pose is None else self.reference_pose[rows],
-            reference_lengths=None if self.reference_lengths is None else self.reference_lengths[rows],
+            reference_lengths=(None if self.reference_lengths is None
+                               else self.reference_lengths[rows]),
             status=None if self.status is None else self.status[rows],
             recorded_hash=self.content_hash())
 
