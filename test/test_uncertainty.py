@@ -882,6 +882,15 @@ def test_without_a_stated_rate_or_the_calibration_s_time_the_drift_is_not_claime
     assert 'reading_drift' not in budget.variances(x, np.zeros((3, 1)), np.zeros(3),
                                                    observed=observed)
     assert budget.summary()['drift_nm_per_h'] == pytest.approx(36.0)
+    # a log stamped from 0 (a simulated clock) says nothing of the time since the calibration:
+    # 54 years of drift are not claimed, and the notes say why
+    timed_budget = LengthBudget(twin.documented_device, timed, Model())
+    from_zero = timed_budget.observe(x, np.zeros((3, 1)), np.arange(3.0), epoch_s=0.0)
+    assert from_zero.since_calibration_s is None
+    assert any('wall clock' in n for n in timed_budget.notes)
+    on_the_clock = timed_budget.observe(x, np.zeros((3, 1)), np.arange(3.0),
+                                        epoch_s=timed.created_s + 3600.0)
+    np.testing.assert_allclose(on_the_clock.since_calibration_s, [3600.0, 3601.0, 3602.0])
 
 
 def test_after_a_fit_the_drift_is_counted_from_when_its_residual_was_measured(tmp_path):

@@ -240,6 +240,13 @@ class _Friction:
         return out, settled
 
 
+#: Unix times before this (2001-09-09) are not a wall clock's: a log stamped from 0 (a simulated
+#: clock, a clock since boot) does not say how long after the calibration its samples were taken.
+WALL_CLOCK_FROM_S = 1e9
+NOT_WALL_CLOCK = ('reading drift: the samples or the calibration are not stamped on a wall clock '
+                  '(before 2001); the drift of the readings since the calibration is not claimed')
+
+
 #: The budget's sources, in the order reports list them.
 SOURCES = ('quantisation', 'read_noise', 'reference_bar', 'reading_drift', 'calibration_points',
            'calibration_drift', 'reference_distances', 'interpolation', 'subdivision',
@@ -649,10 +656,13 @@ class LengthBudget:
             n_z2 = np.nan_to_num(GravitySagTerm.features(
                 *self._joints, np.asarray(poses, dtype=np.float64), self._up))
         since = None
-        if self.drift_rate_m_per_s and self.drift_from_s is not None and epoch_s is not None:
+        if self.drift_rate_m_per_s and self.drift_from_s is not None and epoch_s is not None and n:
             t = (np.arange(n) / self.device.sample_rate_hz if times_s is None
                  else np.asarray(times_s, dtype=np.float64))
-            since = np.abs(t + (float(epoch_s) - self.drift_from_s))
+            if min(float(t[0]) + float(epoch_s), self.drift_from_s) >= WALL_CLOCK_FROM_S:
+                since = np.abs(t + (float(epoch_s) - self.drift_from_s))
+            elif NOT_WALL_CLOCK not in self.notes:
+                self.notes.append(NOT_WALL_CLOCK)
         return Observed(self._resolve(est), directions, velocity, settled, n_z2, since)
 
     def _resolve(self, estimate: FloatArray) -> FloatArray:
