@@ -163,13 +163,17 @@ class RunLog:
         if k == 1:
             return self
         rows = slice(None, None, int(k))
+        return self._taking(rows, None if self.status is None else self.status[rows])
+
+    def _taking(self, rows: Any, status: NDArray[np.uint8] | None) -> RunLog:
+        """The samples ``rows`` of the run (a mask or a slice), with ``status``; the recorded
+        run's hash kept."""
         return replace(
             self, stamps_ns=self.stamps_ns[rows], counts=self.counts[rows],
             reference_pose=None if self.reference_pose is None else self.reference_pose[rows],
             reference_lengths=(None if self.reference_lengths is None
                                else self.reference_lengths[rows]),
-            status=None if self.status is None else self.status[rows],
-            recorded_hash=self.content_hash())
+            status=status, recorded_hash=self.content_hash())
 
     def without_flagged(self) -> tuple[RunLog, int]:
         """The run without the samples the terminal flagged (:attr:`no_signal`) or with a
@@ -181,12 +185,7 @@ class RunLog:
         n = int(drop.sum())
         if n == 0:
             return self, 0
-        keep = ~drop
-        return replace(
-            self, stamps_ns=self.stamps_ns[keep], counts=self.counts[keep],
-            reference_pose=None if self.reference_pose is None else self.reference_pose[keep],
-            reference_lengths=None if self.reference_lengths is None else self.reference_lengths[keep],
-            status=None, recorded_hash=self.content_hash()), n
+        return self._taking(~drop, None), n
 
     @property
     def times_s(self) -> NDArray[np.float64]:
