@@ -1231,8 +1231,10 @@ class LengthBudget:
         if drift is not None:
             total += drift[:, :, None] * drift[:, None, :]
         drift_var = self._reading_drift(observed)
-        if drift_var is not None:
-            total += self._reading_drift_cov(drift_var, None)
+        if drift_var is not None:       # (:meth:`_reading_drift_cov`, added in place)
+            total[:, rows[0], rows[0]] += drift_var[:, None]
+            if self.thermal_mode == 'single':
+                total += drift_var[:, None, None]
         if self.thermal_mode == 'single':
             cross = self._cross(noise[-1, 6:], eps)[:, 0]
             ref = (np.maximum(fast['q12'] + noise[:, 6] ** 2 + self.zero_var_m2 - 2.0 * cross, 0.0)
