@@ -249,6 +249,7 @@ def test_flagged_samples_give_no_length_and_no_pose(device, source):
     r = compensation_report(comp, 2.0, 'default')
     assert r.level == 1 and 'encoder signal lost' in r.message and 'bar3' in r.message
     assert r.values['samples_without_signal'] == lost.n + both.n
+    assert np.isnan(r.values['reading_drift_um'])       # the twin's calibration states no time
 
 
 @needs_ros

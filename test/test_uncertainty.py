@@ -891,6 +891,11 @@ def test_without_a_stated_rate_or_the_calibration_s_time_the_drift_is_not_claime
     on_the_clock = timed_budget.observe(x, np.zeros((3, 1)), np.arange(3.0),
                                         epoch_s=timed.created_s + 3600.0)
     np.testing.assert_allclose(on_the_clock.since_calibration_s, [3600.0, 3601.0, 3602.0])
+    # what the nodes' diagnostics report of it: one channel's sigma an hour on
+    assert timed_budget.reading_drift_sigma_m(timed.created_s + 3600.0) == pytest.approx(
+        36e-9 / math.sqrt(3.0))
+    assert math.isnan(budget.reading_drift_sigma_m(timed.created_s + 3600.0))
+    assert math.isnan(timed_budget.reading_drift_sigma_m(3600.0))
 
 
 def test_after_a_fit_the_drift_is_counted_from_when_its_residual_was_measured(tmp_path):

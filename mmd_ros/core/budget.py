@@ -790,6 +790,16 @@ class LengthBudget:
         rate = self.drift_rate_m_per_s
         return self._drift_factor * (rate * observed.since_calibration_s) ** 2 / 3.0
 
+    def reading_drift_sigma_m(self, unix_s: float) -> float:
+        """One sigma of each channel's reading drift at the Unix time ``unix_s`` [m], counted
+        as the budget counts it (from the calibration, or from when a fit measured its
+        residual); NaN when the budget claims none (no rate stated, no time, no wall clock).
+        A bar's length carries its own and, through Eq. (13), the reference bar's."""
+        start = self.drift_from_s
+        if not self.drift_rate_m_per_s or start is None or min(unix_s, start) < WALL_CLOCK_FROM_S:
+            return math.nan
+        return math.sqrt(self._drift_factor / 3.0) * self.drift_rate_m_per_s * abs(unix_s - start)
+
     def _reading_drift_cov(self, var: FloatArray, weights: FloatArray | None) -> FloatArray:
         """Its covariance over the six bars, (N, 6, 6) [m^2]: each measuring bar's own, and
         the reference bar's, which Eq. (13) subtracts from every bar (Eq. (12): each reference

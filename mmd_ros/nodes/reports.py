@@ -21,6 +21,13 @@ def calibration_age_s(calibration: Calibration | None) -> float:
     return math.nan if when is None else time.time() - when
 
 
+def _reading_drift_um(comp: Compensator) -> float:
+    """One sigma of each channel's reading drift since the calibration now, as the budget
+    claims it [um] (NaN when it claims none)."""
+    budget = comp.budget
+    return math.nan if budget is None else round(budget.reading_drift_sigma_m(time.time()) * 1e6, 4)
+
+
 def compensation_report(comp: Compensator, thermal_warn_c: float, model_source: str) -> Report:
     """Calibration in use, thermal drift since the thermal zero (Eq. 11), bars out of range."""
     st = comp.stats
@@ -62,6 +69,7 @@ def compensation_report(comp: Compensator, thermal_warn_c: float, model_source: 
         'calibration_valid': bool(cal is not None and cal.valid and comp.ready),
         'calibration_created': cal.created if cal is not None else '',
         'calibration_age_s': round(calibration_age_s(cal), 1),
+        'reading_drift_um': _reading_drift_um(comp),
         'model': model_source,
         'thermal_mode': comp.model.thermal_mode,
         'reference_bars': n_refs,
