@@ -108,7 +108,8 @@ def judge(errors: list[np.ndarray], covs: list[np.ndarray], tails: list[np.ndarr
 
 def run_case(device, name: str, scenario: str, runs: int, seconds: float, after: bool,
              approaches: int = 2, datum: str = 'none', stated_sag: bool = True,
-             lengths: bool = False, clock: str = 'shared', session: bool = False) -> dict:
+             lengths: bool = False, clock: str = 'shared', session: bool = False,
+             later_h: float = 0.0) -> dict:
     preset, effect_params, ambient = CASES[name]
     kind, params, rate = SCENARIOS[scenario]
     room = ambient_profile(ambient)
@@ -125,6 +126,7 @@ def run_case(device, name: str, scenario: str, runs: int, seconds: float, after:
                                    else fit(twin, room, calibration, k, datum, stated_sag, clock))
             notes.append(found)
         p = [v.format(seconds=seconds, k=k) for v in params]
+        start += 3600.0 * later_h        # (the judged run hours after the fit or calibration)
         run = twin.simulate(make_scenario(kind, p), room, start_s=start, reference='pose6',
                             sample_rate_hz=rate)
         pipeline = Pipeline(twin.documented_device, calibration, model)
@@ -148,6 +150,7 @@ def run_case(device, name: str, scenario: str, runs: int, seconds: float, after:
         flank.append(inside[-1] & np.any(pipeline.budget.flank(cdf), axis=1))
     out = {'case': name, 'scenario': scenario, 'runs': runs, 'after_analysis': after,
            'calibration_approaches': approaches, 'judged': 'lengths' if lengths else 'pose',
+           'later_h': later_h,
            **judge(errors, covs, tails),
            'common_mode_nm': [[round(m * 1e9, 1), round(c * 1e9, 1)] for m, c in common]}
     if notes:
@@ -278,6 +281,10 @@ def main() -> None:
                         help='with --after: each twin\'s model fitted on a session as make demo '
                         'records one (x, y lasers, a C rotary run, 60 s of 6-DOF motion; '
                         'leave-one-run-out) instead of one 60 s 6-DOF run')
+    parser.add_argument('--later-h', type=float, default=0.0, dest='later_h', metavar='H',
+                        help='judge each twin on a run H hours later than by default (after its '
+                        'calibration, or after the run --after fits): the room\'s course and the '
+                        'readings\' drift in between')
     parser.add_argument('--build', type=int, default=0, metavar='N',
                         help='time a budget\'s construction N times, its interpolation fit anew '
                         'and kept (instead of the coverage cases)')
@@ -293,7 +300,8 @@ def main() -> None:
     for name in args.cases.split(','):
         t0 = time.perf_counter()
         r = run_case(device, name, args.scenario, args.runs, args.seconds, args.after, args.approaches,
-                     args.datum, not args.no_stated_sag, args.lengths, args.clock, args.session)
+                     args.datum, not args.no_stated_sag, args.lengths, args.clock, args.session,
+                     args.later_h)
         r['seconds'] = round(time.perf_counter() - t0, 1)
         results.append(r)
         print(f'{name:17s} {args.scenario:8s} ratio ' + ' '.join(f'{v:.2f}' for v in r['ratio'])

@@ -320,6 +320,11 @@ class LengthBudget:
         self.thermal_mode = mode
         self.ref_distances_m = np.array([device.pair(c.pair).distance_m for c in refs])
         self.scale_cte = device.scale_cte_per_c
+        if mode != 'off' and device.plate_cte_per_c:
+            self.notes.append('plates\' scale: the translations are scaled for the plates\' '
+                              'expansion at the temperature change the reference bar implies '
+                              'through the description\'s CTEs (Eq. 11); an error of those CTEs '
+                              'or of the plates\' temperature is not claimed')
 
         # -- read noise: the model's figure, else the stream's, else the larger of the
         # calibration's and what an analysis measured where the bars of its logs stood still
