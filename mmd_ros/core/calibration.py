@@ -35,7 +35,7 @@ from mmd_ros.core.yamlio import (
 
 __all__ = ['AMBIENT_RANGE_C', 'BarCalibration', 'Calibration', 'CdfBank', 'CentreDistanceFunction',
            'RecoveredCalibration', 'TerminalBinding', 'binding_problem', 'channel_roles',
-           'load_calibration', 'recover_interrupted_save']
+           'iso_utc', 'load_calibration', 'recover_interrupted_save', 'unix_seconds']
 
 FloatArray = NDArray[np.float64]
 #: The keys of a calibration file, of one bar's points and of the terminal it was made with;
@@ -212,6 +212,23 @@ def binding_problem(calibration: Calibration, terminal: TerminalBinding) -> str 
     return None
 
 
+def unix_seconds(when: str) -> float | None:
+    """An ISO 8601 time as a Unix time [s] (one without a zone taken as UTC), or None when
+    the text is not one."""
+    try:
+        stamp = datetime.fromisoformat(when)
+    except (TypeError, ValueError):
+        return None
+    if stamp.tzinfo is None:
+        stamp = stamp.replace(tzinfo=timezone.utc)
+    return stamp.timestamp()
+
+
+def iso_utc(unix_s: float) -> str:
+    """A Unix time [s] as ISO 8601 text in UTC, to the millisecond (what ``created`` holds)."""
+    return datetime.fromtimestamp(unix_s, timezone.utc).isoformat(timespec='milliseconds')
+
+
 @dataclass(frozen=True)
 class Calibration:
     """The calibration of a whole device.
@@ -240,15 +257,9 @@ class Calibration:
 
     @property
     def created_s(self) -> float | None:
-        """When the calibration was made (``created``) as a Unix time [s] (a time without a
-        zone taken as UTC), or None when it does not say."""
-        try:
-            when = datetime.fromisoformat(self.created)
-        except (TypeError, ValueError):
-            return None
-        if when.tzinfo is None:
-            when = when.replace(tzinfo=timezone.utc)
-        return when.timestamp()
+        """When the calibration was made (``created``) as a Unix time [s], or None when it
+        does not say (:func:`unix_seconds`)."""
+        return unix_seconds(self.created)
 
     def cdfs(self, channels: list[str], growth: float = 1.0) -> list[CentreDistanceFunction]:
         missing = [c for c in channels if c not in self.bars]

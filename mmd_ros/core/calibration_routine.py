@@ -32,13 +32,12 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, replace
-from datetime import datetime, timezone
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from mmd_ros.core.calibration import BarCalibration, Calibration
+from mmd_ros.core.calibration import BarCalibration, Calibration, unix_seconds
 from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.errors import CalibrationError
 from mmd_ros.core.thermal import ReferenceBar, ThermalCompensation
@@ -321,13 +320,8 @@ def bar_quality(bar: BarCalibration, resolution_m: float, noise_m: float | None 
 
 def _seconds(when: str) -> float:
     """An ISO 8601 time as seconds since the epoch, NaN when it is not one."""
-    try:
-        stamp = datetime.fromisoformat(when)
-    except (TypeError, ValueError):
-        return math.nan
-    if stamp.tzinfo is None:
-        stamp = stamp.replace(tzinfo=timezone.utc)
-    return stamp.timestamp()
+    stamp = unix_seconds(when)
+    return math.nan if stamp is None else stamp
 
 
 class CalibrationRoutine:

@@ -27,9 +27,9 @@ import math
 import os
 import tempfile
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
-from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
@@ -39,7 +39,8 @@ from rclpy.parameter import Parameter
 from std_srvs.srv import Trigger
 
 from mmd_ros.core.calibration import (
-    Calibration, TerminalBinding, binding_problem, load_calibration, recover_interrupted_save,
+    Calibration, TerminalBinding, binding_problem, iso_utc, load_calibration,
+    recover_interrupted_save,
 )
 from mmd_ros.core.calibration_routine import CalibrationRoutine, RoutineSettings, Window
 from mmd_ros.core.device import DeviceDescription
@@ -72,7 +73,7 @@ def why_not(exc: OSError) -> str:
 
 
 def now_iso() -> str:
-    return datetime.now(timezone.utc).isoformat(timespec='milliseconds')
+    return iso_utc(time.time())
 
 
 #: Parameter of the nodes that check a calibration against the terminal.

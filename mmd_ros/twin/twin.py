@@ -20,13 +20,12 @@ from __future__ import annotations
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass
-from datetime import datetime, timezone
 from typing import Any, ClassVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from mmd_ros.core.calibration import BarCalibration, Calibration
+from mmd_ros.core.calibration import BarCalibration, Calibration, iso_utc
 from mmd_ros.core.calibration_routine import CaptureStats, capture_uncertainty
 from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.errors import ConfigError
@@ -177,11 +176,6 @@ class SimulatedRun:
                    metadata=first.metadata, targets=targets, start_s=first.start_s,
                    start_sample=first.start_sample, machine_joints=joints,
                    machine_joint_names=first.machine_joint_names)
-
-
-def _iso_utc(unix_s: float) -> str:
-    """A Unix time [s] as ISO 8601 text in UTC, to the millisecond."""
-    return datetime.fromtimestamp(unix_s, timezone.utc).isoformat(timespec='milliseconds')
 
 
 def _stating(effects: tuple[str, ...], values: Effects, stating: Any, *figures: float
@@ -455,7 +449,7 @@ class TwinDevice:
         return Calibration(
             device=self.device.name, bars=bars, thermal_zero_m=zero,
             ambient_c=float(ambient(at_s)),
-            created='' if epoch_s is None else _iso_utc(float(epoch_s) + schedule[-1].end_s),
+            created='' if epoch_s is None else iso_utc(float(epoch_s) + schedule[-1].end_s),
             valid=True, quality={},
             uncertainty=uncertainty)
 
