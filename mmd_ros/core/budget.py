@@ -664,7 +664,7 @@ class LengthBudget:
         if self.drift_rate_m_per_s and self.drift_from_s is not None and epoch_s is not None and n:
             t = (np.arange(n) / self.device.sample_rate_hz if times_s is None
                  else np.asarray(times_s, dtype=np.float64))
-            if min(float(t[0]) + float(epoch_s), self.drift_from_s) >= WALL_CLOCK_FROM_S:
+            if self._on_wall_clock(float(t[0]) + float(epoch_s)):
                 since = np.abs(t + (float(epoch_s) - self.drift_from_s))
             elif NOT_WALL_CLOCK not in self.notes:
                 self.notes.append(NOT_WALL_CLOCK)
@@ -719,7 +719,8 @@ class LengthBudget:
                 t.weight_var = ref_var[:, [0, -1]]
         drift = self._reading_drift(observed)
         if drift is not None:
-            t.full['reading_drift'] = self._reading_drift_cov(drift, t.weights)
+            t.full['reading_drift'] = self._add_reading_drift(np.zeros((n, 6, 6)), drift,
+                                                              t.weights)
         # what depends on a bar's length only, through the hat functions of Eq. (10):
         # tabulated once per bar on a fine grid, read by linear interpolation
         tables = self._tables()
@@ -792,8 +793,16 @@ class LengthBudget:
         when not claimed (no rate stated, or the calibration's or the samples' time unknown)."""
         if observed is None or observed.since_calibration_s is None:
             return None
-        rate = self.drift_rate_m_per_s
-        return self._drift_factor * (rate * observed.since_calibration_s) ** 2 / 3.0
+        return self._drift_var(observed.since_calibration_s)
+
+    def _drift_var(self, since_s: Any) -> Any:
+        """(r t)^2 / 3 after the times ``since_s`` [s], times a fit's scale [m^2]."""
+        return self._drift_factor * (self.drift_rate_m_per_s * since_s) ** 2 / 3.0
+
+    def _on_wall_clock(self, unix_s: float) -> bool:
+        """Whether a sample at ``unix_s`` and the time the drift is counted from are both
+        stamped on a wall clock (:data:`WALL_CLOCK_FROM_S`)."""
+        return min(unix_s, self.drift_from_s) >= WALL_CLOCK_FROM_S
 
     def reading_drift_sigma_m(self, unix_s: float) -> float:
         """One sigma of each channel's reading drift at the Unix time ``unix_s`` [m], counted
@@ -801,15 +810,17 @@ class LengthBudget:
         residual); NaN when the budget claims none (no rate stated, no time, no wall clock).
         A bar's length carries its own and, through Eq. (13), the reference bar's."""
         start = self.drift_from_s
-        if not self.drift_rate_m_per_s or start is None or min(unix_s, start) < WALL_CLOCK_FROM_S:
+        if not self.drift_rate_m_per_s or start is None or not self._on_wall_clock(unix_s):
             return math.nan
-        return math.sqrt(self._drift_factor / 3.0) * self.drift_rate_m_per_s * abs(unix_s - start)
+        return math.sqrt(self._drift_var(abs(unix_s - start)))
 
-    def _reading_drift_cov(self, var: FloatArray, weights: FloatArray | None) -> FloatArray:
-        """Its covariance over the six bars, (N, 6, 6) [m^2]: each measuring bar's own, and
-        the reference bar's, which Eq. (13) subtracts from every bar (Eq. (12): each reference
-        bar's with its interpolation weights)."""
-        out = var[:, None, None] * np.eye(6)
+    def _add_reading_drift(self, out: FloatArray, var: FloatArray, weights: FloatArray | None
+                           ) -> FloatArray:
+        """Its covariance over the six bars added to ``out`` (N, 6, 6) [m^2], which is
+        returned: each measuring bar's own, and the reference bar's, which Eq. (13) subtracts
+        from every bar (Eq. (12): each reference bar's with its interpolation weights)."""
+        idx = np.arange(6)
+        out[:, idx, idx] += var[:, None]
         if self.thermal_mode == 'single':
             out += var[:, None, None]
         elif weights is not None:
@@ -1246,10 +1257,8 @@ class LengthBudget:
         if drift is not None:
             total += drift[:, :, None] * drift[:, None, :]
         drift_var = self._reading_drift(observed)
-        if drift_var is not None:       # (:meth:`_reading_drift_cov`, added in place)
-            total[:, rows[0], rows[0]] += drift_var[:, None]
-            if self.thermal_mode == 'single':
-                total += drift_var[:, None, None]
+        if drift_var is not None:
+            self._add_reading_drift(total, drift_var, None)
         if self.thermal_mode == 'single':
             cross = self._cross(noise[-1, 6:], eps)[:, 0]
             ref = (np.maximum(fast['q12'] + noise[:, 6] ** 2 + self.zero_var_m2 - 2.0 * cross, 0.0)
