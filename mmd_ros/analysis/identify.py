@@ -1974,7 +1974,7 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
     say = progress or (lambda text: None)
     _check_one_device(logs)
     recorded = sum(run.n_samples for run in logs)
-    logs, one_in = _thinned(logs, o.max_log_samples, say)
+    logs, one_in = _thinned(logs, recorded, o.max_log_samples, say)
     model = model or logs[0].model or Model()
     datums, passes = [], []
     for run in logs:
@@ -2318,15 +2318,14 @@ def _epoch_s(run: RunLog) -> float | None:
 BYTES_PER_SAMPLE = 2700
 
 
-def _thinned(logs: list[RunLog], most: int, say: Callable[[str], None]
+def _thinned(logs: list[RunLog], total: int, most: int, say: Callable[[str], None]
              ) -> tuple[list[RunLog], int]:
-    """The logs at every k-th sample, k the smallest that keeps their samples together within
+    """The logs at every k-th sample, k the smallest that keeps their ``total`` samples within
     ``most``, and k (1: as recorded). The analysis holds about :data:`BYTES_PER_SAMPLE` per
     sample, so that an hour at 1 kHz would need 10 GB; the effects it fits are of the bars'
     lengths, their motion and time, which a lower rate still samples (a friction state turns
     over within micrometres of travel, a latch skew follows the velocity a backward difference
     over k samples gives, up to the 0.1 s beyond which it is not formed)."""
-    total = sum(run.n_samples for run in logs)
     if most < 1:
         raise AnalysisError(f'max_log_samples must be at least 1, got {most}')
     if total <= most:

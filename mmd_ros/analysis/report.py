@@ -155,10 +155,7 @@ def _markdown(a: Analysis, figs: dict[str, str], model_path: Path | None) -> str
           + (' (a constant offset per component removed: the instrument is zeroed)' if o.datum else '') + '  ',
           f'Samples: {a.times_s.size} over {a.times_s[-1]:.1f} s; {a.split.train_idx.size} for fitting, '
           f'{a.split.test_idx.size} held out ({a.split.n_blocks} time blocks, one of each pair '
-          'held out)'
-          + (f'; one sample in {a.every} of the logs\' {a.recorded_samples} analysed (at most '
-             f'{a.options.max_log_samples} held: `--max-log-samples`)' if a.every > 1 else ''),
-          '']
+          'held out)' + (f'; {_thinning(a)}' if a.every > 1 else ''), '']
     for run in a.runs:
         if run.log_problem:
             L += [f'**`{run.name}` was not read whole:** {run.log_problem["message"]}', '']
@@ -291,14 +288,19 @@ def _runs_table(a: Analysis) -> list[str]:
     return lines
 
 
+def _thinning(a: Analysis) -> str:
+    """How many of the logs' samples a long session's analysis read (:attr:`Analysis.every`)."""
+    return (f'analysed one sample in {a.every} of the logs\' {a.recorded_samples} (at most '
+            f'{a.options.max_log_samples} held: --max-log-samples)')
+
+
 def format_summary(a: Analysis) -> str:
     """A few lines for the terminal."""
     lines = [f'residual of the current model ({a.obs.description}), held-out RMS: '
              + ', '.join(f'{s.name} {s.rms:.3g} {_u(s.unit)}' for s in a.stats_before)]
     lines.append(f'validation: {a.validation}')
     if a.every > 1:
-        lines.append(f'analysed one sample in {a.every} of the logs\' {a.recorded_samples} (at '
-                     f'most {a.options.max_log_samples} held: --max-log-samples)')
+        lines.append(_thinning(a))
     for text in a.stated:
         lines.append(f'started from {text} (the figures before include it)')
     for r in a.runs:

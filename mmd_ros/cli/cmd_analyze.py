@@ -124,11 +124,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                    default=0.05, dest='min_gain',
                    help='smallest relative fall of the held-out RMS for an effect, in [0, 1) '
                    '(default 0.05)')
-    p.add_argument('--max-log-samples', dest='max_log_samples', default=1_200_000,
+    held = AnalysisOptions.max_log_samples
+    p.add_argument('--max-log-samples', dest='max_log_samples', default=held,
                    type=validate.arg_number(low=1000, high=MAX_LOG_SAMPLES, integer=True),
                    help='the most samples the analysis holds over all its logs (about 2.7 kB '
                    'each): longer logs are analysed at every k-th sample, k the smallest that '
-                   'fits (default 1200000: 20 minutes at 1 kHz, about 3.2 GB)')
+                   f'fits (default {held}: 20 minutes at 1 kHz, about 3.2 GB)')
     p.add_argument('--max-effects', type=validate.arg_number(low=0, high=len(CATALOGUE), integer=True),
                    default=6, dest='max_effects', help='most effects added (default 6)')
     p.add_argument('--cyclic-period-um', dest='cyclic_period_um',
