@@ -19,8 +19,8 @@ line.
 
 Usage: ``python bench/bench_uncertainty.py [--cases ideal,noeffect,realistic,realistic_sagspread]
 [--scenario random|iso_y|rotary|thermal] [--runs 6] [--seconds 8] [--after] [--datum none|offset]
-[--approaches 2] [--no-stated-sag] [--session] [--build 0]``. ``--build N`` instead times the
-construction of a realistic calibration's budget N times each way, its interpolation fit made
+[--approaches 2] [--no-stated-sag] [--session] [--later-h 0] [--build 0]``. ``--build N`` instead
+times the construction of a realistic calibration's budget N times each way, its interpolation fit made
 anew (the kept fits cleared) and kept from the first (every pipeline and every trial budget of
 an analysis builds one): medians and their ratio, measured in the same run. ``--after`` first runs
 ``mmd analyze`` (full pose reference, absolute, or zeroed with ``--datum offset``), started from
