@@ -753,7 +753,7 @@ class LengthBudget:
             t.bias['thermal_approximation'] = -(x - self.ref_distances_m[0]) * self.scale_cte \
                 * np.asarray(temp_change_c)[:, None]
         if self.mismatch_fraction:
-            t.diag['thermal_mismatch'] = (self.mismatch_fraction * bar_error_m) ** 2
+            t.full['thermal_mismatch'] = self._mismatch(bar_error_m, eps, t.weights)
         hysteresis = self._hysteresis(n, observed)
         if hysteresis is not None:
             if hysteresis[0] is not None:
@@ -786,6 +786,24 @@ class LengthBudget:
             else:
                 t.full['residual'] = self.residual_m2 + self._profile.added(x + bar_error_m)
         return t
+
+    def _mismatch(self, bar_error_m: FloatArray, eps: FloatArray, weights: FloatArray | None
+                  ) -> FloatArray:
+        """The bars' thermal mismatch, (N, 6, 6) [m^2]: the stated fraction f is what is left of
+        a bar's thermal error after Eq. (13), the bar's own deviation from the type and the
+        reference bar's (one of the same bars), f^2 / 2 each. The reference bar's is subtracted
+        from every bar alike: (f eps_i)^2 / 2 per bar, independent, plus (f eps_ref)^2 / 2 in
+        every entry (Eq. (12): each reference bar's with its interpolation weights)."""
+        half = 0.5 * self.mismatch_fraction ** 2
+        n = bar_error_m.shape[0]
+        idx = np.arange(6)
+        out = np.zeros((n, 6, 6))
+        out[:, idx, idx] = half * bar_error_m ** 2
+        if self.thermal_mode == 'single':
+            out += (half * eps[:, 0] ** 2)[:, None, None]
+        elif weights is not None:
+            out += np.einsum('nik,nk,njk->nij', weights, half * eps[:, [0, -1]] ** 2, weights)
+        return out
 
     def _reading_drift(self, observed: Observed | None) -> FloatArray | None:
         """The variance of a channel's reading drift since the calibration, (N,) [m^2]: each
@@ -1225,9 +1243,9 @@ class LengthBudget:
             diag += self._subdivision_factor * (tab[rows, i0] * g + tab[rows, i0 + 1] * f)
         if self.thermal_mode == 'single':
             bias -= (x - self.ref_distances_m[0]) * (self.scale_cte * np.asarray(temp_change_c))[:, None]
-            if self.mismatch_fraction:
-                diag += (self.mismatch_fraction * eps[:, :1]) ** 2 if bar_error_m is None \
-                    else (self.mismatch_fraction * bar_error_m) ** 2
+            if self.mismatch_fraction:     # (each bar's own; the reference bar's below)
+                diag += 0.5 * (self.mismatch_fraction * (
+                    eps[:, :1] if bar_error_m is None else bar_error_m)) ** 2
         hysteresis = self._hysteresis(n, observed)
         if hysteresis is not None:
             if hysteresis[0] is not None:
@@ -1262,7 +1280,8 @@ class LengthBudget:
         if self.thermal_mode == 'single':
             cross = self._cross(noise[-1, 6:], eps)[:, 0]
             ref = (np.maximum(fast['q12'] + noise[:, 6] ** 2 + self.zero_var_m2 - 2.0 * cross, 0.0)
-                   + self._reference_subdivision(eps[:, 0]))
+                   + self._reference_subdivision(eps[:, 0])
+                   + 0.5 * (self.mismatch_fraction * eps[:, 0]) ** 2)
             total += ref[:, None, None]
         if fit_columns_m is not None and fit_columns_m.shape[-1]:
             total += fit_columns_m @ np.swapaxes(fit_columns_m, 1, 2)

@@ -27,7 +27,8 @@ source                     contribution to Sigma_d                              
                            (datasheet bound a), at the live count and the two points
 ``thermal_approximation``  known error -alpha_scale (d_i - d_ref) dT (the Eq. 12       yes
                            term Eq. 13 drops)
-``thermal_mismatch``       (f eps_i)^2 (bars' thermal behaviour, section 4.1)          no
+``thermal_mismatch``       (f eps_i)^2 / 2 per bar, + (f eps_ref)^2 / 2 in every       all bars
+                           entry (the reference bar is one of the bars; section 4.1)
 ``hysteresis``             known error -h_i s_i(t) (friction, measured by the          yes
                            two-sided calibration); when a model term compensates it,
                            h_i^2 / 3 exp(-2 p_i / travel): the start state it cannot
