@@ -66,6 +66,8 @@ def _set(data, path, value):
     (('bars', 'gravity_sag_nm'), 'long', 'bars.gravity_sag_nm'),
     (('bars', 'gravity_sag_uncertainty_nm'), 15, 'bars.gravity_sag_uncertainty_nm'),  # no figure
     (('bars', 'drift_nm_per_h'), -20, 'bars.drift_nm_per_h'),
+    (('bars', 'rod_cte_uncertainty_ppm_per_c'), -1.5, 'bars.rod_cte_uncertainty_ppm_per_c'),
+    (('bars', 'rod_cte_uncertainty_ppm_per_c'), 80, 'bars.rod_cte_uncertainty_ppm_per_c'),
     (('reference_plate', 'seating_repeatability_nm'), -30,
      'reference_plate.seating_repeatability_nm'),
     (('reference_plate', 'seating_repeatability_nm'), 'x',
@@ -121,6 +123,16 @@ def test_a_stated_drift_rate_is_kept_per_second_and_written_back_per_hour():
     stated = device.with_reading_drift(20e-9 / 3600.0)
     assert stated.raw['bars']['drift_nm_per_h'] == pytest.approx(20.0)
     assert parse_device(stated.raw, 'again.yaml').drift_m_per_s == pytest.approx(20e-9 / 3600.0)
+
+
+def test_a_stated_rod_cte_uncertainty_is_kept_per_kelvin_and_written_back_in_ppm():
+    """``bars.rod_cte_uncertainty_ppm_per_c``: the standard uncertainty of the bars' effective
+    rod CTE, kept in 1/°C; None unless stated."""
+    device = parse_device(copy.deepcopy(RAW), 'plain.yaml')
+    assert device.rod_cte_sigma_per_c is None
+    stated = device.with_rod_cte_uncertainty(1.5e-6)
+    assert stated.raw['bars']['rod_cte_uncertainty_ppm_per_c'] == pytest.approx(1.5)
+    assert parse_device(stated.raw, 'again.yaml').rod_cte_sigma_per_c == pytest.approx(1.5e-6)
 
 
 def test_a_signal_period_given_in_metres_is_caught():

@@ -35,7 +35,9 @@ from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.errors import CalibrationError
 from mmd_ros.core.model import Model, TermContext
 from mmd_ros.core.piecewise import bar_segments
-from mmd_ros.core.terms import MAX_GAP_S, GravitySagTerm, SamplingSkewTerm, lengths_within
+from mmd_ros.core.terms import (
+    MAX_GAP_S, GravitySagTerm, SamplingSkewTerm, leg_geometry, lengths_within,
+)
 from mmd_ros.core.uncertainty import (
     InterpolationError, NoiseEstimator, capture_var, fit_interpolation_error, hysteresis_claim,
     quantisation_cross_weights,
@@ -57,6 +59,10 @@ FRICTION_TERMS = ('hysteresis', 'friction')
 SKEW_TERMS = ('sampling_skew',)
 #: Model terms that compensate the bars' gravity sag (the gravity_sag source is then off).
 SAG_TERMS = ('gravity_sag',)
+#: Model terms that compensate the bars' thermal mismatch: each bar's gain against the
+#: reference bar is the bar's deviation less the reference bar's (the thermal_mismatch source
+#: is then off: the fit's parameter covariance stands for what is left of it).
+MISMATCH_TERMS = ('thermal_gain',)
 #: Model terms that compensate the encoders' sub-divisional error on the measuring bars (at
 #: the signal period or a harmonic of it: the subdivision source keeps what they leave).
 CYCLIC_TERMS = ('cyclic_error',)
@@ -129,6 +135,9 @@ class Observed:
     since_calibration_s : (N,) — how long before or after the calibration each sample was
         taken (or a fit measured its residual, when later) [s, >= 0]; None when that is not
         known (or no drift rate is stated)
+    scale_lever_m : (N, 6) — how much each bar's length changes per unit of the plates' scale
+        at the sample's pose, n_i . (R a_i - b_i) [m] (0 where unsolved); None without a pose
+        or without a claim of the plates' scale
     """
 
     read_noise_m: FloatArray
@@ -137,11 +146,12 @@ class Observed:
     settled: FloatArray | None = None
     n_z2: FloatArray | None = None
     since_calibration_s: FloatArray | None = None
+    scale_lever_m: FloatArray | None = None
 
     def __getitem__(self, index: Any) -> Observed:
         return Observed(*(None if v is None else v[index] for v in (
             self.read_noise_m, self.directions, self.velocity_m_s, self.settled, self.n_z2,
-            self.since_calibration_s)))
+            self.since_calibration_s, self.scale_lever_m)))
 
 
 @dataclass(frozen=True)
@@ -251,7 +261,8 @@ NOT_WALL_CLOCK = ('reading drift: the samples or the calibration are not stamped
 SOURCES = ('quantisation', 'read_noise', 'reference_bar', 'reading_drift', 'calibration_points',
            'calibration_drift', 'reference_distances', 'interpolation', 'subdivision',
            'thermal_approximation',
-           'thermal_mismatch', 'hysteresis', 'latch_skew', 'gravity_sag', 'unchecked_range',
+           'thermal_mismatch', 'plate_scale', 'hysteresis', 'latch_skew', 'gravity_sag',
+           'unchecked_range',
            'fitted_terms',
            'residual')
 
@@ -320,11 +331,6 @@ class LengthBudget:
         self.thermal_mode = mode
         self.ref_distances_m = np.array([device.pair(c.pair).distance_m for c in refs])
         self.scale_cte = device.scale_cte_per_c
-        if mode != 'off' and device.plate_cte_per_c:
-            self.notes.append('plates\' scale: the translations are scaled for the plates\' '
-                              'expansion at the temperature change the reference bar implies '
-                              'through the description\'s CTEs (Eq. 11); an error of those CTEs '
-                              'or of the plates\' temperature is not claimed')
 
         # -- read noise: the model's figure, else the stream's, else the larger of the
         # calibration's and what an analysis measured where the bars of its logs stood still
@@ -449,10 +455,25 @@ class LengthBudget:
         frac = unc.thermal_mismatch_fraction
         if frac is None:
             frac = device.thermal_mismatch_fraction
-        if frac is None:
+        compensated = any(t.type_name in MISMATCH_TERMS for t in model.terms)
+        if frac is None and not compensated:
             self.notes.append('thermal mismatch: the device description does not state '
                               'bars.thermal_mismatch_fraction')
-        self.mismatch_fraction = float(frac or 0.0) if mode != 'off' else 0.0
+        self.mismatch_fraction = float(frac or 0.0) if mode != 'off' and not compensated else 0.0
+        self._plate_scale_init(device, model, mode, float(frac or 0.0))
+        # Eq. (13)'s approximation, the error -alpha_s (d_i - d_ref) dT of a bar at length d_i
+        # (known: claimed as such), from d_ref on; a thermal_interpolation term corrects it
+        # (its coefficient's uncertainty is among the fitted terms'), and a bar's fitted
+        # thermal_gain takes it at the lengths its fit saw the bar at: what it leaves is
+        # -alpha_s (d_i - m_i) dT, m_i the middle of those lengths (a soak on pairs: the pair's)
+        self.approximation_from_m: FloatArray | None = None
+        if mode == 'single':
+            self.approximation_from_m = np.full(6, self.ref_distances_m[0])
+            seen = Validity.from_model(model)
+            if any(t.type_name == 'thermal_interpolation' for t in model.terms):
+                self.approximation_from_m = None
+            elif compensated and seen is not None:
+                self.approximation_from_m = np.mean(seen.bar_range_m, axis=1)
 
         # -- the reference bar(s): live reading and the thermal zero (one capture)
         s_cal = figures.read_noise_m or 0.0
@@ -599,6 +620,32 @@ class LengthBudget:
         self._resolved: tuple[FloatArray, FloatArray] | None = None
         self._cross_w: FloatArray = np.zeros((0, 0))
 
+    def _plate_scale_init(self, device: DeviceDescription, model: Model, mode: str,
+                          mismatch: float) -> None:
+        """The plates' scale: the joints are scaled by 1 + a_p (dT + offset), dT the
+        temperature change the reference bar's Eq. (11) error implies through the description's
+        sensitivity S = -(a_r L + a_s (d_ref - L)) (Fig. 10). dT is as uncertain, relatively, as
+        S: the rods' effective CTE (``bars.rod_cte_uncertainty_ppm_per_c``, u_a: L u_a / |S|)
+        and the reference bar's own deviation from the type (half the stated mismatch's
+        variance, f^2 / 2; with two reference bars their mean, f^2 / 4). The scale's standard
+        uncertainty is a_p |dT| u_rel; off without plate expansion or thermal compensation."""
+        self.plate_scale_rel = 0.0          # u_rel a_p: the scale's sigma per °C of dT [1/°C]
+        if mode == 'off' or not model.plate_expansion or not device.plate_cte_per_c:
+            return
+        fixed = device.fixed_length_m
+        sens = np.abs(device.rod_cte_per_c * fixed
+                      + device.scale_cte_per_c * (self.ref_distances_m - fixed))
+        rod = device.rod_cte_sigma_per_c
+        share = 0.5 if mode == 'single' else 0.25
+        rel2 = share * mismatch ** 2 + (float(np.mean(fixed * (rod or 0.0) / sens))) ** 2
+        self.plate_scale_rel = abs(device.plate_cte_per_c) * math.sqrt(rel2)
+        if rod is None:
+            self.notes.append('plates\' scale: the device description does not state the '
+                              'uncertainty of the bars\' effective rod CTE '
+                              '(bars.rod_cte_uncertainty_ppm_per_c); the temperature change '
+                              'the plates\' expansion is estimated from is claimed as uncertain '
+                              'as the reference bar\'s share of the thermal mismatch only')
+
     @property
     def point_nugget_m2(self) -> FloatArray:
         """Per measuring bar, the variance of each calibration point's own error, independent
@@ -634,11 +681,12 @@ class LengthBudget:
         order): the read-noise estimate from the CDF lengths (or the lengths plus the thermal
         error subtracted, which differ by terms that do not change while a bar stands still)
         and the reference bars' Eq. (11) errors, each bar's motion direction and its speed,
-        and at the samples' poses each bar's gravity sag error.
+        and at the samples' poses each bar's gravity sag error and its length's change with the
+        plates' scale.
 
         times_s : (N,) the samples' times [s]; None: the device's sample period apart
         poses : (N, 6) the samples' poses [m, rad] (NaN where unsolved: no sag claimed there);
-            None: the sag's error is not known (not claimed)
+            None: the sag's error and the plates' scale's are not known (not claimed)
         epoch_s : the Unix time [s] of ``times_s`` = 0 (a log's first stamp; 0 when the times
             are Unix times): with the calibration's ``created``, how long after it each sample
             was taken (the readings' drift since then); None: not known (not claimed)
@@ -668,7 +716,11 @@ class LengthBudget:
                 since = np.abs(t + (float(epoch_s) - self.drift_from_s))
             elif NOT_WALL_CLOCK not in self.notes:
                 self.notes.append(NOT_WALL_CLOCK)
-        return Observed(self._resolve(est), directions, velocity, settled, n_z2, since)
+        lever = None
+        if self.plate_scale_rel and poses is not None:
+            _, _, lever = leg_geometry(*self._joints, np.asarray(poses, dtype=np.float64))
+            lever = np.nan_to_num(lever)
+        return Observed(self._resolve(est), directions, velocity, settled, n_z2, since, lever)
 
     def _resolve(self, estimate: FloatArray) -> FloatArray:
         if self.fixed_noise_m is not None:
@@ -749,8 +801,8 @@ class LengthBudget:
             h[nn, rows, pj1] += u
             t.full['reference_distances'] = self._kept('reference_distances') * np.einsum(
                 'nip,p,njp->nij', h, self.pair_var_m2, h)
-        if self.thermal_mode == 'single':
-            t.bias['thermal_approximation'] = -(x - self.ref_distances_m[0]) * self.scale_cte \
+        if self.approximation_from_m is not None:
+            t.bias['thermal_approximation'] = -(x - self.approximation_from_m) * self.scale_cte \
                 * np.asarray(temp_change_c)[:, None]
         if self.mismatch_fraction:
             t.full['thermal_mismatch'] = self._mismatch(bar_error_m, eps, t.weights)
@@ -770,6 +822,9 @@ class LengthBudget:
                 t.full['latch_skew'] = var * v[:, :, None] * v[:, None, :]
             else:
                 t.diag['latch_skew'] = (self.latch_skew_s ** 2 / 12.0) * v * v
+        scale = self._plate_scale(temp_change_c, observed)
+        if scale is not None:
+            t.full['plate_scale'] = scale[:, :, None] * scale[:, None, :]
         if self._sag_kept and observed is not None and observed.n_z2 is not None:
             t.bias['gravity_sag'] = (-self._sag_kept * self.gravity_sag_m) * observed.n_z2
             if self.gravity_sag_sigma_m:
@@ -786,6 +841,16 @@ class LengthBudget:
             else:
                 t.full['residual'] = self.residual_m2 + self._profile.added(x + bar_error_m)
         return t
+
+    def _plate_scale(self, temp_change_c: FloatArray, observed: Observed | None
+                     ) -> FloatArray | None:
+        """One sigma of the bars' lengths from the plates' scale, (N, 6) [m] (one error of
+        every bar: its covariance is rank one), or None when not claimed
+        (:meth:`_plate_scale_init`; the samples' poses give each bar's lever)."""
+        if not self.plate_scale_rel or observed is None or observed.scale_lever_m is None:
+            return None
+        sigma = self.plate_scale_rel * np.abs(np.asarray(temp_change_c, dtype=np.float64))
+        return sigma.reshape(-1, 1) * observed.scale_lever_m
 
     def _mismatch(self, bar_error_m: FloatArray, eps: FloatArray, weights: FloatArray | None
                   ) -> FloatArray:
@@ -1242,7 +1307,9 @@ class LengthBudget:
             tab = fast['subdivision']
             diag += self._subdivision_factor * (tab[rows, i0] * g + tab[rows, i0 + 1] * f)
         if self.thermal_mode == 'single':
-            bias -= (x - self.ref_distances_m[0]) * (self.scale_cte * np.asarray(temp_change_c))[:, None]
+            if self.approximation_from_m is not None:
+                bias -= (x - self.approximation_from_m) * (
+                    self.scale_cte * np.asarray(temp_change_c))[:, None]
             if self.mismatch_fraction:     # (each bar's own; the reference bar's below)
                 diag += 0.5 * (self.mismatch_fraction * (
                     eps[:, :1] if bar_error_m is None else bar_error_m)) ** 2
@@ -1269,6 +1336,9 @@ class LengthBudget:
         total = bias[:, :, None] * bias[:, None, :]
         if sag is not None:
             total += sag[:, :, None] * sag[:, None, :]
+        scale = self._plate_scale(temp_change_c, observed)
+        if scale is not None:
+            total += scale[:, :, None] * scale[:, None, :]
         if common is not None:
             total += common[:, :, None] * common[:, None, :]
         total[:, rows[0], rows[0]] += diag
@@ -1351,6 +1421,7 @@ class LengthBudget:
             'thermal_zero_nm': round(math.sqrt(self.zero_var_m2) * 1e9, 3),
             'interpolation': self.interpolation.as_dict(),
             'thermal_mismatch_fraction': self.mismatch_fraction,
+            'plate_scale_ppm_per_c': round(self.plate_scale_rel * 1e6, 6),
             'hysteresis_nm': [round(float(v) * 1e9, 2) for v in self.hysteresis_m],
             'latch_skew_us': round(self.latch_skew_s * 1e6, 3),
             'latch_skew_common_only': self.latch_common_only,

@@ -42,7 +42,7 @@ SECTION_KEYS = {
     'bars': ('range_mm', 'encoder_resolution_nm', 'scale_cte_ppm_per_c', 'rod_cte_ppm_per_c',
              'fixed_length_mm', 'thermal_mismatch_fraction', 'subdivision_error_nm',
              'signal_period_um', 'friction_hysteresis_nm', 'gravity_sag_nm',
-             'gravity_sag_uncertainty_nm', 'drift_nm_per_h'),
+             'gravity_sag_uncertainty_nm', 'drift_nm_per_h', 'rod_cte_uncertainty_ppm_per_c'),
     'plates': ('position_layer_cte_ppm_per_c', 'vertical'),
     'limits': ('upper_tilt_deg', 'lower_tilt_deg', 'min_bar_separation_mm'),
     'terminal': ('sample_rate_hz', 'counter_bits', 'latch_skew_us', 'channels'),
@@ -139,6 +139,12 @@ class DeviceDescription:
     #: each channel's rate lies anywhere within +-this [m/s]; None when the description does not
     #: say (the drift of the readings since calibration is then not claimed)
     drift_m_per_s: float | None = None
+    #: the standard uncertainty of the bars' effective rod CTE (``bars.rod_cte_ppm_per_c``: its
+    #: rods, joints and holders together, as their characterisation states it) [1/°C]: what
+    #: turns the reference bar's Eq. (11) error into the temperature change the plates'
+    #: expansion is estimated from; None when the description does not say (the plates' scale
+    #: is then claimed from the bars' thermal mismatch only)
+    rod_cte_sigma_per_c: float | None = None
 
     @property
     def up(self) -> NDArray[np.float64]:
@@ -204,6 +210,12 @@ class DeviceDescription:
         """A copy that states the bound on the bars' reading drift rate (``bars.drift_nm_per_h``)
         [m/s]."""
         return self._stating('bars', drift_nm_per_h=round(float(rate_m_per_s) * 1e9 * 3600.0, 6))
+
+    def with_rod_cte_uncertainty(self, sigma_per_c: float) -> DeviceDescription:
+        """A copy that states the standard uncertainty of the bars' effective rod CTE
+        (``bars.rod_cte_uncertainty_ppm_per_c``) [1/°C]."""
+        return self._stating('bars', rod_cte_uncertainty_ppm_per_c=round(
+            float(sigma_per_c) / PPM, 6))
 
     def with_vertical(self, up: Any) -> DeviceDescription:
         """A copy that states the upward vertical in {L} as mounted (``plates.vertical``)."""
@@ -395,6 +407,7 @@ def parse_device(data: dict[str, Any], source: str = '<device>') -> DeviceDescri
                                         M_PER_NM, 1e5),
         vertical=_vertical(r, plates),
         drift_m_per_s=_stated(r, bars, 'drift_nm_per_h', 'bars', M_PER_NM / 3600.0, 1e6),
+        rod_cte_sigma_per_c=_stated(r, bars, 'rod_cte_uncertainty_ppm_per_c', 'bars', PPM, 50.0),
         **_subdivision(r, bars, resolution),
     )
 

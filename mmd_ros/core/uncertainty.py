@@ -28,7 +28,12 @@ source                     contribution to Sigma_d                              
 ``thermal_approximation``  known error -alpha_scale (d_i - d_ref) dT (the Eq. 12       yes
                            term Eq. 13 drops)
 ``thermal_mismatch``       (f eps_i)^2 / 2 per bar, + (f eps_ref)^2 / 2 in every       all bars
-                           entry (the reference bar is one of the bars; section 4.1)
+                           entry (the reference bar is one of the bars; section 4.1);
+                           off with a fitted ``thermal_gain``
+``plate_scale``            (a_p |dT| u_rel)^2 w w^T, w_i = n_i . (R a_i - b_i): the     all bars
+                           plates' expansion estimated at dT, as uncertain as the
+                           bars' sensitivity S (rod CTE's uncertainty, the reference
+                           bar's mismatch)
 ``hysteresis``             known error -h_i s_i(t) (friction, measured by the          yes
                            two-sided calibration); when a model term compensates it,
                            h_i^2 / 3 exp(-2 p_i / travel): the start state it cannot

@@ -232,8 +232,11 @@ class TwinDevice:
         twin's sag is then its figure; with one, this twin's own sag, alike for its bars, stays
         hidden), and the vertical it sags along (``plates.vertical``) the one the twin stands
         in: the description's, else level (+z of {L}); the bound on the bars' reading drift rate
-        (``bars.drift_nm_per_h``) the effects' largest (each bar's own rate stays hidden). What a
-        description states, it keeps.
+        (``bars.drift_nm_per_h``) the effects' largest (each bar's own rate stays hidden); the
+        uncertainty of the bars' effective rod CTE (``bars.rod_cte_uncertainty_ppm_per_c``) how
+        far the effects' rod CTE lies from the one the description states (0 when they take
+        it; each bar's spread about it is the thermal mismatch's). What a description states,
+        it keeps.
         Raises :class:`TwinError` naming the effect whose figure no description may state."""
         device = self.device
         fx = self.effects
@@ -258,6 +261,10 @@ class TwinDevice:
         if device.drift_m_per_s is None:
             device = _stating(('drift_m_per_s',), fx, device.with_reading_drift,
                               abs(fx.drift_m_per_s))
+        if device.rod_cte_sigma_per_c is None:
+            rod = device.rod_cte_per_c if fx.rod_cte_per_c is None else fx.rod_cte_per_c
+            device = _stating(('rod_cte_per_c',), fx, device.with_rod_cte_uncertainty,
+                              abs(rod - device.rod_cte_per_c))
         return device
 
     # -- bars on the reference plate -----------------------------------------------------------
