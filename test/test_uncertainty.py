@@ -1033,6 +1033,12 @@ def test_the_plates_scale_is_claimed_and_a_fitted_thermal_gain_replaces_the_mism
     ratio = np.array([c['ratio'] for c in claimed['per_component']])
     budget = LengthBudget(run.device, run.calibration, model)
     assert budget.mismatch_fraction == 0.0 and budget.plate_scale_rel > 0.0
+    # Eq. (13)'s approximation: what the gains leave, from the lengths they were fitted at (the
+    # soak's pair, 323 mm); nothing once a thermal_interpolation term corrects it
+    np.testing.assert_allclose(budget.approximation_from_m, 0.323, atol=1e-4)
+    from mmd_ros.core.terms import ThermalInterpolationTerm
+    interpolated = Model(terms=[ThermalInterpolationTerm(-1.3, 0.323)])
+    assert LengthBudget(run.device, run.calibration, interpolated).approximation_from_m is None
     # the same run and model, the description stating the rods' CTE exact: the temperature
     # change is then as uncertain as the reference bar's mismatch only
     exact = dataclasses.replace(run, device=run.device.with_rod_cte_uncertainty(0.0))
