@@ -250,6 +250,11 @@ def test_flagged_samples_give_no_length_and_no_pose(device, source):
     assert r.level == 1 and 'encoder signal lost' in r.message and 'bar3' in r.message
     assert r.values['samples_without_signal'] == lost.n + both.n
     assert np.isnan(r.values['reading_drift_um'])       # the twin's calibration states no time
+    # the plates' scale as the covariance claims it at the thermal drift last known
+    dt = comp.stats.last_temp_change_c
+    assert dt != 0.0 and comp.budget.plate_scale_rel > 0.0
+    assert r.values['plate_scale_ppm'] == pytest.approx(
+        comp.budget.plate_scale_rel * abs(dt) * 1e6, abs=1e-4)
 
 
 @needs_ros

@@ -852,6 +852,13 @@ class LengthBudget:
         sigma = self.plate_scale_rel * np.abs(np.asarray(temp_change_c, dtype=np.float64))
         return sigma.reshape(-1, 1) * observed.scale_lever_m
 
+    def plate_scale_sigma(self, temp_change_c: float) -> float:
+        """One sigma of the plates' scale the pose covariance claims at the temperature change
+        ``temp_change_c`` since the thermal zero [1] (:meth:`_plate_scale_init`; 0 when it
+        claims none, NaN for an unknown change)."""
+        return self.plate_scale_rel * abs(temp_change_c) if math.isfinite(temp_change_c) \
+            else math.nan
+
     def _mismatch(self, bar_error_m: FloatArray, eps: FloatArray, weights: FloatArray | None
                   ) -> FloatArray:
         """The bars' thermal mismatch, (N, 6, 6) [m^2]: the stated fraction f is what is left of

@@ -28,6 +28,13 @@ def _reading_drift_um(comp: Compensator) -> float:
     return math.nan if budget is None else round(budget.reading_drift_sigma_m(time.time()) * 1e6, 4)
 
 
+def _plate_scale_ppm(comp: Compensator, temp_change_c: float) -> float:
+    """One sigma of the plates' scale at the thermal drift now, as the budget claims it
+    [ppm] (0 when it claims none, NaN when the drift or the budget is not known)."""
+    budget = comp.budget
+    return math.nan if budget is None else round(budget.plate_scale_sigma(temp_change_c) * 1e6, 4)
+
+
 def compensation_report(comp: Compensator, thermal_warn_c: float, model_source: str) -> Report:
     """Calibration in use, thermal drift since the thermal zero (Eq. 11), bars out of range."""
     st = comp.stats
@@ -70,6 +77,7 @@ def compensation_report(comp: Compensator, thermal_warn_c: float, model_source: 
         'calibration_created': cal.created if cal is not None else '',
         'calibration_age_s': round(calibration_age_s(cal), 1),
         'reading_drift_um': _reading_drift_um(comp),
+        'plate_scale_ppm': _plate_scale_ppm(comp, dt),
         'model': model_source,
         'thermal_mode': comp.model.thermal_mode,
         'reference_bars': n_refs,
