@@ -455,25 +455,25 @@ class LengthBudget:
         frac = unc.thermal_mismatch_fraction
         if frac is None:
             frac = device.thermal_mismatch_fraction
-        compensated = any(t.type_name in MISMATCH_TERMS for t in model.terms)
-        if frac is None and not compensated:
+        gains = any(t.type_name in MISMATCH_TERMS for t in model.terms)
+        if frac is None and not gains:
             self.notes.append('thermal mismatch: the device description does not state '
                               'bars.thermal_mismatch_fraction')
-        self.mismatch_fraction = float(frac or 0.0) if mode != 'off' and not compensated else 0.0
+        self.mismatch_fraction = float(frac or 0.0) if mode != 'off' and not gains else 0.0
         self._plate_scale_init(device, model, mode, float(frac or 0.0))
         # Eq. (13)'s approximation, the error -alpha_s (d_i - d_ref) dT of a bar at length d_i
         # (known: claimed as such), from d_ref on; a thermal_interpolation term corrects it
         # (its coefficient's uncertainty is among the fitted terms'), and a bar's fitted
         # thermal_gain takes it at the lengths its fit saw the bar at: what it leaves is
         # -alpha_s (d_i - m_i) dT, m_i the middle of those lengths (a soak on pairs: the pair's)
+        validity = Validity.from_model(model)
         self.approximation_from_m: FloatArray | None = None
         if mode == 'single':
             self.approximation_from_m = np.full(6, self.ref_distances_m[0])
-            seen = Validity.from_model(model)
             if any(t.type_name == 'thermal_interpolation' for t in model.terms):
                 self.approximation_from_m = None
-            elif compensated and seen is not None:
-                self.approximation_from_m = np.mean(seen.bar_range_m, axis=1)
+            elif gains and validity is not None:
+                self.approximation_from_m = np.mean(validity.bar_range_m, axis=1)
 
         # -- the reference bar(s): live reading and the thermal zero (one capture)
         s_cal = figures.read_noise_m or 0.0
@@ -573,7 +573,6 @@ class LengthBudget:
 
         # -- a fitted length-dependent term where the fit never saw the bar: its correction
         # there is an extrapolation that no data checked (the model's validity record)
-        validity = Validity.from_model(model)
         # the lengths a fit's residual checked (the calibration's tables come back beyond them)
         self._seen_range_m = (validity.bar_range_m if validity is not None and fit is not None
                               else None)
