@@ -998,6 +998,10 @@ def test_the_plates_scale_is_claimed_and_a_fitted_thermal_gain_replaces_the_mism
     change the description's CTE implies, 1.7 times the bars' own), 98.6 % in the 95 %
     ellipsoid, 87.6 % with the rods' CTE taken as exact."""
     from mmd_ros.analysis import analyze
+    from mmd_ros.core.terms import ThermalInterpolationTerm
+    from mmd_ros.logs.layout import read_run
+    from mmd_ros.logs.processing import process_run, summarize
+    from mmd_ros.twin.recording import SimulationSpec, simulate_to_log
     calibration = TwinDevice(DEVICE, Effects.ideal(), seed=1).calibrate(
         0.0, ambient_profile('constant:20'))
     assert any('bars.rod_cte_uncertainty_ppm_per_c' in n
@@ -1008,9 +1012,6 @@ def test_the_plates_scale_is_claimed_and_a_fitted_thermal_gain_replaces_the_mism
     assert TwinDevice(DEVICE, Effects.realistic()).documented_device.rod_cte_sigma_per_c == \
         pytest.approx(1.5e-6)
 
-    from mmd_ros.logs.layout import read_run
-    from mmd_ros.logs.processing import process_run, summarize
-    from mmd_ros.twin.recording import SimulationSpec, simulate_to_log
     effects = ('thermal_mismatch=0.2', 'rod_cte_per_c=3.5e-6')
     soak, later = tmp_path / 'soak.mcap', tmp_path / 'later.mcap'
     simulate_to_log(SimulationSpec(scenario='thermal_soak', scenario_params=('duration_s=21600',),
@@ -1025,25 +1026,21 @@ def test_the_plates_scale_is_claimed_and_a_fitted_thermal_gain_replaces_the_mism
     assert [t.type_name for t in model.terms] == ['thermal_gain']
     run = read_run(later)
 
-    def judged(model: Model) -> dict:
-        report = summarize(run, process_run(run, model, with_covariance=True))
-        return report['uncertainty_coverage']
+    def judged(run) -> dict:
+        return summarize(run, process_run(run, model, with_covariance=True))['uncertainty_coverage']
 
-    claimed = judged(model)
+    claimed = judged(run)
     ratio = np.array([c['ratio'] for c in claimed['per_component']])
     budget = LengthBudget(run.device, run.calibration, model)
     assert budget.mismatch_fraction == 0.0 and budget.plate_scale_rel > 0.0
     # Eq. (13)'s approximation: what the gains leave, from the lengths they were fitted at (the
     # soak's pair, 323 mm); nothing once a thermal_interpolation term corrects it
     np.testing.assert_allclose(budget.approximation_from_m, 0.323, atol=1e-4)
-    from mmd_ros.core.terms import ThermalInterpolationTerm
     interpolated = Model(terms=[ThermalInterpolationTerm(-1.3, 0.323)])
     assert LengthBudget(run.device, run.calibration, interpolated).approximation_from_m is None
     # the same run and model, the description stating the rods' CTE exact: the temperature
     # change is then as uncertain as the reference bar's mismatch only
-    exact = dataclasses.replace(run, device=run.device.with_rod_cte_uncertainty(0.0))
-    without = summarize(exact, process_run(exact, model, with_covariance=True))[
-        'uncertainty_coverage']
+    without = judged(dataclasses.replace(run, device=run.device.with_rod_cte_uncertainty(0.0)))
     print('thermal gain fitted, 7 h later: ratios', np.round(ratio, 2), 'coverage',
           claimed['ellipsoid_coverage'], 'rods\' CTE taken exact', without['ellipsoid_coverage'])
     assert np.all(ratio[[0, 1, 3, 4, 5]] < 1.3) and np.all(ratio > 0.8)
