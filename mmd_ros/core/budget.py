@@ -632,8 +632,8 @@ class LengthBudget:
         if mode == 'off' or not model.plate_expansion or not device.plate_cte_per_c:
             return
         fixed = device.fixed_length_m
-        sens = np.abs(device.rod_cte_per_c * fixed
-                      + device.scale_cte_per_c * (self.ref_distances_m - fixed))
+        used = self.ref_distances_m[:1] if mode == 'single' else self.ref_distances_m
+        sens = np.abs(device.rod_cte_per_c * fixed + device.scale_cte_per_c * (used - fixed))
         rod = device.rod_cte_sigma_per_c
         share = 0.5 if mode == 'single' else 0.25
         rel2 = share * mismatch ** 2 + (float(np.mean(fixed * (rod or 0.0) / sens))) ** 2
