@@ -1009,8 +1009,17 @@ def test_the_plates_scale_is_claimed_and_a_fitted_thermal_gain_replaces_the_mism
     off = LengthBudget(DEVICE, calibration, Model(thermal_mode='off'))
     assert off.plate_scale_rel == 0.0 and not any("plates' scale" in n for n in off.notes)
     assert TwinDevice(DEVICE, Effects.ideal()).documented_device.rod_cte_sigma_per_c == 0.0
-    assert TwinDevice(DEVICE, Effects.realistic()).documented_device.rod_cte_sigma_per_c == \
-        pytest.approx(1.5e-6)
+    realistic = TwinDevice(DEVICE, Effects.realistic()).documented_device
+    assert realistic.rod_cte_sigma_per_c == pytest.approx(1.5e-6)
+    # a_p sqrt((L u_a / |S|)^2 + f^2 / 2), S of the reference bar in use (Eq. 13: the first)
+    two = TwinDevice(load_device(find_config('mmd_two_reference_bars.yaml')),
+                     Effects.realistic()).documented_device
+    single = LengthBudget(two, TwinDevice(two, Effects.ideal()).calibrate(
+        0.0, ambient_profile('constant:20')), Model(thermal_mode='single'))
+    d, fixed = single.ref_distances_m[0], two.fixed_length_m
+    sens = two.rod_cte_per_c * fixed + two.scale_cte_per_c * (d - fixed)
+    assert single.plate_scale_rel == pytest.approx(two.plate_cte_per_c * math.sqrt(
+        (fixed * 1.5e-6 / sens) ** 2 + two.thermal_mismatch_fraction ** 2 / 2))
 
     effects = ('thermal_mismatch=0.2', 'rod_cte_per_c=3.5e-6')
     soak, later = tmp_path / 'soak.mcap', tmp_path / 'later.mcap'
