@@ -46,6 +46,7 @@ from mmd_ros.core.terms import (
     PlateScaleTerm, SamplingSkewTerm, ScaleNonlinearityTerm, ThermalGainTerm,
     ThermalInterpolationTerm, ema, leg_geometry,
 )
+from mmd_ros.core.thermal import thermal_sensitivity
 from mmd_ros.core.units import M_PER_UM
 
 __all__ = ['CATALOGUE', 'Effect', 'Parameter', 'catalogue']
@@ -330,7 +331,7 @@ class ThermalInterpolation(Effect):
     def interpret(self, ctx, hyper, theta, sigma):
         dev = ctx.device
         d_ref = self._ref_distance(ctx)
-        sens = -(dev.rod_cte_per_c * dev.fixed_length_m + dev.scale_cte_per_c * (d_ref - dev.fixed_length_m))
+        sens = thermal_sensitivity(dev, d_ref)
         alpha = -theta[0] * sens
         return [f'implies a scale CTE of {alpha * 1e6:.2f} ± {abs(sigma[0] * sens) * 1e6:.2f} ppm/°C '
                 f'(device description: {dev.scale_cte_per_c * 1e6:g} ppm/°C)']

@@ -38,6 +38,7 @@ from mmd_ros.core.piecewise import bar_segments
 from mmd_ros.core.terms import (
     MAX_GAP_S, GravitySagTerm, SamplingSkewTerm, leg_geometry, lengths_within,
 )
+from mmd_ros.core.thermal import thermal_sensitivity
 from mmd_ros.core.uncertainty import (
     InterpolationError, NoiseEstimator, capture_var, fit_interpolation_error, hysteresis_claim,
     quantisation_cross_weights,
@@ -631,12 +632,12 @@ class LengthBudget:
         self.plate_scale_rel = 0.0          # u_rel a_p: the scale's sigma per °C of dT [1/°C]
         if mode == 'off' or not model.plate_expansion or not device.plate_cte_per_c:
             return
-        fixed = device.fixed_length_m
         used = self.ref_distances_m[:1] if mode == 'single' else self.ref_distances_m
-        sens = np.abs(device.rod_cte_per_c * fixed + device.scale_cte_per_c * (used - fixed))
+        sens = np.abs(thermal_sensitivity(device, used))
         rod = device.rod_cte_sigma_per_c
         share = 0.5 if mode == 'single' else 0.25
-        rel2 = share * mismatch ** 2 + (float(np.mean(fixed * (rod or 0.0) / sens))) ** 2
+        rel2 = (share * mismatch ** 2
+                + float(np.mean(device.fixed_length_m * (rod or 0.0) / sens)) ** 2)
         self.plate_scale_rel = abs(device.plate_cte_per_c) * math.sqrt(rel2)
         if rod is None:
             self.notes.append('plates\' scale: the device description does not state the '

@@ -40,7 +40,7 @@ from numpy.typing import ArrayLike, NDArray
 from mmd_ros.core.calibration import BarCalibration, Calibration, unix_seconds
 from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.errors import CalibrationError
-from mmd_ros.core.thermal import ReferenceBar, ThermalCompensation
+from mmd_ros.core.thermal import ReferenceBar, ThermalCompensation, thermal_sensitivity
 from mmd_ros.core.uncertainty import (
     CalibrationUncertainty, capture_var, read_noise_from_dither, two_sided_figures,
 )
@@ -151,15 +151,11 @@ def _routine_drift(device: DeviceDescription, points: list[CaptureStats], drifts
         span = end.time_s - start.time_s
         if not span > 0:
             continue
-        fixed = device.fixed_length_m
-
-        def sensitivity(d: float) -> float:
-            return -(device.rod_cte_per_c * fixed + device.scale_cte_per_c * (d - fixed))
-
         f = cdfs[start.channel]
         moved = float(f(np.array([end.mean_counts]))[0][0] - f(np.array([start.mean_counts]))[0][0])
         d_ref = device.pair(start.pair).distance_m
-        temp = moved / sensitivity(d_ref)
+        at_ref = thermal_sensitivity(device, d_ref)
+        temp = moved / at_ref
         times: dict[str, dict[str, list[float]]] = {}
         for c in points:
             if math.isfinite(c.time_s):
@@ -167,9 +163,9 @@ def _routine_drift(device: DeviceDescription, points: list[CaptureStats], drifts
         drift = {}
         for name, by_pair in times.items():
             pairs = [p for p in device.pairs if p.name in by_pair]
-            drift[name] = [float(-sensitivity(p.distance_m) * temp
+            drift[name] = [float(-thermal_sensitivity(device, p.distance_m) * temp
                                  * (np.mean(by_pair[p.name]) - end.time_s) / span) for p in pairs]
-        return temp, drift, math.sqrt(2.0 * capture_var_m2) / abs(sensitivity(d_ref))
+        return temp, drift, math.sqrt(2.0 * capture_var_m2) / abs(at_ref)
     return None, {}, None
 
 

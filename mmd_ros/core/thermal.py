@@ -18,6 +18,7 @@ true centre distance d, an apparent change of -(a_r L + a_s (d - L)) dT. The pla
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -27,7 +28,7 @@ from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.errors import ModelError
 
 __all__ = ['CMM_TEMP_C', 'ReferenceBar', 'ThermalCompensation', 'ThermalState',
-           'reference_plate_growth']
+           'reference_plate_growth', 'thermal_sensitivity']
 
 FloatArray = NDArray[np.float64]
 
@@ -50,6 +51,14 @@ def reference_plate_growth(device: DeviceDescription, ambient_c: float | None) -
     if ambient_c is None:
         return 1.0
     return 1.0 + device.reference_plate_cte_per_c * (ambient_c - CMM_TEMP_C)
+
+
+def thermal_sensitivity(device: DeviceDescription, distance_m: Any) -> Any:
+    """d eps / dT of a bar at the centre distance ``distance_m`` (Fig. 10): its fixed part L
+    with the rods' CTE, the rest with the scale's, -(a_r L + a_s (d - L)) [m/°C] (negative: a
+    warm bar reads short); a float or an array, as ``distance_m``."""
+    fixed = device.fixed_length_m
+    return -(device.rod_cte_per_c * fixed + device.scale_cte_per_c * (distance_m - fixed))
 
 
 @dataclass(frozen=True)
@@ -104,10 +113,8 @@ class ThermalCompensation:
         self.plate_expansion = plate_expansion
         self.plate_cte = device.plate_cte_per_c
         self.offset_c = 0.0 if ambient_at_zero_c is None else ambient_at_zero_c - CMM_TEMP_C
-        fixed = device.fixed_length_m
-        self._sensitivity = np.array([
-            -(device.rod_cte_per_c * fixed + device.scale_cte_per_c * (r.distance_m - fixed))
-            for r in self.references])
+        self._sensitivity = np.array([thermal_sensitivity(device, r.distance_m)
+                                      for r in self.references])
         # The pair under a reference bar grows with the reference plate: f_ref - d_r reads the
         # bar's error eps plus d_r a_ref dT, and dT = eps / sensitivity, so
         # eps = (f_ref - d_r) / (1 + d_r a_ref / sensitivity).
