@@ -130,6 +130,11 @@ class Effects:
             raise TwinError(f'effect sampling_skew_s must stay below one 1 kHz sample period, '
                             f'got {self.sampling_skew_s} s')
 
+    def rod_cte(self, described_per_c: float) -> float:
+        """The bars' effective rod CTE: ``rod_cte_per_c``, else the one the device description
+        states, ``described_per_c`` [1/°C]."""
+        return described_per_c if self.rod_cte_per_c is None else self.rod_cte_per_c
+
     @classmethod
     def ideal(cls) -> Effects:
         """Only what the model compensates: 50 nm quantisation, 5 nm read noise, count offsets,

@@ -218,8 +218,7 @@ class BarPhysics:
 
         spread = np.clip(1.0 + eff.thermal_mismatch * rng(STREAM_THERMAL).standard_normal((2, n)),
                          0.2, None)
-        rod_cte = dev.rod_cte_per_c if eff.rod_cte_per_c is None else eff.rod_cte_per_c
-        put('rod_cte_per_c', rod_cte * spread[0])
+        put('rod_cte_per_c', eff.rod_cte(dev.rod_cte_per_c) * spread[0])
         put('time_constant_s', eff.bar_time_constant_s * spread[1])
 
         g = rng(STREAM_NONLINEARITY)

@@ -262,9 +262,8 @@ class TwinDevice:
             device = _stating(('drift_m_per_s',), fx, device.with_reading_drift,
                               abs(fx.drift_m_per_s))
         if device.rod_cte_sigma_per_c is None:
-            rod = device.rod_cte_per_c if fx.rod_cte_per_c is None else fx.rod_cte_per_c
             device = _stating(('rod_cte_per_c',), fx, device.with_rod_cte_uncertainty,
-                              abs(rod - device.rod_cte_per_c))
+                              abs(fx.rod_cte(device.rod_cte_per_c) - device.rod_cte_per_c))
         return device
 
     # -- bars on the reference plate -----------------------------------------------------------
