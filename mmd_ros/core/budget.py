@@ -771,8 +771,8 @@ class LengthBudget:
                 t.weight_var = ref_var[:, [0, -1]]
         drift = self._reading_drift(observed)
         if drift is not None:
-            t.full['reading_drift'] = self._add_reading_drift(np.zeros((n, 6, 6)), drift,
-                                                              t.weights)
+            t.full['reading_drift'] = self._add_shared(np.zeros((n, 6, 6)), drift[:, None],
+                                                       drift[:, None], t.weights)
         # what depends on a bar's length only, through the hat functions of Eq. (10):
         # tabulated once per bar on a fine grid, read by linear interpolation
         tables = self._tables()
@@ -805,7 +805,11 @@ class LengthBudget:
             t.bias['thermal_approximation'] = -(x - self.approximation_from_m) * self.scale_cte \
                 * np.asarray(temp_change_c)[:, None]
         if self.mismatch_fraction:
-            t.full['thermal_mismatch'] = self._mismatch(bar_error_m, eps, t.weights)
+            # f is what is left of one bar's thermal error after Eq. (13): its own deviation
+            # from the type and the reference bar's (one of the same bars), f^2 / 2 each
+            half = 0.5 * self.mismatch_fraction ** 2
+            t.full['thermal_mismatch'] = self._add_shared(
+                np.zeros((n, 6, 6)), half * bar_error_m ** 2, half * eps ** 2, t.weights)
         hysteresis = self._hysteresis(n, observed)
         if hysteresis is not None:
             if hysteresis[0] is not None:
@@ -859,24 +863,6 @@ class LengthBudget:
         return self.plate_scale_rel * abs(temp_change_c) if math.isfinite(temp_change_c) \
             else math.nan
 
-    def _mismatch(self, bar_error_m: FloatArray, eps: FloatArray, weights: FloatArray | None
-                  ) -> FloatArray:
-        """The bars' thermal mismatch, (N, 6, 6) [m^2]: the stated fraction f is what is left of
-        a bar's thermal error after Eq. (13), the bar's own deviation from the type and the
-        reference bar's (one of the same bars), f^2 / 2 each. The reference bar's is subtracted
-        from every bar alike: (f eps_i)^2 / 2 per bar, independent, plus (f eps_ref)^2 / 2 in
-        every entry (Eq. (12): each reference bar's with its interpolation weights)."""
-        half = 0.5 * self.mismatch_fraction ** 2
-        n = bar_error_m.shape[0]
-        idx = np.arange(6)
-        out = np.zeros((n, 6, 6))
-        out[:, idx, idx] = half * bar_error_m ** 2
-        if self.thermal_mode == 'single':
-            out += (half * eps[:, 0] ** 2)[:, None, None]
-        elif weights is not None:
-            out += np.einsum('nik,nk,njk->nij', weights, half * eps[:, [0, -1]] ** 2, weights)
-        return out
-
     def _reading_drift(self, observed: Observed | None) -> FloatArray | None:
         """The variance of a channel's reading drift since the calibration, (N,) [m^2]: each
         channel's rate anywhere within the stated bound r, (r t)^2 / 3 after a time t; None
@@ -904,17 +890,20 @@ class LengthBudget:
             return math.nan
         return math.sqrt(self._drift_var(abs(unix_s - start)))
 
-    def _add_reading_drift(self, out: FloatArray, var: FloatArray, weights: FloatArray | None
-                           ) -> FloatArray:
-        """Its covariance over the six bars added to ``out`` (N, 6, 6) [m^2], which is
-        returned: each measuring bar's own, and the reference bar's, which Eq. (13) subtracts
-        from every bar (Eq. (12): each reference bar's with its interpolation weights)."""
+    def _add_shared(self, out: FloatArray, own: FloatArray, reference: FloatArray,
+                    weights: FloatArray | None) -> FloatArray:
+        """A source every measuring bar has of its own and the reference bar has too (the
+        readings' drift, the bars' thermal mismatch) added to ``out`` (N, 6, 6) [m^2], which
+        is returned: ``own`` (N, 6) or (N, 1), each measuring bar's variance, independent;
+        ``reference`` (N, k), each reference bar's (or (N, 1), alike for them), which Eq. (13)
+        subtracts from every bar alike (Eq. (12): each reference bar's with its interpolation
+        ``weights``)."""
         idx = np.arange(6)
-        out[:, idx, idx] += var[:, None]
+        out[:, idx, idx] += own
         if self.thermal_mode == 'single':
-            out += var[:, None, None]
+            out += reference[:, :1, None]
         elif weights is not None:
-            out += var[:, None, None] * np.einsum('nik,njk->nij', weights, weights)
+            out += np.einsum('nik,nk,njk->nij', weights, reference[:, [0, -1]], weights)
         return out
 
     def _tables(self) -> dict[str, FloatArray]:
@@ -1353,7 +1342,7 @@ class LengthBudget:
             total += drift[:, :, None] * drift[:, None, :]
         drift_var = self._reading_drift(observed)
         if drift_var is not None:
-            self._add_reading_drift(total, drift_var, None)
+            self._add_shared(total, drift_var[:, None], drift_var[:, None], None)
         if self.thermal_mode == 'single':
             cross = self._cross(noise[-1, 6:], eps)[:, 0]
             ref = (np.maximum(fast['q12'] + noise[:, 6] ** 2 + self.zero_var_m2 - 2.0 * cross, 0.0)
