@@ -508,7 +508,7 @@ def _prepare(index: int, run: RunLog, model: Model, calibration: Calibration | N
     if obs.sigma is None:
         obs = replace(obs, sigma=reference_noise(obs, before, raw, split.train_idx), sigma_estimated=True)
     ctx = FitContext(run.device, calibration, model, times, run.counts, before, obs, o,
-                     epoch_s=_epoch_s(run))
+                     epoch_s=run.epoch_s)
     res_before = _datum_corrected(obs, raw, before.measured(obs.kind), split.train_idx)
     floor = noise_floor(obs, run.device, before, np.nan_to_num(res_before), split.train_idx, ctx.thermal_on)
     floor = np.maximum(floor, 1e-12)
@@ -692,7 +692,7 @@ def _reference_datum(run: RunLog, model: Model, calibration: Calibration | None,
         return ReferenceDatum(True, 'found'), before
     offsets = -np.median(obs.residual(before)[ok], axis=0)
     ctx = FitContext(run.device, calibration, model, run.times_s, run.counts, before, obs, o,
-                     epoch_s=_epoch_s(run))
+                     epoch_s=run.epoch_s)
     claim = claimed_sigma(ctx, np.flatnonzero(ok))
     own = np.zeros_like(claim) if obs.sigma is None else obs.sigma
     read = read_datum(offsets, np.hypot(claim, own), obs.reference[np.flatnonzero(ok)[0]],
@@ -2305,11 +2305,6 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
                     per_bar_after, time.perf_counter() - started, not_applicable, summaries, unchecked,
                     validation, next((s.log_problem for s in summaries if s.log_problem), None),
                     uncertainty_only, stated_text, check, glitches, one_in, recorded)
-
-
-def _epoch_s(run: RunLog) -> float | None:
-    """The Unix time of the run's first sample [s] (its ``times_s`` = 0), None without one."""
-    return float(run.stamps_ns[0]) * 1e-9 if run.stamps_ns.size else None
 
 
 #: What the analysis holds per sample of its logs, about: the pipeline's passes of each trial

@@ -195,6 +195,11 @@ class RunLog:
         return (self.stamps_ns - self.stamps_ns[0]).astype(np.float64) * 1e-9
 
     @property
+    def epoch_s(self) -> float | None:
+        """The Unix time of the first sample [s] (:attr:`times_s` = 0), None without one."""
+        return float(self.stamps_ns[0]) * 1e-9 if self.stamps_ns.size else None
+
+    @property
     def n_samples(self) -> int:
         return int(self.stamps_ns.size)
 
