@@ -12,11 +12,13 @@ import pytest
 
 from mmd_ros.core.calibration import Calibration
 from mmd_ros.core.calibration_routine import (
-    CalibrationRoutine, RoutineSettings, Step, Window, bar_quality,
+    CalibrationRoutine, CaptureStats, RoutineSettings, Step, Window, bar_quality,
+    capture_uncertainty,
 )
 from mmd_ros.core.device import find_config, load_device
 from mmd_ros.core.errors import CalibrationError
 from mmd_ros.core.pipeline import Pipeline
+from mmd_ros.core.thermal import thermal_sensitivity
 from mmd_ros.twin import AmbientProfile, Effects, TwinDevice
 
 RATE = 1000.0
@@ -214,10 +216,11 @@ def test_bar_quality_of_a_straight_scale():
 
 
 def test_two_sided_routine_measures_hysteresis_seating_and_drift():
-    """With approaches=2 the routine reads the reference bar on its resting pair first, then
-    asks for every pair twice (from short, from long); the points are the means, and the
-    calibration records each bar's friction hysteresis (the twin's drawn one), the seating
-    repeatability and the temperature drift over the routine."""
+    """With approaches=2 the routine reads the reference bar on its resting pair first, from
+    short and from long as it will be read there at the end, then asks for every pair twice
+    (from short, from long); the points are the means, and the calibration records each bar's
+    friction hysteresis (the twin's drawn one), the seating repeatability and the temperature
+    drift over the routine."""
     device = load_device(find_config('mmd_prototype.yaml'))
     twin = TwinDevice(device, Effects.realistic(), seed=5)
     room = AmbientProfile.constant(20.0)
@@ -225,7 +228,7 @@ def test_two_sided_routine_measures_hysteresis_seating_and_drift():
     plate = Plate(device, twin, room)
     seats = {'': (None, 0), 'short': (1.0, 1), 'long': (-1.0, 2)}
     results, step, k = [], routine.next_step(), 0
-    assert step.kind == 'drift' and (step.channel, step.pair) == ('ref1', 'dr4')
+    assert (step.kind, step.channel, step.pair, step.approach) == ('drift', 'ref1', 'dr4', 'short')
     while step is not None:
         plate.place(step)
         approach, seat = seats[step.approach]
@@ -235,8 +238,9 @@ def test_two_sided_routine_measures_hysteresis_seating_and_drift():
         assert res.accepted, res.message
         results.append(res)
         step = res.next_step
-    assert len(results) == 1 + 7 * 7 * 2
-    assert 'from short' in results[1].message and 'from long' in results[2].message
+    assert len(results) == 2 + 7 * 7 * 2
+    assert results[0].next_step.kind == 'drift' and results[0].next_step.approach == 'long'
+    assert 'from short' in results[2].message and 'from long' in results[3].message
     unc = routine.calibration.uncertainty
     assert unc.approaches == 2 and unc.routine_temp_change_c is not None
     assert abs(unc.routine_temp_change_c) < 3 * unc.routine_temp_sigma_c   # a constant room
@@ -244,3 +248,45 @@ def test_two_sided_routine_measures_hysteresis_seating_and_drift():
     found = np.array([unc.hysteresis_m[f'bar{i}'] for i in range(1, 7)])
     np.testing.assert_allclose(found, truth, atol=0.04e-6)
     assert 10e-9 < unc.seating_m < 60e-9
+
+
+def test_the_routine_s_drift_compares_the_reference_bar_in_the_same_friction_states():
+    """The temperature change over a two-sided routine is read from the reference bar on its
+    resting pair from both sides before the measuring bars and again at the end: each side's
+    mean, so its friction state (+-h, as large as the change itself here) cancels, and each end
+    is two seatings, half the variance of one. A capture taken as it came is compared with the
+    bar's last, resting placement."""
+    device = load_device(find_config('mmd_prototype.yaml'))
+    res = device.encoder_resolution_m
+    d = device.pair('dr4').distance_m
+    rate, h = -0.3 / 3600.0, 60e-9                 # a room cooling 0.3 °C/h; the bar's friction
+    at = thermal_sensitivity(device, d)
+
+    def capture(approach: str, t: float, kind: str = 'point') -> CaptureStats:
+        reading = d + at * rate * t + {'short': h, 'long': -h, '': h}[approach]
+        return CaptureStats('ref1', 'dr4', approach, reading / res, 1.0, 2000, t, kind)
+
+    def read(counts):
+        return np.asarray(counts, dtype=np.float64) * res, None
+
+    points = [CaptureStats(f'bar{i}', p.name, w, p.distance_m / res, 1.0, 2000, 10.0 * k, 'point')
+              for i in range(1, 7) for k, p in enumerate(device.pairs) for w in ('short', 'long')]
+    ends = [capture('long', 500.0), capture('short', 505.0)]
+    both = capture_uncertainty(device, points + ends + [capture('long', 0.0, 'drift'),
+                                                        capture('short', 5.0, 'drift')],
+                               {'ref1': read})
+    assert both.routine_temp_change_c == pytest.approx(rate * (505.0 - 2.5), rel=1e-4)
+    one = capture_uncertainty(device, points + ends + [capture('short', 5.0, 'drift')],
+                              {'ref1': read})
+    assert one.routine_temp_change_c == pytest.approx(rate * 500.0, rel=1e-4)
+    # one capture at each end: twice the variance of two at each end
+    assert both.routine_temp_sigma_c / one.routine_temp_sigma_c == pytest.approx(
+        np.sqrt(0.5) * 502.5 / 500.0, rel=1e-4)     # (as the file keeps them)
+    # the start as it came (the state not known): against the bar's resting placement
+    came = capture_uncertainty(device, points + ends + [capture('', 5.0, 'drift')],
+                               {'ref1': read})
+    assert came.routine_temp_change_c == pytest.approx(rate * 500.0, rel=1e-4)
+    # the points carry the change from their capture times to the thermal zero's
+    first = device.pairs[0].distance_m                   # bar1 on dr1, captured at 0 s
+    assert both.drift_m['bar1'][0] == pytest.approx(
+        -thermal_sensitivity(device, first) * rate * (0.0 - 505.0), rel=1e-6)

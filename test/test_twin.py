@@ -186,14 +186,18 @@ def test_two_sided_calibration_measures_hysteresis_and_seating(device):
     """The default routine seats every bar on every pair from shorter and from longer: the
     points are the means (free of the friction state), half the difference is each bar's
     friction hysteresis, their scatter the seating repeatability, and the reference bar read
-    first and last on its resting pair gives the temperature change over the routine."""
+    first and last on its resting pair, from both sides each time, gives the temperature
+    change over the routine."""
     twin = TwinDevice(device, Effects.realistic(), seed=1)
     room = AmbientProfile.section_4_1()
     schedule = twin.calibration_schedule(0.0, approaches=2)
-    assert len(schedule) == 1 + 7 * 7 * 2
-    assert (schedule[0].channel, schedule[0].pair) == (6, 'dr4')          # the drift check
-    assert (schedule[-1].channel, schedule[-1].pair, schedule[-1].seat) == (6, 'dr4', 0)
-    assert {p.approach for p in schedule[1:-2] if p.channel < 6} == {1.0, -1.0}
+    assert len(schedule) == 2 + 7 * 7 * 2
+    first, last = schedule[:2], schedule[-2:]               # the drift check, the resting pair
+    assert {(p.channel, p.pair) for p in first + last} == {(6, 'dr4')}
+    assert schedule[-1].seat == 0 and len({p.seat for p in first + last}) == 4
+    own = twin.physics.pair_state[6, 3]
+    assert [p.approach for p in first] == [p.approach for p in last] == [-own, None]
+    assert {p.approach for p in schedule[2:-2] if p.channel < 6} == {1.0, -1.0}
     calibration = twin.calibrate(0.0, room, approaches=2)
     unc = calibration.uncertainty
     assert unc.approaches == 2
@@ -210,7 +214,8 @@ def test_two_sided_calibration_measures_hysteresis_and_seating(device):
     # preset: bars of the device's CTE, so the change reads in degrees as the device says)
     ideal = TwinDevice(device, Effects.ideal(), seed=1)
     unc = ideal.calibrate(0.0, room, approaches=2).uncertainty
-    bar_temp = room.lagged(np.array([schedule[0].start_s, schedule[-1].start_s]),
+    middle = [0.5 * (p.start_s + p.end_s) for p in schedule]
+    bar_temp = room.lagged(np.array([np.mean(middle[:2]), middle[-1]]),
                            ideal.physics.time_constant_s[6])
     assert abs(unc.routine_temp_change_c - (bar_temp[1] - bar_temp[0])) < 3 * unc.routine_temp_sigma_c
     assert unc.routine_temp_sigma_c < 0.03

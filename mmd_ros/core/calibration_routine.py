@@ -93,10 +93,12 @@ def capture_uncertainty(device: DeviceDescription, captures: list[CaptureStats],
     - with two captures per pair, from shorter and from longer: each bar's friction hysteresis
       h (half their mean difference, as CDF lengths) and the seating repeatability (their
       scatter about h, pooled over bars);
-    - with a ``drift`` capture of a reference bar on its resting pair before the measuring bars
-      and its thermal zero after them: the temperature change over the routine dT (the change
-      of its reading over its sensitivity, Fig. 10), and the thermal error every point carries
-      from its capture time, -S(d_j) dT (t_ij - t_zero) / (t_zero - t_drift).
+    - with ``drift`` captures of a reference bar on its resting pair before the measuring bars
+      (from short and from long with two approaches) and its captures there at the end (its
+      thermal zero the last): the temperature change over the routine dT (the change of its
+      reading over its sensitivity, Fig. 10, at the rate the two sides' mean times give), and
+      the thermal error every point carries from its capture time,
+      -S(d_j) dT (t_ij - t_zero) / (t_zero - t_drift).
 
     cdfs : per bar, what reads its counts as lengths: its new CDF (the points are the captures'
         means) or anything that returns (lengths, ...) for an array of counts
@@ -141,21 +143,47 @@ def _routine_drift(device: DeviceDescription, points: list[CaptureStats], drifts
                    cdfs: dict[str, Callable[[NDArray[np.float64]], Any]], capture_var_m2: float
                    ) -> tuple[float | None, dict[str, list[float]], float | None]:
     """The temperature change over the routine, each point's thermal error (see
-    :func:`capture_uncertainty`) and the change's standard uncertainty (two captures of
-    variance ``capture_var_m2`` each), from the first reference bar with a drift capture."""
-    for start in drifts:
-        ends = [c for c in points if c.channel == start.channel and c.pair == start.pair]
-        if not ends or start.channel not in cdfs or not math.isfinite(start.time_s):
+    :func:`capture_uncertainty`) and the change's standard uncertainty, from the first
+    reference bar with a drift capture.
+
+    A bar's reading on a pair depends on the friction state it was seated in, so the start and
+    the end are compared in the same states: the approaches both have (a drift capture from
+    each side against the two captures of the resting pair's point: each side's mean, the
+    friction cancelled and each end an average of two seatings); with none in common (a capture
+    taken as it came), the start against the last capture on the pair, the bar's resting
+    placement. Its variance is ``capture_var_m2`` (1 / n_start + 1 / n_end) over the
+    sensitivity squared: seating a bar anew scatters its reading (30 nm on the realistic twin,
+    0.07 °C of this change on the prototype's reference bar with one capture at each end)."""
+    for channel in dict.fromkeys(c.channel for c in drifts):
+        starts = [c for c in drifts if c.channel == channel and math.isfinite(c.time_s)]
+        pair = starts[0].pair if starts else ''
+        ends = [c for c in points if c.channel == channel and c.pair == pair
+                and math.isfinite(c.time_s)]
+        if not starts or not ends or channel not in cdfs:
             continue
-        end = max(ends, key=lambda c: c.time_s)
-        span = end.time_s - start.time_s
+        zero_s = max(c.time_s for c in ends)           # the last: the bar's resting placement
+        ways = sorted({c.approach for c in starts} & {c.approach for c in ends} - {''})
+        if ways:
+            starts = [c for c in starts if c.approach in ways]
+            ends = [c for c in ends if c.approach in ways]
+        else:
+            ends = [max(ends, key=lambda c: c.time_s)]
+        f = cdfs[channel]
+
+        def side(captures: list[CaptureStats]) -> tuple[float, float]:
+            """The mean reading [m] and time [s] of captures, each approach weighing alike."""
+            groups = ways or ['']
+            picked = [[c for c in captures if c.approach == w or not ways] for w in groups]
+            read = [float(np.mean(f(np.array([c.mean_counts for c in g]))[0])) for g in picked]
+            return float(np.mean(read)), float(np.mean([np.mean([c.time_s for c in g])
+                                                        for g in picked]))
+
+        (first, t0), (last, t1) = side(starts), side(ends)
+        span = t1 - t0
         if not span > 0:
             continue
-        f = cdfs[start.channel]
-        moved = float(f(np.array([end.mean_counts]))[0][0] - f(np.array([start.mean_counts]))[0][0])
-        d_ref = device.pair(start.pair).distance_m
-        at_ref = thermal_sensitivity(device, d_ref)
-        temp = moved / at_ref
+        at_ref = thermal_sensitivity(device, device.pair(pair).distance_m)
+        rate = (last - first) / at_ref / span               # [°C/s]
         times: dict[str, dict[str, list[float]]] = {}
         for c in points:
             if math.isfinite(c.time_s):
@@ -163,9 +191,10 @@ def _routine_drift(device: DeviceDescription, points: list[CaptureStats], drifts
         drift = {}
         for name, by_pair in times.items():
             pairs = [p for p in device.pairs if p.name in by_pair]
-            drift[name] = [float(-thermal_sensitivity(device, p.distance_m) * temp
-                                 * (np.mean(by_pair[p.name]) - end.time_s) / span) for p in pairs]
-        return temp, drift, math.sqrt(2.0 * capture_var_m2) / abs(at_ref)
+            drift[name] = [float(-thermal_sensitivity(device, p.distance_m) * rate
+                                 * (np.mean(by_pair[p.name]) - zero_s)) for p in pairs]
+        var = capture_var_m2 * (1.0 / len(starts) + 1.0 / len(ends))
+        return rate * (zero_s - t0), drift, math.sqrt(var) / abs(at_ref) * (zero_s - t0) / span
     return None, {}, None
 
 
@@ -348,7 +377,7 @@ class CalibrationRoutine:
         self._completed: set[str] = set()
         self._needs_zero: set[str] = set()
         self._captures: list[CaptureStats] = []
-        self._drift: CaptureStats | None = None
+        self._drifts: dict[str, CaptureStats] = {}     # by approach
         self._last_approach: dict[str, str] = {}
         self.calibration: Calibration | None = None
         self.pending: list[str] = []
@@ -378,7 +407,7 @@ class CalibrationRoutine:
         self._completed.clear()
         self._needs_zero.clear()
         self._captures.clear()
-        self._drift = None
+        self._drifts = {}
 
     def session_points(self, channel: str) -> dict[str, float]:
         """Counts captured in this session for ``channel``, by pair."""
@@ -486,10 +515,11 @@ class CalibrationRoutine:
             channel = next((c for c in self.bar_channels if c not in self._completed), None)
             if channel is None:
                 return None
-            if self.settings.approaches == 2 and self._drift is None and self.references \
+            way = next((w for w in APPROACHES if w not in self._drifts), None)
+            if self.settings.approaches == 2 and way is not None and self.references \
                     and not self._completed and not self._points:
                 ref = self.references[0]
-                return Step('drift', ref, self._resting[ref])
+                return Step('drift', ref, self._resting[ref], way)
         if channel in self._needs_zero and not pair:
             return Step('thermal_zero', channel, self._resting[channel])
         done = self._points.get(channel, {})
@@ -616,12 +646,14 @@ class CalibrationRoutine:
             if step.channel not in self._resting or step.pair != self._resting[step.channel]:
                 return self._refuse(step, 'the drift reading is taken with a reference bar on its '
                                     'resting pair', bar, pair, mode)
-            self._drift = CaptureStats(step.channel, step.pair, '', q, (std_m / res) ** 2,
-                                       n, _seconds(when), 'drift')
+            self._drifts[step.approach] = CaptureStats(step.channel, step.pair, step.approach, q,
+                                                       (std_m / res) ** 2, n, _seconds(when),
+                                                       'drift')
             nxt = self.next_step(bar, '', mode)
-            return CaptureResult(True, f'read {step.channel} on {step.pair} before the measuring '
-                                 f'bars: {q:.1f} counts (the routine\'s temperature drift is '
-                                 'its change until the thermal zero).'
+            way = f' from {step.approach}' if step.approach else ''
+            return CaptureResult(True, f'read {step.channel} on {step.pair}{way} before the '
+                                 f'measuring bars: {q:.1f} counts (the routine\'s temperature '
+                                 'drift is its change until its placements there at the end).'
                                  + (f' Next: {nxt.describe(self.device)}.' if nxt else ''),
                                  step, next_step=nxt)
         why = self._plausible(step.channel, step.pair, q)
@@ -677,7 +709,7 @@ class CalibrationRoutine:
         self._captures += [CaptureStats(channel, p, way, c[0], (c[1] / res) ** 2 * c[2]
                                         / max(c[2] - 1, 1), c[2], c[3])
                            for p, v in points.items() for way, c in v.captures.items() if c[2] > 1]
-        drift = [self._drift] if self._drift is not None else []
+        drift = list(self._drifts.values())
         cal = replace(cal, uncertainty=capture_uncertainty(
             self.device, self._captures + drift, {c: b.cdf() for c, b in cal.bars.items()}))
         last_pair = self._order[channel][-1]

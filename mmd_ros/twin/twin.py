@@ -363,8 +363,8 @@ class TwinDevice:
         approaches : 1 — one placement per pair, as the bar lies there (the paper's routine);
             2 — two placements per pair, seated once from shorter and once from longer (a
             reference bar's last one on its resting pair is its resting placement), and before
-            the measuring bars each reference bar once on its resting pair (the routine's
-            temperature drift, seen against its thermal zero at the end)
+            the measuring bars each reference bar on its resting pair in the same two ways (the
+            routine's temperature drift, seen against its two placements there at the end)
         """
         if settle_s < 0 or not average_s > 0:
             raise TwinError(f'need settle_s >= 0 and average_s > 0, got {settle_s} and {average_s}')
@@ -377,11 +377,14 @@ class TwinDevice:
             visits.append((ref.index, [p for p in names if p != ref.pair] + [ref.pair]))
         out, t = [], float(at_s)
         if approaches == 2:
-            # each reference bar first on its resting pair: the routine's temperature drift
+            # each reference bar first on its resting pair, seated from both sides as at its
+            # end there: the routine's temperature drift
             for ref in self.device.reference_channels:
-                out.append(Placement(ref.index, ref.pair, t + settle_s, t + settle_s + average_s,
-                                     None, RESEATS))
-                t += settle_s + average_s
+                own = float(self.physics.pair_state[ref.index, self._pair(ref.pair)])
+                for approach, seat in ((-own, RESEATS - 1), (None, RESEATS)):
+                    out.append(Placement(ref.index, ref.pair, t + settle_s,
+                                         t + settle_s + average_s, approach, seat))
+                    t += settle_s + average_s
         for channel, pairs in visits:
             for pair in pairs:
                 if approaches == 1:
@@ -422,7 +425,7 @@ class TwinDevice:
         names = self.device.channel_names
         way = {1.0: 'short', -1.0: 'long'}
         schedule = self.calibration_schedule(at_s, settle_s, average_s, approaches)
-        n_drift = len(self.device.reference_channels) if approaches == 2 else 0
+        n_drift = 2 * len(self.device.reference_channels) if approaches == 2 else 0
         for k, p in enumerate(schedule):
             times = p.start_s + np.arange(max(1, int(round((p.end_s - p.start_s) * rate)))) / rate
             c = self.counts_on_pair(p.channel, p.pair, times, ambient, approach=p.approach,
