@@ -151,8 +151,8 @@ def _routine_drift(device: DeviceDescription, points: list[CaptureStats], drifts
     each side against the two captures of the resting pair's point: each side's mean, the
     friction cancelled and each end an average of two seatings); with none in common (a capture
     taken as it came), the start against the last capture on the pair, the bar's resting
-    placement. Its variance is ``capture_var_m2`` (1 / n_start + 1 / n_end) over the
-    sensitivity squared: seating a bar anew scatters its reading (30 nm on the realistic twin,
+    placement. Its variance is ``capture_var_m2`` times each side's sum over its approaches of
+    1 / (captures G^2), G the approaches, over the sensitivity squared: seating a bar anew scatters its reading (30 nm on the realistic twin,
     0.07 °C of this change on the prototype's reference bar with one capture at each end)."""
     for channel in dict.fromkeys(c.channel for c in drifts):
         starts = [c for c in drifts if c.channel == channel and math.isfinite(c.time_s)]
@@ -170,15 +170,16 @@ def _routine_drift(device: DeviceDescription, points: list[CaptureStats], drifts
             ends = [max(ends, key=lambda c: c.time_s)]
         f = cdfs[channel]
 
-        def side(captures: list[CaptureStats]) -> tuple[float, float]:
-            """The mean reading [m] and time [s] of captures, each approach weighing alike."""
-            groups = ways or ['']
-            picked = [[c for c in captures if c.approach == w or not ways] for w in groups]
-            read = [float(np.mean(f(np.array([c.mean_counts for c in g]))[0])) for g in picked]
-            return float(np.mean(read)), float(np.mean([np.mean([c.time_s for c in g])
-                                                        for g in picked]))
+        def side(captures: list[CaptureStats]) -> tuple[float, float, float]:
+            """The mean reading [m] and time [s] of captures, each approach weighing alike,
+            and the reading's variance in units of one capture's."""
+            groups = [[c for c in captures if c.approach == w or not ways] for w in ways or ['']]
+            read = [float(np.mean(f(np.array([c.mean_counts for c in g]))[0])) for g in groups]
+            return (float(np.mean(read)), float(np.mean([np.mean([c.time_s for c in g])
+                                                         for g in groups])),
+                    sum(1.0 / len(g) for g in groups) / len(groups) ** 2)
 
-        (first, t0), (last, t1) = side(starts), side(ends)
+        (first, t0, v0), (last, t1, v1) = side(starts), side(ends)
         span = t1 - t0
         if not span > 0:
             continue
@@ -193,7 +194,7 @@ def _routine_drift(device: DeviceDescription, points: list[CaptureStats], drifts
             pairs = [p for p in device.pairs if p.name in by_pair]
             drift[name] = [float(-thermal_sensitivity(device, p.distance_m) * rate
                                  * (np.mean(by_pair[p.name]) - zero_s)) for p in pairs]
-        var = capture_var_m2 * (1.0 / len(starts) + 1.0 / len(ends))
+        var = capture_var_m2 * (v0 + v1)
         return rate * (zero_s - t0), drift, math.sqrt(var) / abs(at_ref) * (zero_s - t0) / span
     return None, {}, None
 
