@@ -37,14 +37,17 @@ from numpy.typing import ArrayLike, NDArray
 from mmd_ros.core.calibration import BarCalibration, Calibration
 from mmd_ros.hardware.source import SourceInfo
 from mmd_ros.twin import AmbientProfile, Scenario, SimulatedRun, TwinDevice, TwinError
+from mmd_ros.twin.physics import RESEATS
 
 __all__ = ['TwinSource']
 
 NS_PER_S = 1_000_000_000
 #: Length a bar lying in its case reads [m] (anything within the range).
 CASE_LENGTH_M = 0.3
-#: How a bar is seated on a pair: friction state and seating of the twin (''  its resting one).
-APPROACH_SEATS: dict[str, tuple[float | None, int]] = {'': (None, 0), 'short': (1.0, 1), 'long': (-1.0, 2)}
+#: How a bar is seated on a pair: the friction state of its guide ('' as it comes: the pair's).
+#: Seated so, each placement of a bar on a pair is a seating of its own (the twin's seatings
+#: 1..RESEATS in turn); as it comes, the bar's resting placement there (seating 0).
+APPROACH_STATES: dict[str, float | None] = {'': None, 'short': 1.0, 'long': -1.0}
 #: Wobble of a bar seating in its sockets: amplitude [m] and frequency [Hz].
 SEAT_WOBBLE_M = 5e-6
 SEAT_WOBBLE_HZ = 3.0
@@ -100,8 +103,11 @@ class TwinSource:
         self._bars = self._measuring + list(self._resting)
         self._lock = threading.RLock()
         self._next = 0
-        # world state per channel: 'mounted', 'off', a pair name or 'length:<metres>'
+        # world state per channel: 'mounted', 'off', a pair name (as it comes),
+        # '<pair>@<short|long>' or 'length:<metres>'; and the twin's seating it is in
         self._state: dict[int, str] = {}
+        self._seat: dict[int, int] = {}
+        self._seatings: dict[tuple[int, str], int] = {}     # approach placements per bar, pair
         for c in self._measuring:
             self._state[c] = 'mounted' if mounted else 'off'
         self._state.update(self._resting)
@@ -159,24 +165,30 @@ class TwinSource:
             raise TwinError(f'no bar {bar!r}; bars are {[self.names[c] for c in self._bars]}')
         return self.names.index(bar)
 
-    def _move(self, c: int, state: str) -> None:
-        """Change channel c's state from the next sample on (lock held)."""
-        if self._state.get(c) == state:
+    def _move(self, c: int, state: str, seat: int = 0) -> None:
+        """Change channel c's state (and seating) from the next sample on (lock held)."""
+        if self._state.get(c) == state and self._seat.get(c, 0) == seat:
             return
         self._state[c] = state
+        self._seat[c] = seat
         self._transitions[c] = _Transition(self._next, self._next + self.transition, float(self._last[c]))
         self._cache.pop(c, None)
 
     def place(self, bar: str, pair: str, approach: str = '') -> None:
         """The operator puts ``bar`` on reference ``pair`` (taking it off the MMD if mounted):
         as it comes (its resting placement there), or seated from ``short`` or ``long`` (the
-        friction state of its guide +1 or -1, another seating)."""
+        friction state of its guide +1 or -1; each such placement seats it anew)."""
         c = self._channel(bar)
         self.device.pair(pair)
-        if approach not in APPROACH_SEATS:
+        if approach not in APPROACH_STATES:
             raise TwinError(f'approach must be short, long or empty, got {approach!r}')
         with self._lock:
-            self._move(c, f'{pair}@{approach}' if approach else pair)
+            if not approach:
+                self._move(c, pair)
+                return
+            n = self._seatings.get((c, pair), 0)
+            self._seatings[(c, pair)] = n + 1
+            self._move(c, f'{pair}@{approach}', 1 + n % RESEATS)
 
     def hold(self, bar: str, length_m: float) -> None:
         """The operator holds ``bar`` at a centre distance of ``length_m`` (for example beside a
@@ -296,9 +308,9 @@ class TwinSource:
                                                   self.ambient).astype(np.float64)
         else:
             pair, _, approach = state.partition('@')
-            sign, seat = APPROACH_SEATS[approach]
-            values = self.twin.counts_on_pair(c, pair, times, self.ambient, approach=sign,
-                                              seat=seat).astype(np.float64)
+            values = self.twin.counts_on_pair(c, pair, times, self.ambient,
+                                              approach=APPROACH_STATES[approach],
+                                              seat=self._seat.get(c, 0)).astype(np.float64)
         self._cache[c] = (k0, values)
         return values[:k1 - k0]
 
