@@ -152,8 +152,9 @@ def _routine_drift(device: DeviceDescription, points: list[CaptureStats], drifts
     friction cancelled and each end an average of two seatings); with none in common (a capture
     taken as it came), the start against the last capture on the pair, the bar's resting
     placement. Its variance is ``capture_var_m2`` times each side's sum over its approaches of
-    1 / (captures G^2), G the approaches, over the sensitivity squared: seating a bar anew scatters its reading (30 nm on the realistic twin,
-    0.07 °C of this change on the prototype's reference bar with one capture at each end)."""
+    1 / (captures G^2), G the approaches, over the sensitivity squared: seating a bar anew
+    scatters its reading (30 nm on the realistic twin, 0.07 °C of this change on the
+    prototype's reference bar with one capture at each end)."""
     for channel in dict.fromkeys(c.channel for c in drifts):
         starts = [c for c in drifts if c.channel == channel and math.isfinite(c.time_s)]
         pair = starts[0].pair if starts else ''
