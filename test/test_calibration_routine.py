@@ -226,12 +226,15 @@ def test_two_sided_routine_measures_hysteresis_seating_and_drift():
     room = AmbientProfile.constant(20.0)
     routine = CalibrationRoutine(device, settings=RoutineSettings(approaches=2))
     plate = Plate(device, twin, room)
-    seats = {'': (None, 0), 'short': (1.0, 1), 'long': (-1.0, 2)}
+    ways = {'short': 1.0, 'long': -1.0}
+    seated: dict[tuple[str, str], int] = {}     # each placement a seating of its own
     results, step, k = [], routine.next_step(), 0
     assert (step.kind, step.channel, step.pair, step.approach) == ('drift', 'ref1', 'dr4', 'short')
     while step is not None:
         plate.place(step)
-        approach, seat = seats[step.approach]
+        seat = seated.get((step.channel, step.pair), 0) + 1
+        seated[(step.channel, step.pair)] = seat
+        approach = ways[step.approach]
         k += 1
         window = plate.window(approach=approach, seat=seat)
         res = routine.capture(step, window, f'2024-01-01T00:{k // 60:02d}:{k % 60:02d}+00:00')
