@@ -405,7 +405,9 @@ class LengthBudget:
         # the measured change is noisy: scale the profile to the unbiased estimate of its square,
         # and claim it as a covariance e e^T of one change for every bar, not as an error of
         # known sign (realistic twins whose room held still read changes of up to 0.23 °C, 2.6
-        # of their sigma; summed with the bars' sag as a signed error it cancelled it)
+        # of their sigma, with one seating at each end; summed with the bars' sag as a signed
+        # error it cancelled it). In a still room this claim averages 0.48 u^2: the routine
+        # reads both ends from both sides, which halves u^2 (calibration_routine._routine_drift)
         temp, temp_sigma = figures.routine_temp_change_c, figures.routine_temp_sigma_c or 0.0
         if temp:
             self.drift_m *= math.sqrt(max(temp * temp - temp_sigma ** 2, 0.0)) / abs(temp)
