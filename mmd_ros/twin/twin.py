@@ -375,30 +375,33 @@ class TwinDevice:
         visits = [(c, names) for c in self.device.measuring_channels]
         for ref in self.device.reference_channels:
             visits.append((ref.index, [p for p in names if p != ref.pair] + [ref.pair]))
-        out, t = [], float(at_s)
+        # (channel, pair, [(approach, seat), ...]) in the routine's order
+        plan: list[tuple[int, str, list[tuple[float | None, int]]]] = []
         if approaches == 2:
             # each reference bar first on its resting pair, seated from both sides as at its
             # end there: the routine's temperature drift
             for ref in self.device.reference_channels:
-                own = float(self.physics.pair_state[ref.index, self._pair(ref.pair)])
-                for approach, seat in ((-own, RESEATS - 1), (None, RESEATS)):
-                    out.append(Placement(ref.index, ref.pair, t + settle_s,
-                                         t + settle_s + average_s, approach, seat))
-                    t += settle_s + average_s
+                own = self._pair_state(ref.index, ref.pair)
+                plan.append((ref.index, ref.pair, [(-own, RESEATS - 1), (None, RESEATS)]))
         for channel, pairs in visits:
             for pair in pairs:
                 if approaches == 1:
-                    ways: list[tuple[float | None, int]] = [(None, 0)]
+                    plan.append((channel, pair, [(None, 0)]))
                 elif resting.get(channel) == pair:
-                    own = float(self.physics.pair_state[channel, self._pair(pair)])
-                    ways = [(-own, 1), (None, 0)]
+                    plan.append((channel, pair, [(-self._pair_state(channel, pair), 1), (None, 0)]))
                 else:
-                    ways = [(1.0, 1), (-1.0, 2)]
-                for approach, seat in ways:
-                    out.append(Placement(channel, pair, t + settle_s, t + settle_s + average_s,
-                                         approach, seat))
-                    t += settle_s + average_s
+                    plan.append((channel, pair, [(1.0, 1), (-1.0, 2)]))
+        out, t = [], float(at_s)
+        for channel, pair, ways in plan:
+            for approach, seat in ways:
+                out.append(Placement(channel, pair, t + settle_s, t + settle_s + average_s,
+                                     approach, seat))
+                t += settle_s + average_s
         return out
+
+    def _pair_state(self, channel: int, pair: str) -> float:
+        """The friction state a bar takes seated on a pair as it comes (+1 or -1)."""
+        return float(self.physics.pair_state[channel, self._pair(pair)])
 
     def calibrate(self, at_s: float, ambient: AmbientProfile, settle_s: float = 3.0,
                   average_s: float = 2.0, approaches: int = 1, epoch_s: float | None = None
@@ -430,8 +433,7 @@ class TwinDevice:
             times = p.start_s + np.arange(max(1, int(round((p.end_s - p.start_s) * rate)))) / rate
             c = self.counts_on_pair(p.channel, p.pair, times, ambient, approach=p.approach,
                                     seat=p.seat).astype(np.float64)
-            state = p.approach if p.approach is not None else float(
-                self.physics.pair_state[p.channel, self._pair(p.pair)])
+            state = p.approach if p.approach is not None else self._pair_state(p.channel, p.pair)
             captures.append(CaptureStats(
                 names[p.channel], p.pair, way[state] if approaches == 2 else '', float(np.mean(c)),
                 float(np.var(c, ddof=1)) if c.size > 1 else 0.0, int(c.size),
