@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import struct
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -331,3 +332,46 @@ def test_mmd_process_reading_block_by_block_loses_and_reports_the_same(tmp_path,
     assert np.array_equal(np.concatenate([b.reference_pose for b in blocks]), whole.reference_pose,
                           equal_nan=True)
     assert whole.problem is not None and problem.as_dict() == whole.problem.as_dict()
+
+
+def test_a_log_that_lost_its_start_is_read_with_the_device_and_calibration_given(tmp_path, run_log,
+                                                                                capsys):
+    """The device description and the calibration are written first: damage there left the
+    samples unreadable although every one of them was intact. Given the two files, the samples
+    come back; a description given over a log's own that differs is said to differ."""
+    path, run = run_log
+    data = path.read_bytes()
+    off, length = chunks(data)[0]
+    bad = damaged(tmp_path, data, 'start.mcap', off + length // 2)
+    with pytest.raises(LogFormatError, match='--device FILE'):
+        read_run(bad)
+    device = tmp_path / 'device.yaml'
+    device.write_text(run.device.to_yaml())
+    calibration = tmp_path / 'calibration.yaml'
+    calibration.write_text(run.calibration.to_yaml())
+    back = read_run(bad, device=run.device)
+    lost = back.problem.skipped[0].messages.get(TOPIC_RAW, 0)
+    assert back.device_note == '' and back.calibration is None
+    keep = np.isin(run.stamps_ns, back.stamps_ns)
+    assert check_kept(run, _as_js(back), keep) == lost
+    assert main(['process', str(bad), '--device', str(device), '--calibration', str(calibration),
+                 '--out', str(tmp_path / 'p.mcap'), '--json']) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary['samples'] == run.stamps_ns.size - lost > 0.9 * run.stamps_ns.size
+    assert main(['process', str(path), '--out', str(tmp_path / 'q.mcap'), '--json']) == 0
+    whole = json.loads(capsys.readouterr().out)
+    x, x_whole = summary['pose_error'][0]['rms'], whole['pose_error'][0]['rms']
+    assert abs(x - x_whole) < 0.05 * x_whole
+    # the paper's description over the twin's, which states more: said, section by section
+    assert main(['process', str(path), '--device', 'mmd_prototype.yaml', '--out',
+                 str(tmp_path / 'r.mcap'), '--json']) == 0
+    err = capsys.readouterr().err
+    assert 'replaces the log\'s own' in err and 'bars' in err
+    assert main(['process', str(path), '--device', str(device), '--out', str(tmp_path / 's.mcap'),
+                 '--json']) == 0
+    assert 'replaces' not in capsys.readouterr().err
+
+
+def _as_js(run):
+    """A run's samples as :func:`check_kept` takes them."""
+    return SimpleNamespace(stamps_ns=run.stamps_ns, values=run.counts)

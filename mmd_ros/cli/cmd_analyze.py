@@ -12,7 +12,8 @@ from mmd_ros.analysis.effects import CATALOGUE
 from mmd_ros.analysis.errors import AnalysisError
 from mmd_ros.analysis.identify import AnalysisOptions, analyze
 from mmd_ros.analysis.report import format_summary, write_report
-from mmd_ros.cli.log_args import add_segment_argument
+from mmd_ros.cli.log_args import (add_device_argument, add_segment_argument, log_device,
+                                  print_device_note)
 from mmd_ros.core import jsonio, validate
 from mmd_ros.core.calibration import load_calibration
 from mmd_ros.core.model import Model, load_model
@@ -52,13 +53,15 @@ def run_command(args: argparse.Namespace) -> int:
 
     runs = []
     flagged_samples = {}
+    device = log_device(args)
     for path in args.logs:
         say(f'reading {path}')
-        run = read_run(path, segment=args.segment)
+        run = read_run(path, segment=args.segment, device=device)
         if run.problem:
             print(f'warning: {path}: {run.problem}', file=sys.stderr)
         if metadata_note(run):
             print(f'warning: {metadata_note(run)}', file=sys.stderr)
+        print_device_note(run)
         unreadable = int(run.unreadable.sum())
         run, flagged = run.without_flagged()
         flagged_samples[str(path)] = flagged
@@ -112,6 +115,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    'bar lengths): one run, or the session of runs (x, y, z, C...) analysed jointly')
     p.add_argument('--model', help='current model file (default: the log\'s, else CDF + thermal)')
     p.add_argument('--calibration', help='calibration file to use instead of the one in the log')
+    add_device_argument(p)
     p.add_argument('--out', help='folder for report.md, analysis.json, the figures and model.yaml')
     p.add_argument('--json', action='store_true', help='print the numbers as JSON on stdout')
     p.add_argument('--effects', help='comma-separated effects to test (default: the whole catalogue)')

@@ -11,7 +11,8 @@ from mmd_ros.analysis.errors import AnalysisError
 from mmd_ros.analysis.iso230 import figure_table, target_table
 from mmd_ros.analysis.iso230_csv import iso230_of_csv, source_kind
 from mmd_ros.analysis.iso230_report import INSTRUMENTS, Iso230Report, iso230_of_run, parse_targets
-from mmd_ros.cli.log_args import add_segment_argument
+from mmd_ros.cli.log_args import (add_device_argument, add_segment_argument, log_device,
+                                  print_device_note)
 from mmd_ros.core import jsonio, validate
 from mmd_ros.core.model import Model, load_model
 from mmd_ros.core.progress import Progress
@@ -29,10 +30,11 @@ MAX_DWELL_S = 3600.0
 
 
 def _report_of_log(args: argparse.Namespace) -> Iso230Report:
-    run = read_run(args.log, segment=args.segment)
+    run = read_run(args.log, segment=args.segment, device=log_device(args))
     for problem in (run.problem, metadata_note(run)):
         if problem:
             print(f'warning: {problem}', file=sys.stderr)
+    print_device_note(run)
     models: dict[str, Model] = {}
     models['MMD' if not args.after else 'MMD before'] = load_model(args.model) if args.model else (run.model or Model())
     if args.after:
@@ -112,6 +114,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument('--after', help='a second model file (e.g. from mmd analyze): adds the MMD '
                    '"after" rows, as Table 4\'s before/after error compensation')
     p.add_argument('--calibration', help='calibration file to use instead of the one in the log')
+    add_device_argument(p)
     p.add_argument('--instrument', action='append', choices=INSTRUMENTS,
                    help='what to evaluate (repeatable): mmd, reference, error (MMD - reference at '
                    'every sample); default all three')

@@ -13,6 +13,7 @@ import math
 import sys
 from pathlib import Path
 
+from mmd_ros.cli.log_args import add_device_argument, log_device
 from mmd_ros.core.machine import load_machine
 from mmd_ros.core.model import load_model
 from mmd_ros.core.progress import Progress
@@ -72,7 +73,7 @@ def _analyze(args: argparse.Namespace) -> int:
                                  mmd_bound_rad=args.mmd_accuracy_arcsec / ARCSEC_PER_RAD,
                                  component_m=args.rotary_components[0] * 1e-6,
                                  component_rad=args.rotary_components[1] / ARCSEC_PER_RAD),
-        calibration_path=args.calibration, progress=not quiet)
+        calibration_path=args.calibration, device=log_device(args), progress=not quiet)
     result = analyze_session(args.logs, machine, options, progress=_progress(not quiet))
     written = None
     if args.out:
@@ -178,6 +179,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     a.add_argument('--instrument', choices=['mmd', 'reference'], default='mmd',
                    help='the MMD (default), or the log\'s six-dimensional reference instrument')
     a.add_argument('--calibration', help='calibration file instead of the one in each log')
+    add_device_argument(a)
     a.add_argument('--draws', type=int, default=200,
                    help='Monte Carlo draws, at least 2 (default 200)')
     a.add_argument('--limit-um', type=float, default=2.0, dest='limit_um',

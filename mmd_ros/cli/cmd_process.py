@@ -7,7 +7,8 @@ import sys
 import time
 from pathlib import Path
 
-from mmd_ros.cli.log_args import add_segment_argument
+from mmd_ros.cli.log_args import (add_device_argument, add_segment_argument, log_device,
+                                  print_device_note)
 from mmd_ros.core import jsonio
 from mmd_ros.core.accuracy import format_stats
 from mmd_ros.core.calibration import load_calibration
@@ -37,6 +38,7 @@ def run_command(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else Path(args.log).with_suffix('.processed.mcap')
     check_outputs([('--out', out), ('--csv', args.csv)], [args.log, args.model, args.calibration],
                   force=args.force)
+    device = log_device(args)
     if not quiet:
         print(f'reading {args.log}', file=sys.stderr)
     cal = load_calibration(args.calibration) if args.calibration else None
@@ -53,20 +55,21 @@ def run_command(args: argparse.Namespace) -> int:
         return summary
 
     if args.segment is not None:
-        run = read_run(args.log, segment=args.segment)   # one segment of the log, in memory
+        run = read_run(args.log, segment=args.segment, device=device)   # one segment, in memory
         summary = process(run)
     else:
         try:
-            with open_run(args.log) as run:   # block by block, in bounded memory
+            with open_run(args.log, device) as run:   # block by block, in bounded memory
                 summary = process(run)
         except StampsNotIncreasing:
-            run = read_run(args.log)   # refuses, naming the segments to read with --segment
+            run = read_run(args.log, device=device)   # refuses, naming the segments (--segment)
             summary = process(run)
     model = chosen or run.model or Model()
     if summary.get('log_problem'):
         print(f'warning: {summary["log_problem"]["message"]}', file=sys.stderr)
     if metadata_note(run):
         print(f'warning: {metadata_note(run)}', file=sys.stderr)
+    print_device_note(run)
     if summary.get('model_calibration'):
         print(f'warning: {summary["model_calibration"]}', file=sys.stderr)
     elapsed = time.perf_counter() - started
@@ -122,6 +125,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument('log', help='MCAP log with raw counts (from mmd simulate, the recorder, a user)')
     p.add_argument('--model', help='model file (YAML); default: the log\'s model, else CDF + thermal')
     p.add_argument('--calibration', help='calibration file to use instead of the one in the log')
+    add_device_argument(p)
     p.add_argument('--out', help='output MCAP (default: LOG.processed.mcap)')
     p.add_argument('--csv', help='also write the poses and lengths as CSV to this file')
     p.add_argument('--covariance', action='store_true',

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import sys
 
 from mmd_ros.core import validate
+from mmd_ros.core.device import DeviceDescription, find_config, load_device
 
-__all__ = ['add_segment_argument']
+__all__ = ['add_device_argument', 'add_segment_argument', 'log_device', 'print_device_note']
 
 
 def add_segment_argument(p: argparse.ArgumentParser) -> None:
@@ -15,3 +17,24 @@ def add_segment_argument(p: argparse.ArgumentParser) -> None:
     p.add_argument('--segment', type=validate.arg_number(low=1, integer=True), default=None,
                    help='for a log whose stamps go backwards somewhere: use only its N-th '
                    'stretch of increasing stamps (the error message lists them)')
+
+
+def add_device_argument(p: argparse.ArgumentParser) -> None:
+    """``--device FILE``: the device description to read the logs with instead of their own
+    (:func:`mmd_ros.logs.layout.read_run`)."""
+    p.add_argument('--device', default=None,
+                   help='device description (a path, or a file name in config/) to use instead '
+                   'of the one in the log: for a log written without one, or whose start was '
+                   'lost (default: the log\'s own)')
+
+
+def log_device(args: argparse.Namespace) -> DeviceDescription | None:
+    """The device description ``--device`` names, or None (each log's own)."""
+    return load_device(find_config(args.device)) if args.device else None
+
+
+def print_device_note(run: object) -> None:
+    """Warn on stderr when a device description given replaced a log's own, which differs."""
+    note = getattr(run, 'device_note', '')
+    if note:
+        print(f'warning: {note}', file=sys.stderr)

@@ -126,6 +126,8 @@ class RunLog:
     status: NDArray[np.uint8] | None = None
     #: the hash of the run as recorded, when this holds only part of its samples
     recorded_hash: str | None = None
+    #: what a command says when a device description given replaced the log's own, or ''
+    device_note: str = ''
 
     @property
     def no_signal(self) -> NDArray[np.bool_]:
@@ -309,7 +311,8 @@ def _runs_text(stamps_ns: NDArray[np.int64], runs: list[tuple[int, int]]) -> str
                      for k, (a, b) in enumerate(runs, 1))
 
 
-def read_run(path: str | os.PathLike[str], *, segment: int | None = None) -> RunLog:
+def read_run(path: str | os.PathLike[str], *, segment: int | None = None,
+             device: DeviceDescription | None = None) -> RunLog:
     """Read a run log: device description, calibration (the last one before the data ends),
     raw counts and the reference if there is one. A damaged or truncated log is read around the
     damage and :attr:`RunLog.problem` says what was lost (a
@@ -320,10 +323,14 @@ def read_run(path: str | os.PathLike[str], *, segment: int | None = None) -> Run
     without a word. The message lists the stretches of increasing stamps ("segments");
     ``segment`` (1, 2, ...) reads one of them alone. Samples that repeat the stamp of the one
     before them (of the raw counts in the segment read, or of the reference) are refused too.
+
+    ``device``: the device description to use instead of the log's own (a log recorded by a
+    program that did not write one, or whose start was lost; :attr:`RunLog.device_note` says
+    when it differs from the log's).
     """
     reader = LogReader(path)
     source = str(path)
-    device, calibration, model = _run_header(reader, source)
+    device, calibration, model, device_note = _run_header(reader, source, device)
     raw = reader.joint_states(TOPIC_RAW)
     if raw.names and raw.names != device.channel_names:
         raise LogFormatError(f'{source}: {TOPIC_RAW} names {raw.names} do not match the device '
@@ -347,7 +354,7 @@ def read_run(path: str | os.PathLike[str], *, segment: int | None = None) -> Run
     sel = JointStates(raw.stamps_ns[a:b], raw.names, values[a:b], status)
     run = RunLog(Path(path), device, calibration, model, sel.stamps_ns, sel.values,
                  device.channel_names, problem=reader.problem, segment=(segment or 1, len(runs)),
-                 status=status)
+                 status=status, device_note=device_note)
     for topic, names, attr in ((TOPIC_REF_POSE, REFERENCE_POSE_NAMES, 'reference_pose'),
                                (TOPIC_REF_LENGTHS, BAR_NAMES, 'reference_lengths')):
         if reader.has_topic(topic):
@@ -416,13 +423,15 @@ class RunStream:
     HOLD_BLOCKS = 4
     HOLD_SAMPLES = 1 << 16
 
-    def __init__(self, path: str | os.PathLike[str]) -> None:
+    def __init__(self, path: str | os.PathLike[str],
+                 device: DeviceDescription | None = None) -> None:
         self.path = Path(path)
         source = str(path)
         self._reader = ChunkedReader(path, {TOPIC_DEVICE, TOPIC_CALIBRATION, TOPIC_MODEL},
                                      {TOPIC_RAW, TOPIC_REF_POSE, TOPIC_REF_LENGTHS})
         try:
-            self.device, self.calibration, self.model = _run_header(self._reader, source)
+            self.device, self.calibration, self.model, self.device_note = _run_header(
+                self._reader, source, device)
             self.metadata, self.metadata_as_text = _run_metadata(self._reader)
             self.n_samples = self._reader.message_count(TOPIC_RAW) or 0
             self.channel_names = self.device.channel_names
@@ -522,9 +531,10 @@ class RunStream:
             yield take(min(size, pending))
 
 
-def open_run(path: str | os.PathLike[str]) -> RunStream:
-    """A run log to read block by block (:class:`RunStream`); close it when done."""
-    return RunStream(path)
+def open_run(path: str | os.PathLike[str], device: DeviceDescription | None = None) -> RunStream:
+    """A run log to read block by block (:class:`RunStream`); close it when done. ``device``
+    as in :func:`read_run`."""
+    return RunStream(path, device)
 
 
 def _increasing(stamps: NDArray[np.int64], last: int | None) -> bool:
@@ -536,15 +546,33 @@ def _increasing(stamps: NDArray[np.int64], last: int | None) -> bool:
     return bool(np.all(np.diff(stamps) > 0))
 
 
-def _run_header(reader: LogReader, source: str) -> tuple[DeviceDescription, Calibration | None, Model | None]:
-    """The device description, the calibration (the last in the log) and the model of a run
-    log; raises when it has no device description or no raw counts."""
+def _run_header(reader: LogReader, source: str, given: DeviceDescription | None = None
+                ) -> tuple[DeviceDescription, Calibration | None, Model | None, str]:
+    """The device description (``given``, else the log's), the calibration (the last in the
+    log) and the model of a run log, and what to say when ``given`` differs from the log's own
+    description ('' otherwise); raises when it has neither description or no raw counts."""
     text = reader.latest_string(TOPIC_DEVICE)
-    if text is None:
+    if text is None and given is None:
         raise LogFormatError(f'{source} has no {TOPIC_DEVICE}: it is not an MMD log, or the '
-                             'recording lost its start' + (f' ({reader.problem})' if reader.problem else ''))
-    where = f'{source}:{TOPIC_DEVICE}'
-    device = parse_device(validate.mapping(parse_yaml(text, where), where, '(message)'), where)
+                             'recording lost its start'
+                             + (f' ({reader.problem})' if reader.problem else '')
+                             + '. Give the description of the device it was recorded with: '
+                             '--device FILE (and its calibration: --calibration FILE)')
+    note = ''
+    if given is not None:
+        device = given
+        if text is not None:
+            where = f'{source}:{TOPIC_DEVICE}'
+            own = parse_device(validate.mapping(parse_yaml(text, where), where, '(message)'), where)
+            differ = [k for k in dict.fromkeys([*own.raw, *given.raw])
+                      if own.raw.get(k) != given.raw.get(k)]
+            if differ:
+                note = (f'{source}: the device description given ({given.name}) replaces the '
+                        f'log\'s own ({own.name}), which differs from it in '
+                        f'{", ".join(differ)}')
+    else:
+        where = f'{source}:{TOPIC_DEVICE}'
+        device = parse_device(validate.mapping(parse_yaml(text, where), where, '(message)'), where)
     cal_text = reader.latest_string(TOPIC_CALIBRATION)
     calibration = (Calibration.from_yaml(cal_text, f'{source}:{TOPIC_CALIBRATION}')
                    if cal_text is not None else None)
@@ -552,7 +580,7 @@ def _run_header(reader: LogReader, source: str) -> tuple[DeviceDescription, Cali
     model = Model.from_yaml(model_text, f'{source}:{TOPIC_MODEL}') if model_text else None
     if not reader.has_topic(TOPIC_RAW):
         raise LogFormatError(f'{source} has no {TOPIC_RAW}: nothing to process')
-    return device, calibration, model
+    return device, calibration, model, note
 
 
 def _segment_of(ref: JointStates, n_runs: int, segment: int, topic: str, source: str) -> JointStates:

@@ -11,6 +11,7 @@ from typing import Callable
 
 import numpy as np
 
+from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.machine import MachineDescription
 from mmd_ros.core.model import Model
 from mmd_ros.logs.layout import read_run
@@ -38,6 +39,8 @@ class SessionOptions:
     program: Program | None = None
     identify: IdentifyOptions = field(default_factory=IdentifyOptions)
     calibration_path: str | None = None
+    #: the device description to read the logs with instead of their own, or None
+    device: DeviceDescription | None = None
     progress: bool = False
 
 
@@ -109,7 +112,7 @@ def analyze_session(logs: list[str | Path], machine: MachineDescription,
     runs: list[AxisRun] = []
     model_texts = set()
     for i, path in enumerate(logs):
-        run = read_run(path)
+        run = read_run(path, device=options.device)
         poses = log_poses(run, options.model, instrument=options.instrument,
                           calibration_path=options.calibration_path, progress=options.progress)
         model_texts.add(_model_text(options, run.model))
