@@ -186,3 +186,96 @@ def test_machine_joint_states_heard_before_the_terminal_are_kept(tmp_path):
     assert js is not None and js.names == ['X', 'Y', 'Z', 'A', 'C']
     np.testing.assert_array_equal(js.stamps_ns, joints)
     assert js.positions[:, 0] == pytest.approx(1e-3 * np.arange(10))
+
+
+@pytest.fixture(scope='module')
+def motion_log(tmp_path_factory):
+    """3 s of the twin's random 6-DOF motion with its reference pose at the MMD's stamps."""
+    from mmd_ros.logs.layout import read_run
+    from mmd_ros.twin.recording import SimulationSpec, simulate_to_log
+    path = tmp_path_factory.mktemp('reference_stamps') / 'motion.mcap'
+    simulate_to_log(SimulationSpec(scenario='random_motion', scenario_params=('duration_s=3',),
+                                   reference='pose6'), path, progress=False)
+    return path, read_run(path)
+
+
+def _with_reference_at(path, run, stamps, values):
+    """``run``'s log with its reference pose replaced by ``values`` at ``stamps``."""
+    from mmd_ros.logs.layout import (FRAME_LOWER, REFERENCE_POSE_NAMES, TOPIC_CALIBRATION,
+                                     TOPIC_DEVICE, TOPIC_RAW, TOPIC_REF_POSE)
+    st = run.stamps_ns
+    with LogWriter(path) as log:
+        log.write_string(TOPIC_DEVICE, int(st[0]), run.device.to_yaml())
+        log.write_string(TOPIC_CALIBRATION, int(st[0]), run.calibration.to_yaml())
+        log.write_rows([(TOPIC_RAW, 'sensor_msgs/msg/JointState',
+                         log.joint_state_rows(run.device.channel_names, st, run.counts))], st)
+        log.write_rows([(TOPIC_REF_POSE, 'sensor_msgs/msg/JointState',
+                         log.joint_state_rows(REFERENCE_POSE_NAMES, stamps, values, FRAME_LOWER))],
+                       stamps)
+    return path
+
+
+def test_a_reference_on_stamps_of_its_own_is_interpolated_to_the_raw_samples(tmp_path, motion_log,
+                                                                            capsys):
+    """An instrument logged on its own clock (250 Hz, 0.37 ms off the MMD's tick) matched no raw
+    sample: no error at all. Read between its readings, it gives the error the same reference
+    gives at the MMD's stamps, in memory and block by block alike, and says it interpolated."""
+    import json
+
+    from mmd_ros.cli.main import main
+    from mmd_ros.logs.layout import read_run
+    path, run = motion_log
+    st = run.stamps_ns
+    own = st[::4][:-1] + 370_000
+    values = np.column_stack([np.interp(own, st, run.reference_pose[:, j]) for j in range(6)])
+    log = _with_reference_at(tmp_path / 'own.mcap', run, own, values)
+    back = read_run(log)
+    got = np.isfinite(back.reference_pose[:, 0])
+    assert got.mean() > 0.99 and '250 Hz' in back.reference_note
+    # (the truth between readings 4 ms apart, against its linear interpolation: a T^2/8)
+    assert np.max(np.abs(back.reference_pose[got, :3] - run.reference_pose[got, :3])) < 2e-6
+    figures = []
+    for extra in ([], ['--segment', '1']):     # block by block, and in memory
+        assert main(['process', str(log), '--out', str(tmp_path / 'p.mcap'), '--json', '--force',
+                     *extra]) == 0
+        out = capsys.readouterr()
+        summary = json.loads(out.out)
+        assert '250 Hz' in summary['reference_note'] and 'interpolation' in out.err
+        figures.append([s['rms'] for s in summary['pose_error']])
+    assert main(['process', str(path), '--out', str(tmp_path / 'q.mcap'), '--json']) == 0
+    shared = [s['rms'] for s in json.loads(capsys.readouterr().out)['pose_error']]
+    np.testing.assert_allclose(figures[0], figures[1], rtol=1e-9)
+    # the error differs from the shared reference's by at most what interpolating it changed
+    # (|RMS(e + d) - RMS(e)| <= RMS(d)), here 2 % of z, less elsewhere
+    both = got & np.all(np.isfinite(run.reference_pose), axis=1)
+    moved = np.sqrt(np.mean((back.reference_pose[both] - run.reference_pose[both]) ** 2, axis=0))
+    moved *= np.array([1e6] * 3 + [180 / np.pi * 3600] * 3)        # um, arcsec
+    assert np.all(np.abs(np.array(figures[0][:6]) - shared[:6]) <= moved * 1.01 + 1e-4)
+
+
+def test_a_reference_at_some_of_the_mmd_stamps_or_with_a_dropout_is_not_bridged(tmp_path,
+                                                                               motion_log):
+    """A slower reference on the MMD's own tick stays where its readings are (no note); one on
+    its own stamps is not interpolated across a dropout; an angle turning past +-pi is
+    interpolated the short way round."""
+    from mmd_ros.logs.layout import read_run
+    _, run = motion_log
+    st = run.stamps_ns
+    every4 = read_run(_with_reference_at(tmp_path / 'tick.mcap', run, st[::4],
+                                         run.reference_pose[::4]))
+    assert np.isfinite(every4.reference_pose[:, 0]).sum() == st[::4].size
+    assert every4.reference_note == ''
+    own = st[::4][:-1] + 370_000
+    values = np.column_stack([np.interp(own, st, run.reference_pose[:, j]) for j in range(6)])
+    gap = (own > st[1000]) & (own < st[1100])
+    # yaw turning through +-pi: 3.1 rad, then -3.1 rad is 0.083 rad further on, not 6.2 back
+    values[:, 5] = np.angle(np.exp(1j * (np.pi + 1e-3 * np.arange(own.size) - 0.3)))
+    back = read_run(_with_reference_at(tmp_path / 'gap.mcap', run, own[~gap], values[~gap]))
+    inside = (st > own[gap][0] - 4_000_000) & (st < own[gap][-1] + 4_000_000)
+    assert np.all(np.isnan(back.reference_pose[inside & (st > own[gap][0]) & (st < own[gap][-1])]))
+    yaw = back.reference_pose[:, 5]
+    ok = np.flatnonzero(np.isfinite(yaw))
+    step = np.abs(np.diff(yaw[ok]))[np.diff(ok) == 1]     # (from one raw sample to the next)
+    turn = np.angle(np.exp(1j * step))
+    assert np.max(np.abs(turn)) < 1e-3                      # 0.25 mrad per raw sample, no jump
+    assert np.sum(step > np.pi) >= 1 and np.nanmax(np.abs(yaw)) > 3.13      # it did cross +-pi

@@ -13,7 +13,7 @@ from mmd_ros.analysis.errors import AnalysisError
 from mmd_ros.analysis.identify import AnalysisOptions, analyze
 from mmd_ros.analysis.report import format_summary, write_report
 from mmd_ros.cli.log_args import (add_device_argument, add_segment_argument, log_device,
-                                  print_device_note)
+                                  print_read_notes)
 from mmd_ros.core import jsonio, validate
 from mmd_ros.core.calibration import load_calibration
 from mmd_ros.core.model import Model, load_model
@@ -61,7 +61,7 @@ def run_command(args: argparse.Namespace) -> int:
             print(f'warning: {path}: {run.problem}', file=sys.stderr)
         if metadata_note(run):
             print(f'warning: {metadata_note(run)}', file=sys.stderr)
-        print_device_note(run)
+        print_read_notes(run)
         unreadable = int(run.unreadable.sum())
         run, flagged = run.without_flagged()
         flagged_samples[str(path)] = flagged

@@ -12,7 +12,7 @@ from mmd_ros.analysis.iso230 import figure_table, target_table
 from mmd_ros.analysis.iso230_csv import iso230_of_csv, source_kind
 from mmd_ros.analysis.iso230_report import INSTRUMENTS, Iso230Report, iso230_of_run, parse_targets
 from mmd_ros.cli.log_args import (add_device_argument, add_segment_argument, log_device,
-                                  print_device_note)
+                                  print_read_notes)
 from mmd_ros.core import jsonio, validate
 from mmd_ros.core.model import Model, load_model
 from mmd_ros.core.progress import Progress
@@ -34,7 +34,7 @@ def _report_of_log(args: argparse.Namespace) -> Iso230Report:
     for problem in (run.problem, metadata_note(run)):
         if problem:
             print(f'warning: {problem}', file=sys.stderr)
-    print_device_note(run)
+    print_read_notes(run)
     models: dict[str, Model] = {}
     models['MMD' if not args.after else 'MMD before'] = load_model(args.model) if args.model else (run.model or Model())
     if args.after:

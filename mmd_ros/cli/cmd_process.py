@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 
 from mmd_ros.cli.log_args import (add_device_argument, add_segment_argument, log_device,
-                                  print_device_note)
+                                  print_read_notes)
 from mmd_ros.core import jsonio
 from mmd_ros.core.accuracy import format_stats
 from mmd_ros.core.calibration import load_calibration
@@ -69,9 +69,11 @@ def run_command(args: argparse.Namespace) -> int:
         print(f'warning: {summary["log_problem"]["message"]}', file=sys.stderr)
     if metadata_note(run):
         print(f'warning: {metadata_note(run)}', file=sys.stderr)
-    print_device_note(run)
+    print_read_notes(run)
     if summary.get('model_calibration'):
         print(f'warning: {summary["model_calibration"]}', file=sys.stderr)
+    if getattr(run, 'reference_note', ''):
+        summary['reference_note'] = run.reference_note
     elapsed = time.perf_counter() - started
     summary.update(output=str(out), csv=args.csv, seconds=elapsed,
                    samples_per_s=summary['samples'] / elapsed if elapsed > 0 else None,

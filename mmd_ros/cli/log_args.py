@@ -8,7 +8,7 @@ import sys
 from mmd_ros.core import validate
 from mmd_ros.core.device import DeviceDescription, find_config, load_device
 
-__all__ = ['add_device_argument', 'add_segment_argument', 'log_device', 'print_device_note']
+__all__ = ['add_device_argument', 'add_segment_argument', 'log_device', 'print_read_notes']
 
 
 def add_segment_argument(p: argparse.ArgumentParser) -> None:
@@ -33,8 +33,9 @@ def log_device(args: argparse.Namespace) -> DeviceDescription | None:
     return load_device(find_config(args.device)) if args.device else None
 
 
-def print_device_note(run: object) -> None:
-    """Warn on stderr when a device description given replaced a log's own, which differs."""
-    note = getattr(run, 'device_note', '')
-    if note:
-        print(f'warning: {note}', file=sys.stderr)
+def print_read_notes(run: object) -> None:
+    """Warn on stderr when a device description given replaced a log's own, which differs, and
+    when a reference on stamps of its own was interpolated to the raw samples."""
+    for note in (getattr(run, 'device_note', ''), getattr(run, 'reference_note', '')):
+        if note:
+            print(f'warning: {note}', file=sys.stderr)

@@ -61,6 +61,11 @@ FRAME_UPPER = 'mmd_upper'
 #: Names of the reference pose components [m, m, m, rad, rad, rad]; unknown ones are NaN.
 REFERENCE_POSE_NAMES = ['x', 'y', 'z', 'roll', 'pitch', 'yaw']
 BAR_NAMES = [f'bar{i}' for i in range(1, 7)]
+#: A reference whose stamps are its own (fewer than this share of them at raw samples' stamps)
+#: is read at the raw samples by interpolation between its readings ...
+OWN_STAMPS_SHARE = 0.5
+#: ... at most this many of its median periods apart (a longer gap is a dropout: not bridged)
+INTERPOLATION_GAP_PERIODS = 1.5
 RUN_METADATA = 'mmd_run'
 
 
@@ -128,6 +133,8 @@ class RunLog:
     recorded_hash: str | None = None
     #: what a command says when a device description given replaced the log's own, or ''
     device_note: str = ''
+    #: what a command says when a reference on stamps of its own was interpolated, or ''
+    reference_note: str = ''
 
     @property
     def no_signal(self) -> NDArray[np.bool_]:
@@ -355,11 +362,15 @@ def read_run(path: str | os.PathLike[str], *, segment: int | None = None,
     run = RunLog(Path(path), device, calibration, model, sel.stamps_ns, sel.values,
                  device.channel_names, problem=reader.problem, segment=(segment or 1, len(runs)),
                  status=status, device_note=device_note)
+    notes = []
     for topic, names, attr in ((TOPIC_REF_POSE, REFERENCE_POSE_NAMES, 'reference_pose'),
                                (TOPIC_REF_LENGTHS, BAR_NAMES, 'reference_lengths')):
         if reader.has_topic(topic):
             ref = _segment_of(reader.joint_states(topic), len(runs), segment or 1, topic, source)
-            setattr(run, attr, _aligned(ref, sel, names, topic, source))
+            values, read = _aligned(ref, sel, names, topic, source)
+            setattr(run, attr, values)
+            notes.append(read.note(source, topic))
+    run.reference_note = '; '.join(n for n in notes if n)
     if reader.has_topic(TOPIC_MACHINE_JOINTS) and sel.stamps_ns.size:
         # all of them for a run of one segment (a recorder may hear the controller before the
         # terminal, seconds apart on a busy machine); of one segment, those within its span
@@ -435,6 +446,8 @@ class RunStream:
             self.metadata, self.metadata_as_text = _run_metadata(self._reader)
             self.n_samples = self._reader.message_count(TOPIC_RAW) or 0
             self.channel_names = self.device.channel_names
+            #: as :attr:`RunLog.reference_note`, known once :meth:`blocks` has run
+            self.reference_note = ''
         except BaseException:
             self._reader.close()
             raise
@@ -472,6 +485,7 @@ class RunStream:
         raw: list[JointStates] = []
         refs: dict[str, list[JointStates]] = {TOPIC_REF_POSE: [], TOPIC_REF_LENGTHS: []}
         has_ref = {t for t in refs if self._reader.has_topic(t)}
+        reads = {t: _Interpolated() for t in has_ref}
         last_ref: dict[str, int] = {}
         last_raw: int | None = None
         pending = 0
@@ -496,10 +510,14 @@ class RunStream:
                 ref = JointStates(np.concatenate([p.stamps_ns for p in parts]) if parts else np.zeros(0, np.int64),
                                   parts[0].names if parts else names,
                                   np.concatenate([p.values for p in parts]) if parts else np.zeros((0, len(names))))
-                aligned[topic] = _aligned(ref, JointStates(out_s, [], out_v), names, topic,
-                                          source)
-                later = ref.stamps_ns > out_s[-1]
-                refs[topic] = [JointStates(ref.stamps_ns[later], ref.names, ref.values[later])]
+                aligned[topic], read = _aligned(ref, JointStates(out_s, [], out_v), names, topic,
+                                                source)
+                reads[topic].add(read)
+                self.reference_note = '; '.join(
+                    n for n in (reads[t].note(source, t) for t in sorted(reads)) if n)
+                # (the last reading at or before the block's end stays: it brackets the next)
+                keep = max(int(np.searchsorted(ref.stamps_ns, out_s[-1], side='right')) - 1, 0)
+                refs[topic] = [JointStates(ref.stamps_ns[keep:], ref.names, ref.values[keep:])]
             return RunBlock(out_s, out_v, aligned.get(TOPIC_REF_POSE), aligned.get(TOPIC_REF_LENGTHS),
                             out_status)
 
@@ -597,10 +615,39 @@ def _segment_of(ref: JointStates, n_runs: int, segment: int, topic: str, source:
     return JointStates(ref.stamps_ns[a:b], ref.names, ref.values[a:b])
 
 
+@dataclass
+class _Interpolated:
+    """How a reference on stamps of its own was read at the raw samples: samples read by
+    interpolation, and the reference's median period over the blocks that had one [ns]."""
+
+    samples: int = 0
+    periods: list[float] = field(default_factory=list)
+
+    def add(self, other: _Interpolated) -> None:
+        self.samples += other.samples
+        self.periods += other.periods
+
+    def note(self, source: str, topic: str) -> str:
+        if not self.samples:
+            return ''
+        period_s = float(np.median(self.periods)) * 1e-9
+        return (f'{source}: {topic} is stamped on instants of its own, not at the raw samples\' '
+                f'({1.0 / period_s:.4g} Hz): read at {self.samples} raw samples by linear '
+                'interpolation between its readings (not across a gap of more than '
+                f'{INTERPOLATION_GAP_PERIODS:g} of its periods); between readings T apart, a '
+                'motion accelerating at a is read up to a T^2/8 off, which the pose '
+                'uncertainty does not claim')
+
+
 def _aligned(ref: JointStates, raw: JointStates, names: list[str], topic: str,
-             source: str) -> NDArray[np.float64]:
-    """Reference values at the raw samples' stamps (NaN where the reference has none); raises
-    when reference samples repeat a stamp (which of them goes with that sample?)."""
+             source: str) -> tuple[NDArray[np.float64], _Interpolated]:
+    """Reference values at the raw samples' stamps (NaN where the reference has none), and how
+    many were interpolated; raises when reference samples repeat a stamp (which of them goes
+    with that sample?). A reference stamped at the raw samples' instants (a reading of the
+    MMD's sample tick) is taken where its stamps are; one whose stamps are its own (fewer than
+    :data:`OWN_STAMPS_SHARE` of those within the raw samples' span fall on one: an instrument
+    logged on its own clock by another program) is interpolated linearly between its
+    readings, angles unwrapped, not across a dropout (:data:`INTERPOLATION_GAP_PERIODS`)."""
     _refuse_repeated(ref.stamps_ns, topic, source)
     out = np.full((raw.stamps_ns.size, len(names)), np.nan)
     cols = [ref.names.index(n) if n in ref.names else -1 for n in names]
@@ -613,4 +660,31 @@ def _aligned(ref: JointStates, raw: JointStates, names: list[str], topic: str,
     for j, c in enumerate(cols):
         if c >= 0:
             out[match, j] = ref.values[idx[match], c]
-    return out
+    read = _Interpolated()
+    if ref.stamps_ns.size < 2 or raw.stamps_ns.size == 0:
+        return out, read
+    span = (ref.stamps_ns >= raw.stamps_ns[0]) & (ref.stamps_ns <= raw.stamps_ns[-1])
+    if not span.any() or np.mean(np.isin(ref.stamps_ns[span], raw.stamps_ns)) >= OWN_STAMPS_SHARE:
+        return out, read
+    period = float(np.median(np.diff(ref.stamps_ns)))
+    left = np.searchsorted(ref.stamps_ns, raw.stamps_ns, side='right') - 1
+    between = ~match & (left >= 0) & (left + 1 < ref.stamps_ns.size)
+    a = np.clip(left, 0, ref.stamps_ns.size - 2)
+    gap = (ref.stamps_ns[a + 1] - ref.stamps_ns[a]).astype(np.float64)
+    between &= gap <= INTERPOLATION_GAP_PERIODS * period
+    w = (raw.stamps_ns - ref.stamps_ns[a]).astype(np.float64) / gap
+    angles = set(REFERENCE_POSE_NAMES[3:]) if names == REFERENCE_POSE_NAMES else set()
+    for j, c in enumerate(cols):
+        if c < 0:
+            continue
+        v = ref.values[:, c].copy()
+        if names[j] in angles:          # (a turn past +-pi is not a jump of 2 pi)
+            fin = np.isfinite(v)
+            v[fin] = np.unwrap(v[fin])
+        got = v[a] * (1.0 - w) + v[a + 1] * w       # (NaN where either reading is)
+        if names[j] in angles:
+            got = np.angle(np.exp(1j * got))          # back into (-pi, pi]
+        out[between, j] = got[between]
+    read.samples = int(between.sum())
+    read.periods.append(period)
+    return out, read

@@ -302,8 +302,9 @@ class RunSummary:
             if not summary['pose_error']:
                 summary['pose_error_note'] = (
                     'the log has a reference pose, but no sample with a valid pose has a value '
-                    'of it: its stamps match none of the raw counts\' (the reader pairs them '
-                    'by stamp), or all its values are NaN')
+                    'of it: its stamps match none of the raw counts\' and no raw sample lies '
+                    'between two of its readings near enough to interpolate (the reader pairs '
+                    'them by stamp, msg_docs/topics.md), or all its values are NaN')
         if self.coverage is not None:
             metadata = getattr(source, 'metadata', {}) or {}
             sigma = metadata.get('reference_sigma')
