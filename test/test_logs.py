@@ -279,3 +279,20 @@ def test_a_reference_at_some_of_the_mmd_stamps_or_with_a_dropout_is_not_bridged(
     turn = np.angle(np.exp(1j * step))
     assert np.max(np.abs(turn)) < 1e-3                      # 0.25 mrad per raw sample, no jump
     assert np.sum(step > np.pi) >= 1 and np.nanmax(np.abs(yaw)) > 3.13      # it did cross +-pi
+
+
+def test_a_reference_on_another_epoch_is_said_never_to_meet_the_samples(tmp_path, motion_log):
+    """A reference stamped an hour off (another clock's epoch) gave 'no sample has a value'
+    without a hint why; now the reader says how far apart the two sets of stamps lie."""
+    from mmd_ros.logs.layout import open_run, read_run
+    _, run = motion_log
+    log = _with_reference_at(tmp_path / 'epoch.mcap', run, run.stamps_ns - 3600 * 10**9,
+                             run.reference_pose)
+    back = read_run(log)
+    assert np.isnan(back.reference_pose).all()
+    span_s = (run.stamps_ns[-1] - run.stamps_ns[0]) * 1e-9
+    assert f'end {3600 - span_s:.6g} s before theirs begin' in back.reference_note
+    with open_run(log) as stream:
+        for _ in stream.blocks(700):
+            pass
+        assert stream.reference_note == back.reference_note

@@ -617,17 +617,34 @@ def _segment_of(ref: JointStates, n_runs: int, segment: int, topic: str, source:
 
 @dataclass
 class _Interpolated:
-    """How a reference on stamps of its own was read at the raw samples: samples read by
-    interpolation, and the reference's median period over the blocks that had one [ns]."""
+    """How a reference was read at the raw samples: samples read by interpolation (its stamps
+    its own), its median period over the blocks that had one [ns], the samples given a value,
+    and the first and last stamps of the reference and of the raw samples seen [ns]."""
 
     samples: int = 0
     periods: list[float] = field(default_factory=list)
+    given: int = 0
+    spans: dict[str, tuple[int, int]] = field(default_factory=dict)
 
     def add(self, other: _Interpolated) -> None:
         self.samples += other.samples
         self.periods += other.periods
+        self.given += other.given
+        for key, (lo, hi) in other.spans.items():
+            a, b = self.spans.get(key, (lo, hi))
+            self.spans[key] = (min(a, lo), max(b, hi))
 
     def note(self, source: str, topic: str) -> str:
+        ref, raw = self.spans.get('reference'), self.spans.get('raw')
+        if not self.given and ref is not None and raw is not None and (
+                ref[1] < raw[0] or ref[0] > raw[1]):
+            apart = (raw[0] - ref[1]) if ref[1] < raw[0] else (ref[0] - raw[1])
+            return (f'{source}: {topic} never meets the raw samples: its stamps end '
+                    f'{apart * 1e-9:.6g} s before theirs begin' if ref[1] < raw[0] else
+                    f'{source}: {topic} never meets the raw samples: its stamps begin '
+                    f'{apart * 1e-9:.6g} s after theirs end') + (
+                    ' (stamped on another clock or from another epoch? Stamp it on the '
+                    'MMD\'s clock, topics.md)')
         if not self.samples:
             return ''
         period_s = float(np.median(self.periods)) * 1e-9
@@ -661,6 +678,10 @@ def _aligned(ref: JointStates, raw: JointStates, names: list[str], topic: str,
         if c >= 0:
             out[match, j] = ref.values[idx[match], c]
     read = _Interpolated()
+    if raw.stamps_ns.size and ref.stamps_ns.size:
+        read.spans = {'reference': (int(ref.stamps_ns[0]), int(ref.stamps_ns[-1])),
+                      'raw': (int(raw.stamps_ns[0]), int(raw.stamps_ns[-1]))}
+    read.given = int(np.sum(np.any(np.isfinite(out), axis=1)))
     if ref.stamps_ns.size < 2 or raw.stamps_ns.size == 0:
         return out, read
     span = (ref.stamps_ns >= raw.stamps_ns[0]) & (ref.stamps_ns <= raw.stamps_ns[-1])
@@ -686,5 +707,6 @@ def _aligned(ref: JointStates, raw: JointStates, names: list[str], topic: str,
             got = np.angle(np.exp(1j * got))          # back into (-pi, pi]
         out[between, j] = got[between]
     read.samples = int(between.sum())
+    read.given = int(np.sum(np.any(np.isfinite(out), axis=1)))
     read.periods.append(period)
     return out, read
