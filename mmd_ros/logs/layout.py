@@ -636,15 +636,16 @@ class _Interpolated:
 
     def note(self, source: str, topic: str) -> str:
         ref, raw = self.spans.get('reference'), self.spans.get('raw')
-        if not self.given and ref is not None and raw is not None and (
-                ref[1] < raw[0] or ref[0] > raw[1]):
-            apart = (raw[0] - ref[1]) if ref[1] < raw[0] else (ref[0] - raw[1])
-            return (f'{source}: {topic} never meets the raw samples: its stamps end '
-                    f'{apart * 1e-9:.6g} s before theirs begin' if ref[1] < raw[0] else
-                    f'{source}: {topic} never meets the raw samples: its stamps begin '
-                    f'{apart * 1e-9:.6g} s after theirs end') + (
-                    ' (stamped on another clock or from another epoch? Stamp it on the '
-                    'MMD\'s clock, topics.md)')
+        where = ''
+        if not self.given and ref is not None and raw is not None:
+            if ref[1] < raw[0]:
+                where = f'its stamps end {(raw[0] - ref[1]) * 1e-9:.6g} s before theirs begin'
+            elif ref[0] > raw[1]:
+                where = f'its stamps begin {(ref[0] - raw[1]) * 1e-9:.6g} s after theirs end'
+        if where:
+            return (f'{source}: {topic} never meets the raw samples: {where} (stamped on '
+                    'another clock or from another epoch? Stamp it on the MMD\'s clock, '
+                    'topics.md)')
         if not self.samples:
             return ''
         period_s = float(np.median(self.periods)) * 1e-9
