@@ -305,3 +305,32 @@ def test_compiled_message_records_equal_numpy_and_the_log_is_the_same(run_log, t
     monkeypatch.setattr(mcap_records, 'use_compiled', lambda compiled: False)
     write_processed(tmp_path / 'slow.mcap', run, Model(), result, run.calibration.to_yaml())
     assert (tmp_path / 'fast.mcap').read_bytes() == (tmp_path / 'slow.mcap').read_bytes()
+
+
+def test_a_reference_in_millimetres_degrees_or_reversed_is_named_and_refused_by_analyze(
+        run_log, tmp_path, capsys):
+    """A reference written in mm, in degrees or with an axis reversed follows the MMD exactly,
+    1000, 57.3 or -1 times over: its 'error' was the motion itself, printed as if the MMD
+    erred by millimetres, and analyze fitted terms to it. process names each such component;
+    analyze refuses the log; a log in metres and radians is not named."""
+    from mmd_ros.cli.main import main
+    from mmd_ros.logs.layout import write_run
+    run = read_run(run_log)
+    ref = run.reference_pose.copy()
+    ref[:, 1] *= 1e3                        # y in mm
+    ref[:, 4] = np.degrees(ref[:, 4])       # pitch in degrees
+    ref[:, 5] *= -1.0                       # yaw reversed
+    bad = tmp_path / 'units.mcap'
+    write_run(bad, run.device, run.calibration, run.stamps_ns, run.counts, reference_pose=ref,
+              metadata=run.metadata)
+    summary = process_log(read_run(bad), tmp_path / 'out.mcap', Model(), coverage=False)
+    note = summary['reference_scale_note']
+    assert "reference's y reads 1000 times" in note and 'millimetres' in note
+    assert 'pitch reads 57.3 times' in note and 'degrees' in note
+    assert 'yaw reads -1 times' in note and 'opposite sign' in note
+    assert ' x reads' not in note and 'roll' not in note
+    assert 'reference_scale_note' not in process_log(run, tmp_path / 'ok.mcap', Model(),
+                                                     coverage=False)
+    assert main(['analyze', str(bad), '--quiet', '--json', '--max-samples', '500']) == 2
+    err = capsys.readouterr().err
+    assert 'millimetres' in err and 'Correct the reference' in err

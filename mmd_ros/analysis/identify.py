@@ -65,7 +65,8 @@ from mmd_ros.analysis.glitches import Step, bar_residual, residual_steps
 from mmd_ros.analysis.uncertainty import (
     CLAIM_LEVEL, FittedEffect, ResidualRun, base_budget, beyond_claim, claimed_sigma,
     fitted_effects, measured_read_noise, calibration_constants, with_fit_uncertainty)
-from mmd_ros.core.accuracy import ABSOLUTE_WITHIN_SIGMAS, GROSS_ERROR, read_datum
+from mmd_ros.core.accuracy import (ABSOLUTE_WITHIN_SIGMAS, GROSS_ERROR, ReferenceScale,
+                                   read_datum)
 from mmd_ros.core.budget import LENGTH_TERMS, SAG_TERMS
 from mmd_ros.core.calibration import Calibration
 from mmd_ros.core.device import DeviceDescription
@@ -496,6 +497,12 @@ def _prepare(index: int, run: RunLog, model: Model, calibration: Calibration | N
     if before is None:
         say(f'{run.path.name}: running the current model over {times.size} samples')
         before = run_pipeline(run.device, calibration, model, times, run.counts)
+    if run.reference_pose is not None:     # (a reference in mm or degrees fits nothing true)
+        scale = ReferenceScale()
+        scale.add(before.poses, run.reference_pose, before.measured('pose'))
+        if scale.notes():
+            raise AnalysisError(f'{run.path}: {scale.text()}. Correct the reference in a copy '
+                                'of the log first')
     obs, lag = _reference_lag(obs, run.device, before, times)
     if lag is not None:
         say(f'{run.path.name}: {lag.text(LAG_TAKEN)}')

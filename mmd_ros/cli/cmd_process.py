@@ -72,6 +72,8 @@ def run_command(args: argparse.Namespace) -> int:
     print_read_notes(run)
     if summary.get('model_calibration'):
         print(f'warning: {summary["model_calibration"]}', file=sys.stderr)
+    if summary.get('reference_scale_note'):
+        print(f'warning: {args.log}: {summary["reference_scale_note"]}', file=sys.stderr)
     if getattr(run, 'reference_note', ''):
         summary['reference_note'] = run.reference_note
     elapsed = time.perf_counter() - started

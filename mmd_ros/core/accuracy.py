@@ -18,7 +18,8 @@ from mmd_ros.core.units import arcsec, um
 
 __all__ = [
     'ABSOLUTE_WITHIN_SIGMAS', 'GROSS_ERROR', 'ComponentStats', 'CoverageAccumulator',
-    'DatumReading', 'ErrorAccumulator', 'ReferenceNoise', 'coverage', 'error_stats',
+    'DatumReading', 'ErrorAccumulator', 'ReferenceNoise', 'ReferenceScale', 'coverage',
+    'error_stats',
     'format_coverage', 'format_stats', 'length_error', 'pose_error', 'read_datum', 'robust_std',
     'smoothing_departures', 'white_noise',
 ]
@@ -138,6 +139,90 @@ ABSOLUTE_WITHIN_SIGMAS = 5.0
 #: budget does not claim (what an analysis is for) is off by micrometres and arc-seconds, a
 #: pose a reference was zeroed at by the MMD's mounting, a tenth of a millimetre or more
 GROSS_ERROR = (20e-6, 20.0 * math.pi / (180.0 * 3600.0))
+
+
+#: How far a component must move over a run for :class:`ReferenceScale` to read the
+#: reference's scale in it (standard deviation of the MMD's reading) [m, rad]
+SCALE_MOTION = (10e-6, 50e-6)
+#: The two readings must follow each other this closely (correlation) to tell a scale ...
+SCALE_CORRELATION = 0.99
+#: ... and a slope within this fraction of one of :data:`SCALE_BLUNDERS` names it
+SCALE_TOLERANCE = 0.03
+#: Slopes of the reference against the MMD that name a blunder, per kind of component
+REVERSED = 'to have the opposite sign (an axis mounted or read reversed)'
+SCALE_BLUNDERS = {
+    'position': ((1e3, 'to be in millimetres, not metres'),
+                 (1e6, 'to be in micrometres, not metres'), (-1.0, REVERSED)),
+    'angle': ((180.0 / math.pi, 'to be in degrees, not radians'),
+              (180.0 / math.pi * 3600.0, 'to be in arc-seconds, not radians'), (-1.0, REVERSED)),
+}
+
+
+class ReferenceScale:
+    """Per pose component, the slope and correlation of the reference's reading against the
+    MMD's over a run given block by block: a reference in millimetres or degrees, or read with
+    the opposite sign, follows the MMD's motion exactly but 1000 or 57.3 times larger, or
+    reversed, and its 'error' is the motion itself. Sums of the centred products are kept
+    (the first valid sample of each component is the shift)."""
+
+    def __init__(self) -> None:
+        self._n = np.zeros(6)
+        self._shift = np.zeros((2, 6))    # per component: the MMD's, the reference's
+        self._set = np.zeros(6, dtype=bool)
+        self._sums = np.zeros((5, 6))     # m, r, m m, r r, m r (shifted)
+
+    def add(self, poses: FloatArray, reference: FloatArray, valid: NDArray[np.bool_]) -> None:
+        """poses, reference (N, 6) [m, rad] of one block; valid (N,): the measurements"""
+        m = np.asarray(poses, dtype=np.float64)
+        r = np.asarray(reference, dtype=np.float64)
+        ok = np.asarray(valid, dtype=bool)[:, None] & np.isfinite(m) & np.isfinite(r)
+        if not ok.any():
+            return
+        for j in np.flatnonzero(ok.any(axis=0) & ~self._set):
+            first = int(np.argmax(ok[:, j]))
+            self._shift[:, j] = m[first, j], r[first, j]
+            self._set[j] = True
+        dm = np.where(ok, m - self._shift[0], 0.0)
+        dr = np.where(ok, r - self._shift[1], 0.0)
+        self._n += ok.sum(axis=0)
+        self._sums += np.stack([dm.sum(0), dr.sum(0), (dm * dm).sum(0), (dr * dr).sum(0),
+                                (dm * dr).sum(0)])
+
+    def slopes(self) -> tuple[FloatArray, FloatArray]:
+        """(6,) slope of the reference on the MMD and (6,) their correlation; NaN where a
+        component did not move enough (:data:`SCALE_MOTION`) or has no reference."""
+        n = np.maximum(self._n, 1.0)
+        sm, sr, smm, srr, smr = self._sums / n
+        var_m, var_r, cov = smm - sm * sm, srr - sr * sr, smr - sm * sr
+        moved = (self._n >= 10) & (np.sqrt(np.maximum(var_m, 0.0))
+                                   >= np.repeat(SCALE_MOTION, 3))
+        with np.errstate(invalid='ignore', divide='ignore'):
+            slope = np.where(moved, cov / var_m, np.nan)
+            corr = np.where(moved, cov / np.sqrt(var_m * var_r), np.nan)
+        return slope, corr
+
+    def notes(self) -> list[str]:
+        """Per component whose reference reads a blunder's slope of the MMD, what it reads."""
+        slope, corr = self.slopes()
+        out = []
+        for j in range(6):
+            if not np.isfinite(slope[j]) or abs(corr[j]) < SCALE_CORRELATION:
+                continue
+            kind = 'position' if j < 3 else 'angle'
+            for factor, what in SCALE_BLUNDERS[kind]:
+                if abs(slope[j] / factor - 1.0) <= SCALE_TOLERANCE:
+                    out.append(f'{POSE_NAMES[j]} reads {slope[j]:.4g} times the MMD\'s '
+                               f'(correlation {corr[j]:.4f}): it looks {what}')
+                    break
+        return out
+
+    def text(self) -> str:
+        """The notes as one sentence, or '' when there are none."""
+        notes = self.notes()
+        if not notes:
+            return ''
+        return ('the reference\'s ' + '; '.join(notes) + ' (a reference pose is in metres and '
+                'radians, in the MMD\'s axes: msg_docs/topics.md)')
 
 
 @dataclass(frozen=True)

@@ -25,8 +25,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mmd_ros.core.accuracy import (
-    POSE_NAMES, CoverageAccumulator, ErrorAccumulator, ReferenceNoise, length_error, pose_error,
-    read_datum,
+    POSE_NAMES, CoverageAccumulator, ErrorAccumulator, ReferenceNoise, ReferenceScale,
+    length_error, pose_error, read_datum,
 )
 from mmd_ros.core.calibration import Calibration, load_calibration
 from mmd_ros.core.device import DeviceDescription
@@ -206,6 +206,8 @@ class RunSummary:
         self.last_ns: int | None = None
         self.status = np.zeros(len(FkStatus), dtype=np.int64)
         self.pose_error: ErrorAccumulator | None = None
+        #: how the reference pose scales against the MMD's (units, sign: :class:`ReferenceScale`)
+        self.reference_scale: ReferenceScale | None = None
         self.length_error: ErrorAccumulator | None = None
         self.coverage: CoverageAccumulator | None = None
         self.reference_noise: ReferenceNoise | None = None
@@ -240,6 +242,8 @@ class RunSummary:
             self.pose_error = self.pose_error or ErrorAccumulator('pose')
             errors = pose_error(result.poses, part.reference_pose)
             self.pose_error.add(errors, result.valid)
+            self.reference_scale = self.reference_scale or ReferenceScale()
+            self.reference_scale.add(result.poses, part.reference_pose, result.valid)
             if self.lag is not None:
                 times = (result.stamps_ns - self.first_ns).astype(np.float64) * 1e-9
                 self.lag.add(times, result.poses, errors, result.valid)
@@ -299,6 +303,9 @@ class RunSummary:
             summary['segment'] = {'index': segment[0], 'of': segment[1]}
         if self.pose_error is not None:
             summary['pose_error'] = [s.as_dict() for s in self.pose_error.stats()]
+            blunder = self.reference_scale.text() if self.reference_scale else ''
+            if blunder:
+                summary['reference_scale_note'] = blunder
             if not summary['pose_error']:
                 summary['pose_error_note'] = (
                     'the log has a reference pose, but no sample with a valid pose has a value '
