@@ -636,6 +636,33 @@ def test_the_paper_s_one_sided_routine_is_covered_with_the_bars_stated_friction(
     assert not np.any(two_sided.point_friction_m2)
 
 
+def test_a_fitted_friction_amplitude_replaces_the_type_s_stated_figure():
+    """A friction term fitted on the device measured each bar's own amplitude; the budget took
+    the larger of it and the type's stated RMS, so a bar with less friction than the type's was
+    claimed at the type's (realistic twins: up to 1.9 times its own), in every point of a
+    one-sided routine and in the term's start state. Now each bar's amplitude, with the
+    variance the fit's principal directions give it."""
+    from mmd_ros.core.terms import FrictionTerm
+    twin = TwinDevice(DEVICE, Effects.realistic(), seed=1)
+    calibration = twin.calibrate(0.0, ambient_profile('section_4_1'), approaches=1)
+    stated = twin.documented_device.friction_hysteresis_m
+    amplitude = np.array([100.0, 200.0, 300.0, 400.0, 500.0, 150.0]) * 1e-9
+    term = FrictionTerm(amplitude, 4e-6, 50e-9)
+    budget = LengthBudget(twin.documented_device, calibration, Model(terms=[term]))
+    assert np.sum(amplitude < stated) == 4
+    np.testing.assert_allclose(budget.hysteresis_m, amplitude)
+    np.testing.assert_allclose(budget.point_friction_m2, amplitude ** 2)
+    # one sigma along a principal direction of the fit, written as a friction term
+    sigma = np.array([30.0, 0.0, 40.0, 0.0, 0.0, 10.0]) * 1e-9
+    fit = FitUncertainty(directions=[[FrictionTerm(sigma, 4e-6, 50e-9)]])
+    model = Model(terms=[term], uncertainty=ModelUncertainty(fit=fit))
+    budget = LengthBudget(twin.documented_device, calibration, model)
+    np.testing.assert_allclose(budget.hysteresis_m, np.hypot(amplitude, sigma))
+    # without a term, the type's stated figure, per point of the one-sided routine
+    plain = LengthBudget(twin.documented_device, calibration, Model())
+    np.testing.assert_allclose(plain.hysteresis_m, stated)
+
+
 def test_the_plate_s_stated_seating_stands_for_what_a_one_sided_routine_did_not_measure():
     """Each placement seats the bar with an offset of its own (the plate's seating
     repeatability); a two-sided calibration measures it from the scatter of two placements per
@@ -2770,8 +2797,8 @@ def test_the_friction_start_state_claim_follows_dahl_s_law(realistic):
         start = (x[0].copy(), np.zeros(6), x[0].copy(), s0)
         true_s, _ = friction_state(x, travel, deadband, start)
         diffs.append(true_s - model_s)
-    amp = budget.hysteresis_m        # the larger of the term's and the calibration's h
-    assert np.all(amp >= h)
+    amp = budget.hysteresis_m        # the term's amplitude (its fit's variance: none here)
+    np.testing.assert_allclose(amp, h)
     mc = amp ** 2 * np.mean(np.square(diffs), axis=0)           # (N, 6)
     moving = claimed > 1e-3 * claimed[0]
     assert np.allclose(claimed[0], amp ** 2 / 3)
