@@ -19,9 +19,8 @@ from mmd_ros.core.units import arcsec, um
 __all__ = [
     'ABSOLUTE_WITHIN_SIGMAS', 'GROSS_ERROR', 'ComponentStats', 'CoverageAccumulator',
     'DatumReading', 'ErrorAccumulator', 'ReferenceNoise', 'ReferenceScale', 'coverage',
-    'error_stats',
-    'format_coverage', 'format_stats', 'length_error', 'pose_error', 'read_datum', 'robust_std',
-    'smoothing_departures', 'white_noise',
+    'error_stats', 'format_coverage', 'format_stats', 'length_error', 'pose_error', 'read_datum',
+    'robust_std', 'smoothing_departures', 'white_noise',
 ]
 
 FloatArray = NDArray[np.float64]
@@ -148,8 +147,9 @@ SCALE_MOTION = (10e-6, 50e-6)
 SCALE_CORRELATION = 0.99
 #: ... and a slope within this fraction of one of :data:`SCALE_BLUNDERS` names it
 SCALE_TOLERANCE = 0.03
-#: Slopes of the reference against the MMD that name a blunder, per kind of component
+#: What a slope of -1 says (a position or an angle alike)
 REVERSED = 'to have the opposite sign (an axis mounted or read reversed)'
+#: Slopes of the reference against the MMD that name a blunder, per kind of component
 SCALE_BLUNDERS = {
     'position': ((1e3, 'to be in millimetres, not metres'),
                  (1e6, 'to be in micrometres, not metres'), (-1.0, REVERSED)),
