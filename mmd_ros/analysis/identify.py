@@ -500,9 +500,10 @@ def _prepare(index: int, run: RunLog, model: Model, calibration: Calibration | N
     if run.reference_pose is not None:     # (a reference in mm or degrees fits nothing true)
         scale = ReferenceScale()
         scale.add(before.poses, run.reference_pose, before.measured('pose'))
-        if scale.notes():
-            raise AnalysisError(f'{run.path}: {scale.text()}. Correct the reference in a copy '
-                                'of the log first')
+        blunder = scale.text()
+        if blunder:
+            raise AnalysisError(f'{run.path}: {blunder}. Correct the reference in a copy of the '
+                                'log first')
     obs, lag = _reference_lag(obs, run.device, before, times)
     if lag is not None:
         say(f'{run.path.name}: {lag.text(LAG_TAKEN)}')

@@ -576,21 +576,18 @@ def _run_header(reader: LogReader, source: str, given: DeviceDescription | None 
                              + (f' ({reader.problem})' if reader.problem else '')
                              + '. Give the description of the device it was recorded with: '
                              '--device FILE (and its calibration: --calibration FILE)')
-    note = ''
-    if given is not None:
-        device = given
-        if text is not None:
-            where = f'{source}:{TOPIC_DEVICE}'
-            own = parse_device(validate.mapping(parse_yaml(text, where), where, '(message)'), where)
-            differ = [k for k in dict.fromkeys([*own.raw, *given.raw])
-                      if own.raw.get(k) != given.raw.get(k)]
-            if differ:
-                note = (f'{source}: the device description given ({given.name}) replaces the '
-                        f'log\'s own ({own.name}), which differs from it in '
-                        f'{", ".join(differ)}')
-    else:
+    own = None
+    if text is not None:
         where = f'{source}:{TOPIC_DEVICE}'
-        device = parse_device(validate.mapping(parse_yaml(text, where), where, '(message)'), where)
+        own = parse_device(validate.mapping(parse_yaml(text, where), where, '(message)'), where)
+    device = given if given is not None else own
+    note = ''
+    if given is not None and own is not None:
+        differ = [k for k in dict.fromkeys([*own.raw, *given.raw])
+                  if own.raw.get(k) != given.raw.get(k)]
+        if differ:
+            note = (f'{source}: the device description given ({given.name}) replaces the '
+                    f'log\'s own ({own.name}), which differs from it in {", ".join(differ)}')
     cal_text = reader.latest_string(TOPIC_CALIBRATION)
     calibration = (Calibration.from_yaml(cal_text, f'{source}:{TOPIC_CALIBRATION}')
                    if cal_text is not None else None)
