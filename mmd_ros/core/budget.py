@@ -398,7 +398,7 @@ class LengthBudget:
             # second moment given the fit, the amplitude squared plus its variance (the fit's
             # principal directions). Floored by the type's RMS instead, a bar with less friction
             # than the type's was claimed up to 1.9 times it (realistic twins: each bar 0.5-1.5
-            # times the type's, the fitted amplitude within 1-3 % of its own), in every point
+            # times the type's, the fitted amplitude within 1.5 % of its own), in every point
             # of a one-sided routine and in the term's unknown start state
             h = fitted
         self.hysteresis_m = h
