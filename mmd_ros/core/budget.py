@@ -40,8 +40,8 @@ from mmd_ros.core.terms import (
 )
 from mmd_ros.core.thermal import thermal_sensitivity
 from mmd_ros.core.uncertainty import (
-    InterpolationError, NoiseEstimator, capture_var, fit_interpolation_error, hysteresis_claim,
-    quantisation_cross_weights,
+    InterpolationError, NoiseEstimator, capture_var, fit_interpolation_error, hat_weights,
+    hysteresis_claim, quantisation_cross_weights,
 )
 from mmd_ros.core.validity import Validity
 
@@ -72,6 +72,10 @@ LENGTH_TERMS = ('scale_nonlinearity', 'cdf_offsets')
 #: Of those, the terms whose correction follows points along a bar: beyond the last point the
 #: fit saw, it follows points no data checked (held at zero, or on the line of those seen).
 POINT_TERMS = ('cdf_offsets',)
+#: The lengths within those a fit saw at which its length correction is conditioned on to continue
+#: it beyond them (:class:`_Continuation`), and the conditioning's jitter [m^2]
+CONTINUATION_POINTS = 41
+CONTINUATION_JITTER_M2 = 1e-18
 #: Travel after a reversal by which a bar's friction state has turned over (an assumption:
 #: rolling guides turn within a few um; the calibration does not measure it) [m].
 FRICTION_TURNOVER_M = 20e-6
@@ -171,6 +175,40 @@ class _Trend:
             s = np.where(self.half_m > 0.0, (lengths_m - self.middle_m) / self.half_m, 0.0)
         a, b, q = self.coefficients
         return a + s * (b + s * q)
+
+
+@dataclass(frozen=True)
+class _Continuation:
+    """Each bar's length correction within the lengths a fit saw, continued beyond them as the
+    error it corrects would continue: the conditional mean, given the correction's values c at
+    the lengths ``at_m`` (k, 6) within them, of the error the CDF leaves (the smooth scale error
+    :class:`InterpolationError` less its interpolation through the points, plus each point's
+    own error, ``point_m2`` (6,) [m^2], by its hat weight) about a level ``level_m`` (6,) [m]
+    of its own (ordinary kriging: a level the data do not tie, as a zeroed reference leaves
+    the bars' constants, goes on as it is): ``weights`` (k, 6) [1/m] are (K + S)^-1 (c - level),
+    S the correction's own covariance (the fit's)."""
+
+    interpolation: InterpolationError
+    knots_m: FloatArray
+    point_m2: FloatArray
+    at_m: FloatArray
+    level_m: FloatArray
+    weights: FloatArray
+
+    def covariance(self, bar: int, a_m: FloatArray, b_m: FloatArray) -> FloatArray:
+        """Of bar ``bar``: the prior covariance of the error the CDF leaves at ``a_m`` (p,) and
+        ``b_m`` (q,), (p, q) [m^2]."""
+        kn = self.knots_m[bar]
+        return (self.interpolation.covariance(a_m, b_m, kn)
+                + (hat_weights(a_m, kn) * self.point_m2[bar]) @ hat_weights(b_m, kn).T)
+
+    def __call__(self, lengths_m: FloatArray) -> FloatArray:
+        """The continuation at the lengths (N, 6) [m], (N, 6) [m]."""
+        x = np.nan_to_num(np.asarray(lengths_m, dtype=np.float64))
+        out = np.broadcast_to(self.level_m, x.shape).copy()
+        for b in np.flatnonzero(np.any(self.weights != 0.0, axis=0)):
+            out[:, b] += self.covariance(b, x[:, b], self.at_m[:, b]) @ self.weights[:, b]
+        return out
 
 
 class _Velocity:
@@ -621,6 +659,8 @@ class LengthBudget:
         self._seen_var_m2, self._trend = (self._length_spread(self._fitted_range_m)
                                           if self._fitted_range_m is not None
                                           else (np.zeros(6), None))
+        self._continuation = (self._continuation_of(self._fitted_range_m)
+                              if self._fitted_range_m is not None else None)
         self.flank_m2 = fit.flank_m2 if fit is not None else np.zeros(6)   # (where flank() says)
         if self._length_terms and validity is None:
             self.notes.append('unchecked range: the model does not record the lengths its terms '
@@ -1099,6 +1139,32 @@ class LengthBudget:
                        np.where(ok, quadratic, 0.0))
         return np.where(ok, np.mean(rest * rest, axis=0), 0.0), trend
 
+    def _continuation_of(self, range_m: FloatArray) -> _Continuation:
+        """The length terms' correction over each bar's lengths ``range_m`` (6, 2) a fit saw,
+        continued beyond them (:class:`_Continuation`): conditioned on its values at
+        :data:`CONTINUATION_POINTS` lengths spread over them, each as uncertain as the fit's
+        principal directions make it (:attr:`FitUncertainty.directions`), and a nanometre
+        more (the conditioning's jitter)."""
+        n = CONTINUATION_POINTS
+        lengths, ok, corrections = self.length_corrections(self._length_terms, range_m, n)
+        c = sum(corrections)
+        own = np.zeros((6, n, n))
+        for group in (self.fit.directions if self.fit is not None else []):
+            terms = [t for t in group if t.type_name in LENGTH_TERMS]
+            if terms:
+                v = sum(self.length_corrections(terms, range_m, n)[2]).T       # (6, n)
+                own += v[:, :, None] * v[:, None, :]
+        level, weights = np.zeros(6), np.zeros((n, 6))
+        cont = _Continuation(self.interpolation, self.knots_m, self._point_nugget_m2, lengths,
+                             level, weights)
+        for b in np.flatnonzero(ok):
+            k = (cont.covariance(b, lengths[:, b], lengths[:, b]) + own[b]
+                 + CONTINUATION_JITTER_M2 * np.eye(n))
+            by_ones, by_c = np.linalg.solve(k, np.column_stack([np.ones(n), c[:, b]])).T
+            level[b] = by_c.sum() / by_ones.sum()      # (generalised least squares)
+            weights[:, b] = by_c - level[b] * by_ones
+        return cont
+
     def flank(self, cdf_lengths_m: FloatArray) -> FloatArray:
         """Whether each bar's CDF length lies within the lengths the fit saw but in a CDF
         segment whose middle it did not see (:func:`segments_seen`), (N, 6) bool; all False
@@ -1131,7 +1197,13 @@ class LengthBudget:
         where a smooth error of the bar goes on growing (a quadratic bow of every bar's scale,
         0.25-0.35 µm from the middle of the travel to its end: on new motion 48.5 % and
         85.5 % of the samples beyond in the 95 % ellipsoid on two of four twins, 98.8 % and
-        99.2 % with the trend); plus the mean
+        99.2 % with the trend), or, where larger still, from that correction within those
+        lengths continued as the error it corrects would continue (:class:`_Continuation`):
+        there the terms hold (points at zero or on a line, the series within its values seen)
+        where the bar's error follows its own smooth course (a one-sided twin's bar, absolute
+        fit, its correction bending down to the bound: 347 nm RMS more than 3 mm beyond, the
+        moved correction claiming 104 nm, no sample within 1.96 sigma; with the continuation
+        255 nm, all of them); plus the mean
         square of what the terms corrected within those lengths beyond a straight line
         (:meth:`_length_spread`): there the data showed the calibration missing an error of
         that size along the bar, and beyond them its shape is not known (a smooth error need
@@ -1175,6 +1247,9 @@ class LengthBudget:
         c = correction(cdf) - correction(bound)
         trend = self._trend(cdf) - self._trend(bound)
         moved = np.maximum(c * c, (c - trend) ** 2)
+        rows = np.flatnonzero(out.any(axis=1))
+        gap = c[rows] - (self._continuation(cdf[rows]) - self._continuation(bound[rows]))
+        moved[rows] = np.maximum(moved[rows], gap * gap)
         rho = self._correlation_beyond(cdf, self._fitted_range_m)
         grown = moved + self._seen_var_m2 * (1.0 - rho * rho)
         return np.where(out, np.maximum(grown - points_m2, 0.0), flank)
