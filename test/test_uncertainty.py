@@ -582,6 +582,25 @@ def test_the_bars_lengths_are_covered():
     assert 0.93 <= cover <= 0.995, cover
 
 
+def _one_sided_fit_and_new_motion(k: int, datum: str):
+    """Realistic twin ``k`` calibrated with the paper's one-sided routine, ``mmd analyze`` of
+    60 s of its random motion (``datum`` 'offset' zeroed, 'none' absolute), and 8 s of new
+    motion processed with the model: (model, run, result with pose and length covariances)."""
+    from mmd_ros.analysis.identify import AnalysisOptions, analyze
+    room = ambient_profile('section_4_1')
+    twin = TwinDevice(DEVICE, Effects.realistic(), seed=k + 1)
+    calibration = twin.calibrate(-211.0 * k, room, approaches=1)
+    fitted = twin.simulate(make_scenario('random_motion', ['duration_s=60', f'seed={100 + k}']),
+                           room, start_s=600.0, reference='pose6')
+    model = analyze(run_log(twin, calibration, fitted, 600.0),
+                    options=AnalysisOptions(datum=datum)).model
+    run = twin.simulate(make_scenario('random_motion', ['duration_s=8', f'seed={k}']), room,
+                        start_s=700.0, reference='pose6')
+    res = Pipeline(twin.documented_device, calibration, model).process(
+        run.times_s, run.counts, with_covariance=True, with_length_covariance=True)
+    return model, run, res
+
+
 def test_after_a_one_sided_routine_a_bar_beyond_the_fitted_lengths_is_claimed_as_it_grows():
     """Two realistic twins calibrated with the paper's one-sided routine, ``mmd analyze``'s
     zeroed fit of 60 s of random motion, new motion's samples with a bar beyond the
@@ -593,19 +612,8 @@ def test_after_a_one_sided_routine_a_bar_beyond_the_fitted_lengths_is_claimed_as
     it, comes back for them) and the rest of that claim grows from the bound as after a
     two-sided routine: 1.1-4.0 and 1.5-3.8 (24 twins: all samples beyond 1.47-2.21 -> 1.23-1.90,
     98.8 % -> 98.4 % in the 95 % ellipsoid; inside the fitted lengths unchanged)."""
-    from mmd_ros.analysis.identify import AnalysisOptions, analyze
-    room = ambient_profile('section_4_1')
     for k in (1, 3):
-        twin = TwinDevice(DEVICE, Effects.realistic(), seed=k + 1)
-        calibration = twin.calibrate(-211.0 * k, room, approaches=1)
-        fitted = twin.simulate(make_scenario('random_motion', ['duration_s=60', f'seed={100 + k}']),
-                               room, start_s=600.0, reference='pose6')
-        model = analyze(run_log(twin, calibration, fitted, 600.0),
-                        options=AnalysisOptions(datum='offset')).model
-        run = twin.simulate(make_scenario('random_motion', ['duration_s=8', f'seed={k}']), room,
-                            start_s=700.0, reference='pose6')
-        res = Pipeline(twin.documented_device, calibration, model).process(
-            run.times_s, run.counts, with_covariance=True)
+        model, run, res = _one_sided_fit_and_new_motion(k, 'offset')
         seen, cdf = Validity.from_model(model).bar_range_m, res.compensated.cdf_lengths_m
         out = res.valid & ~np.all((cdf >= seen[:, 0]) & (cdf <= seen[:, 1]), axis=1)
         e, c = pose_error(res.poses, run.true_poses)[out], res.covariance[out]
@@ -629,19 +637,7 @@ def test_beyond_the_fitted_lengths_the_correction_is_claimed_against_its_own_con
     process about a level of its own, conditioned on it), is now claimed against what the terms
     apply there: 255 nm, every sample of the bar within 1.96 sigma, 98.9 % of the pose's in the
     ellipsoid."""
-    from mmd_ros.analysis.identify import AnalysisOptions, analyze
-    room = ambient_profile('section_4_1')
-    k = 3
-    twin = TwinDevice(DEVICE, Effects.realistic(), seed=k + 1)
-    calibration = twin.calibrate(-211.0 * k, room, approaches=1)
-    fitted = twin.simulate(make_scenario('random_motion', ['duration_s=60', f'seed={100 + k}']),
-                           room, start_s=600.0, reference='pose6')
-    model = analyze(run_log(twin, calibration, fitted, 600.0),
-                    options=AnalysisOptions(datum='none')).model
-    run = twin.simulate(make_scenario('random_motion', ['duration_s=8', f'seed={k}']), room,
-                        start_s=700.0, reference='pose6')
-    res = Pipeline(twin.documented_device, calibration, model).process(
-        run.times_s, run.counts, with_covariance=True, with_length_covariance=True)
+    model, run, res = _one_sided_fit_and_new_motion(3, 'none')
     seen, cdf = Validity.from_model(model).bar_range_m, res.compensated.cdf_lengths_m
     beyond = np.maximum(seen[:, 0] - cdf, cdf - seen[:, 1])
     out = res.valid & np.any(beyond > 0.0, axis=1)
