@@ -659,8 +659,7 @@ class LengthBudget:
         self._seen_var_m2, self._trend = (self._length_spread(self._fitted_range_m)
                                           if self._fitted_range_m is not None
                                           else (np.zeros(6), None))
-        self._continuation = (self._continuation_of(self._fitted_range_m)
-                              if self._fitted_range_m is not None else None)
+        self._continuation: _Continuation | None = None     # (built when a bar first lies beyond)
         self.flank_m2 = fit.flank_m2 if fit is not None else np.zeros(6)   # (where flank() says)
         if self._length_terms and validity is None:
             self.notes.append('unchecked range: the model does not record the lengths its terms '
@@ -1248,6 +1247,8 @@ class LengthBudget:
         trend = self._trend(cdf) - self._trend(bound)
         moved = np.maximum(c * c, (c - trend) ** 2)
         rows = np.flatnonzero(out.any(axis=1))
+        if self._continuation is None:
+            self._continuation = self._continuation_of(self._fitted_range_m)
         gap = c[rows] - (self._continuation(cdf[rows]) - self._continuation(bound[rows]))
         moved[rows] = np.maximum(moved[rows], gap * gap)
         rho = self._correlation_beyond(cdf, self._fitted_range_m)
