@@ -177,37 +177,45 @@ class _Trend:
         return a + s * (b + s * q)
 
 
+def _left_covariance(interpolation: InterpolationError, knots_m: FloatArray, point_m2: float,
+                     a_m: FloatArray, b_m: FloatArray) -> FloatArray:
+    """Of one bar with points ``knots_m`` (n,): the prior covariance of the error the CDF leaves
+    at ``a_m`` (p,) and ``b_m`` (q,), (p, q) [m^2]: the smooth scale error
+    (:class:`InterpolationError`) less its interpolation through the points, plus each point's
+    own error of variance ``point_m2`` [m^2] by its hat weight."""
+    return (interpolation.covariance(a_m, b_m, knots_m)
+            + (hat_weights(a_m, knots_m) * point_m2) @ hat_weights(b_m, knots_m).T)
+
+
 @dataclass(frozen=True)
 class _Continuation:
     """Each bar's length correction within the lengths a fit saw, continued beyond them as the
     error it corrects would continue: the conditional mean, given the correction's values c at
-    the lengths ``at_m`` (k, 6) within them, of the error the CDF leaves (the smooth scale error
-    :class:`InterpolationError` less its interpolation through the points, plus each point's
-    own error, ``point_m2`` (6,) [m^2], by its hat weight) about a level ``level_m`` (6,) [m]
-    of its own (ordinary kriging: a level the data do not tie, as a zeroed reference leaves
-    the bars' constants, goes on as it is): ``weights`` (k, 6) [1/m] are (K + S)^-1 (c - level),
-    S the correction's own covariance (the fit's)."""
+    the lengths ``at_m`` (k, 6) within them, of the error the CDF leaves
+    (:func:`_left_covariance`, each point's own error ``point_m2`` (6,) [m^2]) about a level of
+    its own (ordinary kriging: a level the data do not tie, as a zeroed reference leaves the
+    bars' constants, goes on as it is, and cancels in the continuation's changes):
+    ``weights`` (k, 6) [1/m] are (K + S)^-1 (c - level), S the correction's own covariance
+    (the fit's)."""
 
     interpolation: InterpolationError
     knots_m: FloatArray
     point_m2: FloatArray
     at_m: FloatArray
-    level_m: FloatArray
     weights: FloatArray
 
-    def covariance(self, bar: int, a_m: FloatArray, b_m: FloatArray) -> FloatArray:
-        """Of bar ``bar``: the prior covariance of the error the CDF leaves at ``a_m`` (p,) and
-        ``b_m`` (q,), (p, q) [m^2]."""
-        kn = self.knots_m[bar]
-        return (self.interpolation.covariance(a_m, b_m, kn)
-                + (hat_weights(a_m, kn) * self.point_m2[bar]) @ hat_weights(b_m, kn).T)
-
-    def __call__(self, lengths_m: FloatArray) -> FloatArray:
-        """The continuation at the lengths (N, 6) [m], (N, 6) [m]."""
-        x = np.nan_to_num(np.asarray(lengths_m, dtype=np.float64))
-        out = np.broadcast_to(self.level_m, x.shape).copy()
-        for b in np.flatnonzero(np.any(self.weights != 0.0, axis=0)):
-            out[:, b] += self.covariance(b, x[:, b], self.at_m[:, b]) @ self.weights[:, b]
+    def change(self, lengths_m: FloatArray, from_m: FloatArray, where: NDArray[np.bool_]
+               ) -> FloatArray:
+        """How far the continuation moves from ``from_m`` to ``lengths_m`` (N, 6) [m] where
+        ``where`` (N, 6) holds, else 0, (N, 6) [m]."""
+        out = np.zeros(np.shape(lengths_m))
+        for b in np.flatnonzero(where.any(axis=0) & np.any(self.weights != 0.0, axis=0)):
+            i = where[:, b]
+            k = self.knots_m[b], self.point_m2[b]
+            at = self.at_m[:, b]
+            out[i, b] = (_left_covariance(self.interpolation, *k, lengths_m[i, b], at)
+                         - _left_covariance(self.interpolation, *k, from_m[i, b], at)
+                         ) @ self.weights[:, b]
         return out
 
 
@@ -1153,16 +1161,16 @@ class LengthBudget:
             if terms:
                 v = sum(self.length_corrections(terms, range_m, n)[2]).T       # (6, n)
                 own += v[:, :, None] * v[:, None, :]
-        level, weights = np.zeros(6), np.zeros((n, 6))
-        cont = _Continuation(self.interpolation, self.knots_m, self._point_nugget_m2, lengths,
-                             level, weights)
+        weights = np.zeros((n, 6))
         for b in np.flatnonzero(ok):
-            k = (cont.covariance(b, lengths[:, b], lengths[:, b]) + own[b]
-                 + CONTINUATION_JITTER_M2 * np.eye(n))
+            at = lengths[:, b]
+            k = (_left_covariance(self.interpolation, self.knots_m[b], self._point_nugget_m2[b],
+                                  at, at) + own[b] + CONTINUATION_JITTER_M2 * np.eye(n))
             by_ones, by_c = np.linalg.solve(k, np.column_stack([np.ones(n), c[:, b]])).T
-            level[b] = by_c.sum() / by_ones.sum()      # (generalised least squares)
-            weights[:, b] = by_c - level[b] * by_ones
-        return cont
+            level = by_c.sum() / by_ones.sum()      # (generalised least squares)
+            weights[:, b] = by_c - level * by_ones
+        return _Continuation(self.interpolation, self.knots_m, self._point_nugget_m2, lengths,
+                             weights)
 
     def flank(self, cdf_lengths_m: FloatArray) -> FloatArray:
         """Whether each bar's CDF length lies within the lengths the fit saw but in a CDF
@@ -1246,11 +1254,10 @@ class LengthBudget:
         c = correction(cdf) - correction(bound)
         trend = self._trend(cdf) - self._trend(bound)
         moved = np.maximum(c * c, (c - trend) ** 2)
-        rows = np.flatnonzero(out.any(axis=1))
         if self._continuation is None:
             self._continuation = self._continuation_of(self._fitted_range_m)
-        gap = c[rows] - (self._continuation(cdf[rows]) - self._continuation(bound[rows]))
-        moved[rows] = np.maximum(moved[rows], gap * gap)
+        gap = c - self._continuation.change(cdf, bound, out)       # (0 within: there c is)
+        moved = np.maximum(moved, gap * gap)
         rho = self._correlation_beyond(cdf, self._fitted_range_m)
         grown = moved + self._seen_var_m2 * (1.0 - rho * rho)
         return np.where(out, np.maximum(grown - points_m2, 0.0), flank)
