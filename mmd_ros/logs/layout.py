@@ -446,8 +446,8 @@ class RunStream:
             self.metadata, self.metadata_as_text = _run_metadata(self._reader)
             self.n_samples = self._reader.message_count(TOPIC_RAW) or 0
             self.channel_names = self.device.channel_names
-            #: as :attr:`RunLog.reference_note`, known once :meth:`blocks` has run
-            self.reference_note = ''
+            # how each reference topic was read at the raw samples, block by block
+            self._reads: dict[str, _Interpolated] = {}
         except BaseException:
             self._reader.close()
             raise
@@ -455,6 +455,13 @@ class RunStream:
     @property
     def problem(self) -> LogProblem | None:
         return self._reader.problem
+
+    @property
+    def reference_note(self) -> str:
+        """As :attr:`RunLog.reference_note`, over the blocks read so far."""
+        source = str(self.path)
+        return '; '.join(n for n in (self._reads[t].note(source, t) for t in sorted(self._reads))
+                         if n)
 
     @property
     def has_reference_pose(self) -> bool:
@@ -485,7 +492,7 @@ class RunStream:
         raw: list[JointStates] = []
         refs: dict[str, list[JointStates]] = {TOPIC_REF_POSE: [], TOPIC_REF_LENGTHS: []}
         has_ref = {t for t in refs if self._reader.has_topic(t)}
-        reads = {t: _Interpolated() for t in has_ref}
+        self._reads = reads = {t: _Interpolated() for t in has_ref}
         last_ref: dict[str, int] = {}
         last_raw: int | None = None
         pending = 0
@@ -513,8 +520,6 @@ class RunStream:
                 aligned[topic], read = _aligned(ref, JointStates(out_s, [], out_v), names, topic,
                                                 source)
                 reads[topic].add(read)
-                self.reference_note = '; '.join(
-                    n for n in (reads[t].note(source, t) for t in sorted(reads)) if n)
                 # (the last reading at or before the block's end stays: it brackets the next)
                 keep = max(int(np.searchsorted(ref.stamps_ns, out_s[-1], side='right')) - 1, 0)
                 refs[topic] = [JointStates(ref.stamps_ns[keep:], ref.names, ref.values[keep:])]
