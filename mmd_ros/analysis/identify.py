@@ -1912,8 +1912,10 @@ def _unchecked(sel: _Selector, a: _Active, theta: FloatArray, cov_beta: FloatArr
     by more than the analysis' own "at the floor" factor, and less than twice its uncertainty's
     RMS there, is unchecked: the data do not tell it from none. (Judged sample by sample, any
     change of an unseen component that passes through zero in a log, as a pitch that follows
-    the x travel does, was somewhere within twice its sigma: a CDF-point term that a 6-DOF run
-    determined, 1.9″ ± 0.35″ at its largest in an x run, was left out of a session's model.)
+    the x travel does, was somewhere within twice its sigma: with a z laser run beside x, y, C
+    and 6-DOF runs, the CDF points and the scale term the 6-DOF run determines were left out,
+    the z run's pitch under the points 0.56″ ± 0.28″ at its largest; another 6-DOF run kept
+    3-13 times its noise floor.)
     """
     out: list[Unchecked] = []
     basis = a.basis
