@@ -49,6 +49,12 @@ def test_model_file_round_trip(tmp_path):
      'uncertainty.fit.rest_terms_nm2'),
     ('format_version: 1\nuncertainty: {fit: {rest_terms_nm2: ' + str((-np.eye(6)).tolist()) + '}}\n',
      'uncertainty.fit.rest_terms_nm2'),
+    ('format_version: 1\nuncertainty: {fit: {thermal_state_nm: [1, 2, 3, 4, 5, 6]}}\n',
+     'uncertainty.fit.thermal_state_nm'),
+    ('format_version: 1\nuncertainty: {fit: {thermal_state_nm: [1, 2, 3, 4, 5, 6, 2e6]}}\n',
+     'uncertainty.fit.thermal_state_nm'),
+    ('format_version: 1\nuncertainty: {fit: {thermal_state_c: 500}}\n',
+     'uncertainty.fit.thermal_state_c'),
     ('format_version: 1\nuncertainty: {sigma_um: 0.4}\n', 'uncertainty.sigma_um'),
     ('format_version: 1\nuncertainty: {fit: {profile: {excess_nm2: ' + str(np.eye(6).tolist())
      + ', lengths_mm: [[300, 301]], factor: [[1, 1]]}}}\n', 'uncertainty.fit.profile.lengths_mm'),

@@ -652,6 +652,30 @@ def fit_uncertainty(ctx: FitContext, found: list[FittedEffect], runs: list[Resid
     return fit
 
 
+def _thermal_state(full: list[tuple[ResidualRun, IntArray]]) -> FloatArray | None:
+    """The bars' thermal corrections (Eq. 13), then the reference bars' errors (Eq. 11), over
+    the samples of the runs whose absolute references saw every bar, (6 + k,) [m], or None
+    (no reference bar). Each bar's thermal mismatch there was measured: the fitted terms of
+    free constants took up the constant it was over those runs, or their residual holds it;
+    what a later run has of it is the mismatch of the change since (the thermal_mismatch
+    source, msg_docs/frames.md; Eq. (13)'s approximation and the plates' scale likewise, from
+    the mean temperature change, ``thermal_state_c``). Claimed from zero, a session's model,
+    its CDF points fitted at the runs' temperature, claimed 58 nm in x inside the fitted
+    lengths of four twins' new runs, 77 nm in all, where 58 nm was observed in all: between
+    the fitted 6-DOF run and a new one the bars' mismatch changed by 9 nm RMS, where 40 nm per
+    bar was claimed. Not recorded when a run's own drift was fitted (:func:`_sized_from`)."""
+    total, count = None, 0
+    for run, idx in full:
+        a = run.after
+        if a.reference_error_m.ndim != 2 or a.reference_error_m.shape[1] == 0:
+            return None
+        values = np.concatenate([a.bar_error_m[idx], a.reference_error_m[idx]], axis=1)
+        values = values[np.all(np.isfinite(values), axis=1)]
+        total = values.sum(axis=0) if total is None else total + values.sum(axis=0)
+        count += values.shape[0]
+    return None if total is None or count == 0 else total / count
+
+
 def _measured_at(runs: list[ResidualRun]) -> float | None:
     """The mean Unix time of the samples the residual is measured on [s], or None when a
     log's time is not known."""
@@ -690,6 +714,14 @@ def _sized_from(fit: FitUncertainty, ctx: FitContext, found: list[FittedEffect],
         # as what the runs leave unknown of a constant error per bar (_unseen_constants)
         replacing = bool(seen.all())
         zeroed = any(run.ctx.obs.datum for run, _ in full)
+        # the thermal state at which the references measured the thermal errors; not when a
+        # run's own drift took its constants: its offsets are not written, and a twin warmed
+        # 5 °C whose fit found one was covered 64 % with the state, 100 % without
+        if replacing and not zeroed and not any(f.effect.scope == 'run' for f in found):
+            fit.thermal_state_m = _thermal_state(full)
+            if fit.thermal_state_m is not None:
+                fit.thermal_state_c = float(np.mean(np.concatenate(
+                    [run.after.temp_change_c[idx] for run, idx in full])))
         if zeroed:
             # a zeroed reference: the mean of each component over a log, which those sources
             # stand for, is not seen. An effect of one physical law carries the mean its law

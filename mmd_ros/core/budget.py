@@ -539,6 +539,21 @@ class LengthBudget:
             self.notes.append('thermal mismatch: the device description does not state '
                               'bars.thermal_mismatch_fraction')
         self.mismatch_fraction = float(frac or 0.0) if mode != 'off' and not gains else 0.0
+        # a fit against absolute references that saw every bar measured the mismatch as it was
+        # at its runs' thermal state (its terms of free constants took it up, or its residual
+        # holds it): what is left is the mismatch of the change since
+        self._mismatch_from: tuple[FloatArray, FloatArray] | None = None
+        state = None if fit is None else fit.thermal_state_m
+        if state is not None and self.mismatch_fraction:
+            if state.size == 6 + len(refs):
+                self._mismatch_from = (state[:6], state[6:])
+            else:
+                self.notes.append(f'thermal mismatch: the fit\'s thermal state has {state.size} '
+                                  f'values, this device {6 + len(refs)} bars; claimed whole')
+        # (and Eq. (13)'s approximation and the plates' scale, as they were at its runs' mean
+        # temperature change)
+        self._temp_change_from = 0.0 if fit is None or fit.thermal_state_c is None \
+            else float(fit.thermal_state_c)
         self._plate_scale_init(device, model, mode, float(frac or 0.0))
         # Eq. (13)'s approximation, the error -alpha_s (d_i - d_ref) dT of a bar at length d_i
         # (known: claimed as such), from d_ref on; a thermal_interpolation term corrects it
@@ -882,13 +897,14 @@ class LengthBudget:
                 'nip,p,njp->nij', h, self.pair_var_m2, h)
         if self.approximation_from_m is not None:
             t.bias['thermal_approximation'] = -(x - self.approximation_from_m) * self.scale_cte \
-                * np.asarray(temp_change_c)[:, None]
+                * (np.asarray(temp_change_c) - self._temp_change_from)[:, None]
         if self.mismatch_fraction:
             # f is what is left of one bar's thermal error after Eq. (13): its own deviation
             # from the type and the reference bar's (one of the same bars), f^2 / 2 each
             half = 0.5 * self.mismatch_fraction ** 2
+            own, ref = self._mismatch_of(bar_error_m, eps)
             t.full['thermal_mismatch'] = self._add_shared(
-                np.zeros((n, 6, 6)), half * bar_error_m ** 2, half * eps ** 2, t.weights)
+                np.zeros((n, 6, 6)), half * own ** 2, half * ref ** 2, t.weights)
         hysteresis = self._hysteresis(n, observed)
         if hysteresis is not None:
             if hysteresis[0] is not None:
@@ -932,7 +948,8 @@ class LengthBudget:
         (:meth:`_plate_scale_init`; the samples' poses give each bar's lever)."""
         if not self.plate_scale_rel or observed is None or observed.scale_lever_m is None:
             return None
-        sigma = self.plate_scale_rel * np.abs(np.asarray(temp_change_c, dtype=np.float64))
+        sigma = self.plate_scale_rel * np.abs(np.asarray(temp_change_c, dtype=np.float64)
+                                              - self._temp_change_from)
         return sigma.reshape(-1, 1) * observed.scale_lever_m
 
     def plate_scale_sigma(self, temp_change_c: float) -> float:
@@ -968,6 +985,17 @@ class LengthBudget:
         if not self.drift_rate_m_per_s or start is None or not self._on_wall_clock(unix_s):
             return math.nan
         return math.sqrt(self._drift_var(abs(unix_s - start)))
+
+    def _mismatch_of(self, bar_error_m: FloatArray, eps: FloatArray
+                     ) -> tuple[FloatArray, FloatArray]:
+        """What the thermal_mismatch source is proportional to: each bar's thermal correction
+        (N, 6) or (N, 1) and each reference bar's error (N, k) [m], as they are, or their
+        change since the thermal state at which a fit measured the mismatch
+        (``fit.thermal_state_m``)."""
+        if self._mismatch_from is None:
+            return bar_error_m, eps
+        own, ref = self._mismatch_from
+        return bar_error_m - own, eps - ref[:eps.shape[1]]
 
     def _add_shared(self, out: FloatArray, own: FloatArray, reference: FloatArray,
                     weights: FloatArray | None) -> FloatArray:
@@ -1420,10 +1448,11 @@ class LengthBudget:
         if self.thermal_mode == 'single':
             if self.approximation_from_m is not None:
                 bias -= (x - self.approximation_from_m) * (
-                    self.scale_cte * np.asarray(temp_change_c))[:, None]
+                    self.scale_cte * (np.asarray(temp_change_c) - self._temp_change_from))[:, None]
             if self.mismatch_fraction:     # (each bar's own; the reference bar's below)
-                diag += 0.5 * (self.mismatch_fraction * (
-                    eps[:, :1] if bar_error_m is None else bar_error_m)) ** 2
+                own, ref_change = self._mismatch_of(
+                    eps[:, :1] if bar_error_m is None else bar_error_m, eps)
+                diag += 0.5 * (self.mismatch_fraction * own) ** 2
         hysteresis = self._hysteresis(n, observed)
         if hysteresis is not None:
             if hysteresis[0] is not None:
@@ -1462,7 +1491,8 @@ class LengthBudget:
             cross = self._cross(noise[-1, 6:], eps)[:, 0]
             ref = (np.maximum(fast['q12'] + noise[:, 6] ** 2 + self.zero_var_m2 - 2.0 * cross, 0.0)
                    + self._reference_subdivision(eps[:, 0])
-                   + 0.5 * (self.mismatch_fraction * eps[:, 0]) ** 2)
+                   + (0.5 * (self.mismatch_fraction * ref_change[:, 0]) ** 2
+                      if self.mismatch_fraction else 0.0))
             total += ref[:, None, None]
         if fit_columns_m is not None and fit_columns_m.shape[-1]:
             total += fit_columns_m @ np.swapaxes(fit_columns_m, 1, 2)
@@ -1532,6 +1562,9 @@ class LengthBudget:
             'thermal_zero_nm': round(math.sqrt(self.zero_var_m2) * 1e9, 3),
             'interpolation': self.interpolation.as_dict(),
             'thermal_mismatch_fraction': self.mismatch_fraction,
+            'thermal_mismatch_from_nm': (None if self._mismatch_from is None else [
+                round(float(v) * 1e9, 1) for v in np.concatenate(self._mismatch_from)]),
+            'temp_change_from_c': round(self._temp_change_from, 4),
             'plate_scale_ppm_per_c': round(self.plate_scale_rel * 1e6, 6),
             'hysteresis_nm': [round(float(v) * 1e9, 2) for v in self.hysteresis_m],
             'latch_skew_us': round(self.latch_skew_s * 1e6, 3),

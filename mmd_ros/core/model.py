@@ -228,7 +228,8 @@ FIT_REPLACEABLE = ('calibration_points', 'calibration_drift', 'reference_distanc
                    'subdivision', 'hysteresis', 'gravity_sag', 'reading_drift')
 #: Keys of a model file's ``uncertainty.fit`` section.
 FIT_KEYS = ('residual_nm2', 'replaces', 'systematic_scale', 'mean_terms_nm2', 'directions', 'from',
-            'read_noise_nm', 'flank_nm2', 'rest_terms_nm2', 'profile', 'measured_unix_s')
+            'read_noise_nm', 'flank_nm2', 'rest_terms_nm2', 'profile', 'measured_unix_s',
+            'thermal_state_nm', 'thermal_state_c')
 #: Most lengths per bar of a residual's length profile in a model file.
 PROFILE_POINTS = 1000
 
@@ -347,6 +348,13 @@ class FitUncertainty:
     measured_unix_s : when the residual was measured: the mean Unix time of the samples it
         was measured on [s], or None (not known). It holds what the readings had drifted by
         then; the budget counts their drift from there (the later of it and the calibration)
+    thermal_state_m : (6 + k,) — the thermal correction of each measuring bar (Eq. 13), then
+        each reference bar's error (Eq. 11), averaged over the samples of the absolute
+        references that saw every bar [m], or None: the fit measured the bars' thermal
+        mismatch as it was there (its terms of free constants took it up, or its residual
+        holds it), and the budget claims the mismatch of the change since
+    thermal_state_c : their mean temperature change since the thermal zero [°C], or None:
+        Eq. (13)'s approximation and the plates' scale are claimed of the change since
     """
 
     residual_m2: FloatArray = field(default_factory=lambda: np.zeros((6, 6)))
@@ -360,6 +368,8 @@ class FitUncertainty:
     rest_terms_m2: FloatArray = field(default_factory=lambda: np.zeros((6, 6)))
     profile: LengthProfile | None = None
     measured_unix_s: float | None = None
+    thermal_state_m: FloatArray | None = None
+    thermal_state_c: float | None = None
 
     def reset(self) -> None:
         for group in self.directions:
@@ -385,6 +395,10 @@ class FitUncertainty:
             **({} if self.profile is None else {'profile': self.profile.to_dict()}),
             **({} if self.measured_unix_s is None else
                {'measured_unix_s': round(float(self.measured_unix_s), 3)}),
+            **({} if self.thermal_state_m is None else
+               {'thermal_state_nm': [round(float(v) * 1e9, 3) for v in self.thermal_state_m]}),
+            **({} if self.thermal_state_c is None else
+               {'thermal_state_c': round(float(self.thermal_state_c), 5)}),
         }
 
     @classmethod
@@ -428,9 +442,20 @@ class FitUncertainty:
                    else LengthProfile.from_dict(data['profile'], source, f'{path}.profile'))
         measured = (None if data.get('measured_unix_s') is None
                     else f.number(data, 'measured_unix_s', path, low=0.0, high=1e11))
+        state = None
+        if data.get('thermal_state_nm') is not None:
+            what = ('7 or 8 thermal corrections in nm (measuring bars, then reference bars), '
+                    'each within ±1e6')
+            state = f.floats(data, 'thermal_state_nm', path, (-1,), what=what)
+            if not 7 <= state.size <= 8 or np.any(np.abs(state) > 1e6):
+                raise ConfigError(source, f'{path}.thermal_state_nm',
+                                  f'must be {what}, got {state.tolist()}')
+            state = state * 1e-9
+        state_c = (None if data.get('thermal_state_c') is None
+                   else f.number(data, 'thermal_state_c', path, low=-100.0, high=100.0))
         return cls(residual, tuple(replaces), scale, directions, mean_terms,
                    dict(record) if isinstance(record, dict) else {}, noise, flank, rest, profile,
-                   measured)
+                   measured, state, state_c)
 
 
 @dataclass
