@@ -719,9 +719,13 @@ def _sized_from(fit: FitUncertainty, ctx: FitContext, found: list[FittedEffect],
         # 5 °C whose fit found one was covered 64 % with the state, 100 % without
         if replacing and not zeroed and not any(f.effect.scope == 'run' for f in found):
             fit.thermal_state_m = _thermal_state(full)
-            if fit.thermal_state_m is not None:
+            # the plates' scale moves the pose, not the bars: only a pose reference measured
+            # it (a thermal_gain fitted on a soak against bar lengths claimed x and y 0.6
+            # times their error 7 h later with the plates' scale counted from the soak's)
+            pose = [(run, idx) for run, idx in full if run.ctx.obs.kind == 'pose']
+            if fit.thermal_state_m is not None and pose:
                 fit.thermal_state_c = float(np.mean(np.concatenate(
-                    [run.after.temp_change_c[idx] for run, idx in full])))
+                    [run.after.temp_change_c[idx] for run, idx in pose])))
         if zeroed:
             # a zeroed reference: the mean of each component over a log, which those sources
             # stand for, is not seen. An effect of one physical law carries the mean its law

@@ -1450,8 +1450,8 @@ class LengthBudget:
                 bias -= (x - self.approximation_from_m) * (
                     self.scale_cte * (np.asarray(temp_change_c) - self._temp_change_from))[:, None]
             if self.mismatch_fraction:     # (each bar's own; the reference bar's below)
-                own, ref_change = self._mismatch_of(
-                    eps[:, :1] if bar_error_m is None else bar_error_m, eps)
+                own = self._mismatch_of(
+                    eps[:, :1] if bar_error_m is None else bar_error_m, eps)[0]
                 diag += 0.5 * (self.mismatch_fraction * own) ** 2
         hysteresis = self._hysteresis(n, observed)
         if hysteresis is not None:
@@ -1491,8 +1491,7 @@ class LengthBudget:
             cross = self._cross(noise[-1, 6:], eps)[:, 0]
             ref = (np.maximum(fast['q12'] + noise[:, 6] ** 2 + self.zero_var_m2 - 2.0 * cross, 0.0)
                    + self._reference_subdivision(eps[:, 0])
-                   + (0.5 * (self.mismatch_fraction * ref_change[:, 0]) ** 2
-                      if self.mismatch_fraction else 0.0))
+                   + 0.5 * (self.mismatch_fraction * self._mismatch_of(eps, eps)[1][:, 0]) ** 2)
             total += ref[:, None, None]
         if fit_columns_m is not None and fit_columns_m.shape[-1]:
             total += fit_columns_m @ np.swapaxes(fit_columns_m, 1, 2)

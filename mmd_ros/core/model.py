@@ -353,8 +353,9 @@ class FitUncertainty:
         references that saw every bar [m], or None: the fit measured the bars' thermal
         mismatch as it was there (its terms of free constants took it up, or its residual
         holds it), and the budget claims the mismatch of the change since
-    thermal_state_c : their mean temperature change since the thermal zero [°C], or None:
-        Eq. (13)'s approximation and the plates' scale are claimed of the change since
+    thermal_state_c : the mean temperature change since the thermal zero of the samples of
+        absolute pose references that saw every component [°C], or None: Eq. (13)'s
+        approximation and the plates' scale are claimed of the change since
     """
 
     residual_m2: FloatArray = field(default_factory=lambda: np.zeros((6, 6)))
