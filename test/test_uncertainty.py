@@ -1108,6 +1108,12 @@ def test_after_an_absolute_fit_the_thermal_errors_are_claimed_from_the_fit_s_the
         back = load_model(result.model.save(tmp_path / f'model{k}.yaml')).uncertainty.fit
         np.testing.assert_allclose(back.thermal_state_m, fit.thermal_state_m, atol=1e-12)
         assert back.thermal_state_c == pytest.approx(fit.thermal_state_c, abs=1e-5)
+        # the plates' scale the nodes' diagnostics report is the one the covariance claims
+        budget = LengthBudget(twin.documented_device, calibration, result.model)
+        assert budget.plate_scale_rel > 0.0
+        assert budget.plate_scale_sigma(fit.thermal_state_c) == pytest.approx(0.0, abs=1e-12)
+        assert budget.plate_scale_sigma(fit.thermal_state_c - 1.0) == pytest.approx(
+            budget.plate_scale_rel)
         run = twin.simulate(make_scenario('random_motion', ['duration_s=8', f'seed={k}']), room,
                             start_s=20100.0, reference='pose6')
         res = Pipeline(twin.documented_device, calibration, result.model).process(

@@ -955,9 +955,10 @@ class LengthBudget:
     def plate_scale_sigma(self, temp_change_c: float) -> float:
         """One sigma of the plates' scale the pose covariance claims at the temperature change
         ``temp_change_c`` since the thermal zero [1] (:meth:`_plate_scale_init`; 0 when it
-        claims none, NaN for an unknown change)."""
-        return self.plate_scale_rel * abs(temp_change_c) if math.isfinite(temp_change_c) \
-            else math.nan
+        claims none, NaN for an unknown change): of the change since the state a fit measured
+        it at, as :meth:`_plate_scale` claims it."""
+        return self.plate_scale_rel * abs(temp_change_c - self._temp_change_from) \
+            if math.isfinite(temp_change_c) else math.nan
 
     def _reading_drift(self, observed: Observed | None) -> FloatArray | None:
         """The variance of a channel's reading drift since the calibration, (N,) [m^2]: each
