@@ -897,7 +897,7 @@ class LengthBudget:
                 'nip,p,njp->nij', h, self.pair_var_m2, h)
         if self.approximation_from_m is not None:
             t.bias['thermal_approximation'] = -(x - self.approximation_from_m) * self.scale_cte \
-                * (np.asarray(temp_change_c) - self._temp_change_from)[:, None]
+                * self._temp_change_since(temp_change_c)[:, None]
         if self.mismatch_fraction:
             # f is what is left of one bar's thermal error after Eq. (13): its own deviation
             # from the type and the reference bar's (one of the same bars), f^2 / 2 each
@@ -948,8 +948,7 @@ class LengthBudget:
         (:meth:`_plate_scale_init`; the samples' poses give each bar's lever)."""
         if not self.plate_scale_rel or observed is None or observed.scale_lever_m is None:
             return None
-        sigma = self.plate_scale_rel * np.abs(np.asarray(temp_change_c, dtype=np.float64)
-                                              - self._temp_change_from)
+        sigma = self.plate_scale_rel * np.abs(self._temp_change_since(temp_change_c))
         return sigma.reshape(-1, 1) * observed.scale_lever_m
 
     def plate_scale_sigma(self, temp_change_c: float) -> float:
@@ -957,7 +956,7 @@ class LengthBudget:
         ``temp_change_c`` since the thermal zero [1] (:meth:`_plate_scale_init`; 0 when it
         claims none, NaN for an unknown change): of the change since the state a fit measured
         it at, as :meth:`_plate_scale` claims it."""
-        return self.plate_scale_rel * abs(temp_change_c - self._temp_change_from) \
+        return self.plate_scale_rel * abs(float(self._temp_change_since(temp_change_c))) \
             if math.isfinite(temp_change_c) else math.nan
 
     def _reading_drift(self, observed: Observed | None) -> FloatArray | None:
@@ -986,6 +985,11 @@ class LengthBudget:
         if not self.drift_rate_m_per_s or start is None or not self._on_wall_clock(unix_s):
             return math.nan
         return math.sqrt(self._drift_var(abs(unix_s - start)))
+
+    def _temp_change_since(self, temp_change_c: Any) -> FloatArray:
+        """The temperature change since the thermal zero [°C], or since the state at which a fit
+        measured Eq. (13)'s approximation and the plates' scale (``fit.thermal_state_c``)."""
+        return np.asarray(temp_change_c, dtype=np.float64) - self._temp_change_from
 
     def _mismatch_of(self, bar_error_m: FloatArray, eps: FloatArray
                      ) -> tuple[FloatArray, FloatArray]:
@@ -1449,10 +1453,11 @@ class LengthBudget:
         if self.thermal_mode == 'single':
             if self.approximation_from_m is not None:
                 bias -= (x - self.approximation_from_m) * (
-                    self.scale_cte * (np.asarray(temp_change_c) - self._temp_change_from))[:, None]
-            if self.mismatch_fraction:     # (each bar's own; the reference bar's below)
-                own = self._mismatch_of(
-                    eps[:, :1] if bar_error_m is None else bar_error_m, eps)[0]
+                    self.scale_cte * self._temp_change_since(temp_change_c))[:, None]
+            # (each bar's own mismatch here; the reference bar's below)
+            own, ref_change = self._mismatch_of(
+                eps[:, :1] if bar_error_m is None else bar_error_m, eps)
+            if self.mismatch_fraction:
                 diag += 0.5 * (self.mismatch_fraction * own) ** 2
         hysteresis = self._hysteresis(n, observed)
         if hysteresis is not None:
@@ -1492,7 +1497,7 @@ class LengthBudget:
             cross = self._cross(noise[-1, 6:], eps)[:, 0]
             ref = (np.maximum(fast['q12'] + noise[:, 6] ** 2 + self.zero_var_m2 - 2.0 * cross, 0.0)
                    + self._reference_subdivision(eps[:, 0])
-                   + 0.5 * (self.mismatch_fraction * self._mismatch_of(eps, eps)[1][:, 0]) ** 2)
+                   + 0.5 * (self.mismatch_fraction * ref_change[:, 0]) ** 2)
             total += ref[:, None, None]
         if fit_columns_m is not None and fit_columns_m.shape[-1]:
             total += fit_columns_m @ np.swapaxes(fit_columns_m, 1, 2)
