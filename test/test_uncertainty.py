@@ -616,9 +616,7 @@ def test_after_a_one_sided_routine_a_bar_beyond_the_fitted_lengths_is_claimed_as
         model, run, res = _one_sided_fit_and_new_motion(k, 'offset')
         seen, cdf = Validity.from_model(model).bar_range_m, res.compensated.cdf_lengths_m
         out = res.valid & ~np.all((cdf >= seen[:, 0]) & (cdf <= seen[:, 1]), axis=1)
-        e, c = pose_error(res.poses, run.true_poses)[out], res.covariance[out]
-        ratio = np.sqrt(np.mean(np.diagonal(c, axis1=1, axis2=2), axis=0) / np.mean(e * e, axis=0))
-        covered = float(np.mean(_d2(e, c) <= LIMIT))
+        ratio, covered = _judged(pose_error(res.poses, run.true_poses)[out], res.covariance[out])
         print(k, out.sum(), 'ratio', np.round(ratio, 2), 'coverage', round(covered, 3))
         assert out.sum() > 300 and covered >= 0.93
         assert np.max(ratio) < 4.5 and np.median(ratio) < 3.0, ratio
@@ -1120,9 +1118,8 @@ def test_after_an_absolute_fit_the_thermal_errors_are_claimed_from_the_fit_s_the
             run.times_s, run.counts, with_covariance=True)
         seen, cdf = Validity.from_model(result.model).bar_range_m, res.compensated.cdf_lengths_m
         inside = res.valid & np.all((cdf >= seen[:, 0]) & (cdf <= seen[:, 1]), axis=1)
-        e, c = pose_error(res.poses, run.true_poses)[inside], res.covariance[inside]
-        ratio = np.sqrt(np.mean(np.diagonal(c, axis1=1, axis2=2), axis=0) / np.mean(e * e, axis=0))
-        covered = float(np.mean(_d2(e, c) <= LIMIT))
+        ratio, covered = _judged(pose_error(res.poses, run.true_poses)[inside],
+                                 res.covariance[inside])
         print(k, inside.sum(), 'ratio', np.round(ratio, 2), 'coverage', round(covered, 3))
         assert inside.sum() > 4000 and covered >= 0.93
         assert np.all((0.75 < ratio) & (ratio < 1.5)), ratio
@@ -1409,10 +1406,7 @@ def test_against_a_reference_on_its_own_clock_the_common_skew_is_claimed_not_fit
         assert budget.latch_common_only and budget.latch_skew_s == pytest.approx(50e-6)
         errors += e
         covs += c
-    e, c = np.concatenate(errors), np.concatenate(covs)
-    ratio = (np.sqrt(np.mean(np.diagonal(c, axis1=1, axis2=2), axis=0))
-             / np.sqrt(np.mean(e * e, axis=0)))
-    covered = float(np.mean(_d2(e, c) <= LIMIT))
+    ratio, covered = _judged(np.concatenate(errors), np.concatenate(covs))
     print('own clock: ratio', np.round(ratio, 2), 'coverage', covered)
     assert np.all(ratio > 0.8) and 0.93 <= covered <= 0.99, (ratio, covered)
 
@@ -1559,9 +1553,7 @@ def test_after_a_zeroed_fit_the_constant_it_could_not_see_is_claimed_from_the_po
             assert "length-shaped errors (its points', the interpolation between them) were read" in report
         errors += e
         covs += c
-    e, c = np.concatenate(errors), np.concatenate(covs)
-    ratio = np.sqrt(np.mean(np.diagonal(c, axis1=1, axis2=2), axis=0) / np.mean(e * e, axis=0))
-    cover = float(np.mean(_d2(e, c) <= LIMIT))
+    ratio, cover = _judged(np.concatenate(errors), np.concatenate(covs))
     print('zeroed, after the loop: ratio', np.round(ratio, 2), 'coverage', cover)
     assert 0.93 <= cover <= 0.995, cover
     assert np.all((ratio >= 0.8) & (ratio <= 2.0)), ratio
@@ -2314,6 +2306,13 @@ def test_what_a_fit_left_along_a_bar_is_read_from_each_look_the_run_took_at_that
 def _d2(e, c):
     """Squared Mahalanobis distance of each pose error (n, 6) under its covariance (n, 6, 6)."""
     return np.einsum('ni,ni->n', e, np.linalg.solve(c, e[:, :, None])[:, :, 0])
+
+
+def _judged(e, c) -> tuple[np.ndarray, float]:
+    """Of pose errors (n, 6) and their covariances (n, 6, 6): predicted / observed sigma per
+    component, and the share of the errors in the 95 % ellipsoid."""
+    ratio = np.sqrt(np.mean(np.diagonal(c, axis1=1, axis2=2), axis=0) / np.mean(e * e, axis=0))
+    return ratio, float(np.mean(_d2(e, c) <= LIMIT))
 
 
 def _interference(k: int):
