@@ -2210,8 +2210,9 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
     # claimed as their uncertainty (analysis/uncertainty.py)
     extended = None
     lasting: list[tuple[_Active, FloatArray]] = []
+    lasting_cov: dict[str, FloatArray] = {}
     if chosen:
-        lasting = _lasting_fit(sel, chosen)
+        lasting, lasting_cov = _lasting_fit(sel, chosen, every_bar)
         extended = _build_model(model, _terms_for(sel, lasting, runs[-1]),
                                 _records(runs, found, summaries, stated=stated_text),
                                 np.stack(_seen_lengths(runs), axis=1))
@@ -2243,7 +2244,8 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
         # the model's own uncertainty: its terms' parameter covariance and the residual left,
         # on logs the fit never saw when there are several (analysis/uncertainty.py)
         refit = {id(a): t for a, t in lasting}
-        effects = fitted_effects(sel, [(a, refit.get(id(a), t)) for a, t in chosen], found,
+        written = [replace(f, covariance=lasting_cov.get(f.effect, f.covariance)) for f in found]
+        effects = fitted_effects(sel, [(a, refit.get(id(a), t)) for a, t in chosen], written,
                                  runs[-1], [t for _, t in chosen]) + statement
         # the residual of logs the fit never saw, when each was predicted with every term the
         # model writes: a log predicted without some (the others did not determine them) left
@@ -2508,25 +2510,40 @@ def _records(runs: list[_Run], found: list[Found], summaries: list[RunSummary],
     return {'analysis': _ascii(entry), 'validity': _ascii(_validity(runs))}
 
 
-def _lasting_fit(sel: _Selector, chosen: list[tuple[_Active, FloatArray]]
-                 ) -> list[tuple[_Active, FloatArray]]:
+def _lasting_fit(sel: _Selector, chosen: list[tuple[_Active, FloatArray]], every_bar: bool = False
+                 ) -> tuple[list[tuple[_Active, FloatArray]], dict[str, FloatArray]]:
     """The chosen effects whose parameters outlast the run, with their parameters as the model
     for other runs needs them: fitted again without the run's own effects (a drift), holding
     their means. In the joint fit a drift's offsets, held with them, took the opposite of the
     CDF points' mean change; the points written without it moved yaw's mean 48 times, and
     pitch's 6 times, what the budget claims, where refitted alone at most 1.7 times (a
-    localised length error, zeroed reference)."""
+    localised length error, zeroed reference).
+
+    Each one's identified directions are chosen again without them: chosen beside a drift,
+    the CDF points did not identify the bars' constants its offsets had taken (they could not
+    be told apart), and refitted in those directions alone they could not take them back. A
+    twin warmed 5 °C, whose 30 s absolute fit found a drift with no rate to speak of (its
+    offsets, 0.18-0.59 µm, the bars' thermal mismatch there), wrote points that left 240 nm
+    of x in the fitted run and 406 nm in a new one; with the directions chosen again, 50 nm
+    and 69 nm, as a twin whose fit found no drift.
+
+    returns : the lasting effects with their parameters, and the covariance of the parameters
+        of each one refitted (by effect name; :func:`_parameter_covariance`)
+    """
     lasting = [(a, t) for a, t in chosen if a.effect.scope != 'run']
     if not lasting or len(lasting) == len(chosen):
-        return lasting
+        return lasting, {}
     everyone = sel.active
     sel.active = [a for a in everyone if a.effect.scope != 'run']
     try:
+        sel.refine(settings=False)
         fits, _ = sel.final_fit()
-        refit = {id(a): theta for a, (theta, _, _) in zip(sel.active, fits)}
+        refit = {a.effect.name: (a, theta, cb) for a, (theta, _, cb) in zip(sel.active, fits)}
     finally:
         sel.active = everyone
-    return [(a, refit[id(a)]) for a, _ in lasting]
+    covariance = {name: _parameter_covariance(a, theta, cb, every_bar)
+                  for name, (a, theta, cb) in refit.items()}
+    return [(a, refit[a.effect.name][1]) for a, _ in lasting], covariance
 
 
 def _lasting(f: Found) -> bool:
@@ -2612,7 +2629,7 @@ def _leave_one_out(runs: list[_Run], active: list[_Active], model: Model,
         missing = [a.effect.name for a, _ in refit if sel.group_index(a.effect, r) is None]
         # as the model written for other runs: without what belongs to the runs fitted (a
         # drift), the lasting terms refitted without it (:func:`_lasting_fit`)
-        refit = _lasting_fit(sel, refit)
+        refit, _ = _lasting_fit(sel, refit)
         trial = _build_model(model, _terms_for(sel, refit, r), {}, np.stack(_seen_lengths(others), axis=1))
         after = run_pipeline(r.run.device, r.calibration, trial, r.run.times_s, r.run.counts)
         every = np.flatnonzero(r.usable)

@@ -149,6 +149,13 @@ def _term_directions(ctx: FitContext, found: list[FittedEffect], idx: IntArray,
         cov = f.covariance
         if cov is None or not np.any(cov):
             continue
+        if f.effect.scope == 'run' and f.theta is not None:
+            # the model does not apply a run's own terms (a drift): what another run holds of
+            # them is claimed below, from their values; their covariance with the terms fitted
+            # beside them is the terms' own, fitted again without them (a twin warmed 5 °C:
+            # its drift's offsets, taken over by the CDF points, claimed 31 nm per bar again,
+            # the rotations of new motion 1.6-1.8 times their error)
+            continue
         w, v = np.linalg.eigh(0.5 * (cov + cov.T))
         keep = w > max(float(w.max()), 0.0) * 1e-12
         if not keep.any():
@@ -174,14 +181,7 @@ def _term_directions(ctx: FitContext, found: list[FittedEffect], idx: IntArray,
         chosen.append(terms)
         mean_total += mean
     run_own = np.zeros((6, 6))
-    # what the model's terms, fitted again without the run's own effects, took over of them
-    taken = np.zeros((idx.size, 6))
-    for f in found:
-        if f.joint is not None and f.theta is not None:
-            taken += f.effect.signature(ctx, f.hyper, idx) @ (f.theta - f.joint)
-    for f in found:
-        if f.effect.scope != 'run' or f.theta is None or not np.any(f.theta):
-            continue
+    for f, sig, left in _not_carried(ctx, found, idx):
         # parameters that belong to the fitted run (a drift: an offset at its start and a rate)
         # are not in the model's terms; on any other run such a drift is an error no data
         # checked: each bar's correction is claimed as uncertain as it is large, bar by bar (a
@@ -189,15 +189,9 @@ def _term_directions(ctx: FitContext, found: list[FittedEffect], idx: IntArray,
         # left 7.7 % of another run's samples in the ellipsoid), as far as it drifted apart
         # from the other bars (what they drifted together is claimed together, below: bar by
         # bar as well, a settling of nearly the same size on every bar was claimed 4.8-7.1
-        # times its error in x, y and the rotations on new motion)
-        sig = f.effect.signature(ctx, f.hyper, idx)                            # (n, 6, P)
+        # times its error in x, y and the rotations on new motion), less what the model's
+        # terms took over of it (:func:`_not_carried`)
         touches = np.any(sig != 0.0, axis=0)                                   # (6, P)
-        # less what the model's terms took over of it: those apply it on every run, and
-        # their own uncertainty claims it (a settling of a few nm whose offsets, 0.14-0.85 µm,
-        # stood in for the CDF points' constants: the points refitted without it took them,
-        # and new motion was claimed 7.8-17.4 times its error while they were claimed again)
-        held = np.linalg.lstsq(sig.reshape(-1, sig.shape[2]), taken.reshape(-1), rcond=None)[0]
-        left = f.theta - held
         own = _own_parameters(touches)
         apart = _apart(left, own)
         for bar, mine in enumerate(own):
@@ -234,6 +228,43 @@ def _term_directions(ctx: FitContext, found: list[FittedEffect], idx: IntArray,
         chosen.append(terms)
         carried += size
     return chosen, mean_total, run_own, rest
+
+
+def _not_carried(ctx: FitContext, found: list[FittedEffect], idx: IntArray
+                 ) -> list[tuple[FittedEffect, FloatArray, FloatArray]]:
+    """Each fitted effect whose parameters belong to the run (a drift), with its signature
+    (n, 6, P) at the samples ``idx`` and what of its parameters the model's terms do not carry
+    (P,): its parameters less what the terms, fitted again without it, took over of its
+    correction. Those apply it on every run and their own uncertainty claims it (a settling
+    of a few nm whose offsets, 0.14-0.85 µm, stood in for the CDF points' constants: the
+    points refitted without it took them, and new motion was claimed 7.8-17.4 times its error
+    while they were claimed again)."""
+    taken = np.zeros((idx.size, 6))
+    for f in found:
+        if f.joint is not None and f.theta is not None:
+            taken += f.effect.signature(ctx, f.hyper, idx) @ (f.theta - f.joint)
+    out = []
+    for f in found:
+        if f.effect.scope != 'run' or f.theta is None or not np.any(f.theta):
+            continue
+        sig = f.effect.signature(ctx, f.hyper, idx)                            # (n, 6, P)
+        held = np.linalg.lstsq(sig.reshape(-1, sig.shape[2]), taken.reshape(-1), rcond=None)[0]
+        out.append((f, sig, f.theta - held))
+    return out
+
+
+def _constants_carried(ctx: FitContext, found: list[FittedEffect], idx: IntArray) -> bool:
+    """Whether the model's terms carry the constants the run's own effects took: of each such
+    effect (a drift), what they do not carry moves no bar's mean over the samples ``idx`` by
+    more than twice its own standard deviation there. Then the terms hold each bar's error as
+    it was over the fitted runs, the thermal mismatch of their temperature among it
+    (:func:`_thermal_state`)."""
+    for f, sig, left in _not_carried(ctx, found, idx):
+        mean = sig.mean(axis=0)                                                # (6, P)
+        var = np.einsum('ip,pq,iq->i', mean, f.covariance, mean)
+        if np.any(np.abs(mean @ left) > 2.0 * np.sqrt(np.maximum(var, 0.0))):
+            return False
+    return True
 
 
 def _own_parameters(touches: NDArray[np.bool_]) -> list[NDArray[np.bool_]]:
@@ -639,7 +670,8 @@ def fit_uncertainty(ctx: FitContext, found: list[FittedEffect], runs: list[Resid
                                             else 'held-out blocks of the fitted logs')},
                          measured_read_noise([run.ctx for run in runs]), rest_terms_m2=rest,
                          measured_unix_s=_measured_at(runs))
-    _sized_from(fit, ctx, found, runs, model, unseen, growing)
+    _sized_from(fit, ctx, found, runs, model, unseen, growing,
+                carried=_constants_carried(ctx, found, sample))
     # a form of an effect the logs could not rule out (a cyclic error the calibration read,
     # fitted from one component): the change to it is claimed too, after the residual and the
     # scale were measured (it is not in these logs' residual: counted there, it lowered the
@@ -663,7 +695,8 @@ def _thermal_state(full: list[tuple[ResidualRun, IntArray]]) -> FloatArray | Non
     its CDF points fitted at the runs' temperature, claimed 58 nm in x inside the fitted
     lengths of four twins' new runs, 77 nm in all, where 58 nm was observed in all: between
     the fitted 6-DOF run and a new one the bars' mismatch changed by 9 nm RMS, where 40 nm per
-    bar was claimed. Not recorded when a run's own drift was fitted (:func:`_sized_from`)."""
+    bar was claimed. Not recorded when a run's own drift took constants the model's terms do
+    not carry (:func:`_sized_from`)."""
     total, count = None, 0
     for run, idx in full:
         a = run.after
@@ -690,10 +723,11 @@ def _measured_at(runs: list[ResidualRun]) -> float | None:
 
 def _sized_from(fit: FitUncertainty, ctx: FitContext, found: list[FittedEffect],
                 runs: list[ResidualRun], model: Model, unseen: bool = False,
-                growing: list[ModelTerm] | None = None) -> None:
+                growing: list[ModelTerm] | None = None, carried: bool = True) -> None:
     """The residual, the sources it replaces and the scale of the kept ones, measured on
     ``runs`` with the claims ``fit`` makes so far (:func:`fit_uncertainty`; ``unseen``: the
-    runs' residuals are from models fitted without them)."""
+    runs' residuals are from models fitted without them; ``carried``: the model's terms carry
+    the constants the runs' own effects took, :func:`_constants_carried`)."""
     full, partial = [], []
     for run in runs:
         obs: Observation = run.ctx.obs
@@ -715,9 +749,10 @@ def _sized_from(fit: FitUncertainty, ctx: FitContext, found: list[FittedEffect],
         replacing = bool(seen.all())
         zeroed = any(run.ctx.obs.datum for run, _ in full)
         # the thermal state at which the references measured the thermal errors; not when a
-        # run's own drift took its constants: its offsets are not written, and a twin warmed
-        # 5 °C whose fit found one was covered 64 % with the state, 100 % without
-        if replacing and not zeroed and not any(f.effect.scope == 'run' for f in found):
+        # run's own drift took constants the model's terms do not carry: its offsets are not
+        # written, and a twin warmed 5 °C whose fit found one (no CDF points among the terms)
+        # was covered 64 % with the state, 100 % without
+        if replacing and not zeroed and carried:
             fit.thermal_state_m = _thermal_state(full)
             # the plates' scale moves the pose, not the bars: only a pose reference measured
             # it (a thermal_gain fitted on a soak against bar lengths claimed x and y 0.6
