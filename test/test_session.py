@@ -193,6 +193,14 @@ def test_a_session_with_a_6dof_run_improves_every_component_of_another(session):
     result = analyze([read_run(session[k]) for k in ('x', 'y', 'z', 'c', 'pose_a')],
                      options=dataclasses.replace(NO_LORO, datum='offset'))
     assert result.model is not None, result.conclusion
+    # the points are unchecked in a laser run's unseen component that the 6-DOF run sees but,
+    # zeroed, does not determine there: the report says so and names where it is unsure
+    points = next(f for f in result.unchecked if f.effect == 'calibration_points')
+    print(points.reason)
+    assert all(u.seen_by == ['pose_a.mcap'] for u in points.unchecked), points.unchecked
+    assert all(u.mostly_from and all(p.startswith('bar') for p in u.mostly_from)
+               for u in points.unchecked), points.unchecked
+    assert 'pose_a.mcap sees but does not determine' in points.reason, points.reason
     # what its model leaves along the bars is what the calibration describes: its points'
     # friction states (one-sided), whose size the device description states
     assert max(result.model.uncertainty.fit.record['shape_factor']) < 1.5

@@ -47,7 +47,7 @@ from mmd_ros.core.terms import (
     ThermalInterpolationTerm, ema, leg_geometry,
 )
 from mmd_ros.core.thermal import thermal_sensitivity
-from mmd_ros.core.units import M_PER_UM
+from mmd_ros.core.units import M_PER_MM, M_PER_UM
 
 __all__ = ['CATALOGUE', 'Effect', 'Parameter', 'catalogue']
 
@@ -499,8 +499,9 @@ class CalibrationPoints(Effect):
                'carries the error linearly between the points')
 
     def parameters(self, ctx, hyper):
-        n = _knots(ctx).shape[1]
-        return [Parameter(f'bar{i + 1} point {j + 1}', 'µm', 1 / M_PER_UM, 5e-6) for j in range(n) for i in range(6)]
+        knots = _knots(ctx)
+        return [Parameter(f'bar{i + 1} point {j + 1} ({knots[i, j] / M_PER_MM:.1f} mm)', 'µm',
+                          1 / M_PER_UM, 5e-6) for j in range(knots.shape[1]) for i in range(6)]
 
     def signature(self, ctx, hyper, idx):
         b = CdfOffsetsTerm.basis(ctx.base.cdf_lengths_m[idx], _knots(ctx))

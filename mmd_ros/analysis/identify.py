@@ -175,13 +175,22 @@ class Unchecked:
     uncertainty: float    # its 1-sigma uncertainty, RMS there, undetermined directions included
     floor: float          # the component's noise floor [report unit]
     largest: float        # the largest change at one sample [report unit]
+    #: the other logs whose references see the component (they do not determine this change)
+    seen_by: list[str] = field(default_factory=list)
+    #: the parameters most of the uncertainty comes from, largest first
+    mostly_from: list[str] = field(default_factory=list)
 
     def message(self) -> str:
         u = _unit(self.unit)
-        return (f'found in {self.run}; would change {self.component} by {self.change:.3g} {u} RMS, '
-                f'up to {self.largest:.3g} {u} (± {self.uncertainty:.2g} {u} RMS with what the '
-                f'data leave undetermined, floor {self.floor:.2g} {u}), which '
-                f'these runs cannot check; record a run that sees {self.component}')
+        text = (f'found in {self.run}; would change {self.component} by {self.change:.3g} {u} '
+                f'RMS, up to {self.largest:.3g} {u} (± {self.uncertainty:.2g} {u} RMS with what '
+                f'the data leave undetermined, floor {self.floor:.2g} {u}), which ')
+        source = (f' (its uncertainty mostly from {", ".join(self.mostly_from)})'
+                  if self.mostly_from else '')
+        if self.seen_by:
+            return (text + f'{", ".join(self.seen_by)} sees but does not determine where '
+                    f'{self.run} goes{source}; record a run that sees {self.component} there')
+        return text + f'these runs cannot check{source}; record a run that sees {self.component}'
 
     def as_dict(self) -> dict[str, Any]:
         return {**self.__dict__, 'message': self.message()}
@@ -1932,6 +1941,7 @@ def _unchecked(sel: _Selector, a: _Active, theta: FloatArray, cov_beta: FloatArr
     # parameters that follow others (Effect.ties) act through them, as the fit saw them
     tie = sel.ties(a.effect, a.hyper, sel.coverage(a.effect, a.hyper)[0],
                    np.linalg.norm(sel.columns(a.effect, a.hyper, 'train'), axis=0) > 0)
+    params = sel.parameters(a.effect, a.hyper)
     for r in sel.runs:
         g = sel.group_index(a.effect, r)
         if g is None:
@@ -1974,10 +1984,40 @@ def _unchecked(sel: _Selector, a: _Active, theta: FloatArray, cov_beta: FloatArr
             u = np.sqrt(np.maximum(var, 0.0) + undet ** 2)
             size, sigma = np.sqrt(np.mean(z ** 2)), np.sqrt(np.mean(u ** 2))
             if sel.options.floor_factor * floor[c] < size < 2.0 * sigma:
+                # each parameter's share of the mean u^2: its row of the determined part
+                # (b_p (Sigma b)_p) and the square of its undetermined part
+                shared = bc @ (basis @ cov_beta @ basis.T)
+                share = np.mean(bc * shared + (perp * scale) ** 2, axis=0)
+                if weak is not None and weak[0].shape[1]:
+                    share += np.mean(((along * weak[1]) @ weak[0].T) ** 2, axis=0)
                 out.append(Unchecked(a.effect.name, r.run.path.name, names[c], units[c],
                                      float(size * to_report[c]), float(sigma * to_report[c]),
                                      float(floor[c] * to_report[c]),
-                                     float(np.max(np.abs(z)) * to_report[c])))
+                                     float(np.max(np.abs(z)) * to_report[c]),
+                                     _seen_by(sel, r, c), _largest_shares(params, share)))
+    return out
+
+
+def _seen_by(sel: _Selector, run: _Run, component: int) -> list[str]:
+    """The other logs whose references see ``component`` of the kind ``run``'s does (a pose
+    component, or a bar's length)."""
+    return [o.run.path.name for o in sel.runs if o is not run and o.obs.kind == run.obs.kind
+            and component in o.obs.components]
+
+
+def _largest_shares(params: list[Parameter], share: FloatArray, most: int = 3) -> list[str]:
+    """The names of the parameters (``params``: every group's, :meth:`_Selector.parameters`)
+    with the largest ``share`` (PG,) of an uncertainty, largest first: at most ``most``, and
+    no more once those named make up 80 % of it."""
+    order = np.argsort(-share)
+    total = float(np.sum(np.maximum(share, 0.0)))
+    out: list[str] = []
+    carried = 0.0
+    for p in order[:most]:
+        if share[p] <= 0.0 or (out and carried >= 0.8 * total):
+            break
+        out.append(params[p].name)
+        carried += float(share[p])
     return out
 
 
