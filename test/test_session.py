@@ -219,6 +219,38 @@ def test_a_session_with_a_6dof_run_improves_every_component_of_another(session):
     assert judged['ellipsoid_coverage'] >= 0.93
 
 
+def test_an_unchecked_term_names_only_the_logs_that_could_determine_it():
+    """Which other logs see the component a run does not: those whose references see it and
+    that share the effect's parameters for that run. A drift's are each run's own (no other
+    log determines them, "these runs cannot check"); the CDF points' are the calibration's
+    (the logs of another calibration do not determine them)."""
+    from types import SimpleNamespace
+    from mmd_ros.analysis.identify import Unchecked, _seen_by
+
+    def log(name, kind, components, cal):
+        return SimpleNamespace(run=SimpleNamespace(path=Path(name)), cal=cal, name=name,
+                               obs=SimpleNamespace(kind=kind, components=components))
+    x, c = log('x.mcap', 'pose', [0], 1), log('c.mcap', 'pose', [5], 1)
+    a = log('pose_a.mcap', 'pose', list(range(6)), 1)
+    b = log('pose_b.mcap', 'pose', list(range(6)), 2)             # (another calibration)
+    lengths = log('bars.mcap', 'lengths', list(range(6)), 1)
+    groups = {'run': lambda r: r.name, 'calibration': lambda r: r.cal}
+    sel = SimpleNamespace(runs=[x, c, a, b, lengths],
+                          group_index=lambda e, r: groups[e.scope](r))
+    points, drift = SimpleNamespace(scope='calibration'), SimpleNamespace(scope='run')
+    assert _seen_by(sel, points, x, 5) == ['c.mcap', 'pose_a.mcap']
+    assert _seen_by(sel, points, x, 1) == ['pose_a.mcap']
+    assert _seen_by(sel, drift, x, 5) == []
+    one = Unchecked('calibration_points', 'x.mcap', 'yaw', 'arcsec', 1.0, 0.6, 0.05, 1.3,
+                    ['pose_a.mcap'], ['bar5 point 6 (357.0 mm)'])
+    two = dataclasses.replace(one, seen_by=['c.mcap', 'pose_a.mcap'])
+    none = dataclasses.replace(one, seen_by=[], mostly_from=[])
+    assert 'pose_a.mcap sees but does not determine where x.mcap goes (its uncertainty ' \
+           'mostly from bar5 point 6 (357.0 mm)); record a run that sees yaw there' in one.message()
+    assert 'c.mcap and pose_a.mcap see but do not determine' in two.message()
+    assert none.message().endswith('which these runs cannot check; record a run that sees yaw')
+
+
 def test_leave_one_run_out_figures_in_the_json(session, tmp_path, capsys):
     assert main(['analyze', str(session['pose_a']), str(session['x']), '--json', '--quiet',
                  '--effects', 'hysteresis,sampling_skew']) == 0

@@ -188,8 +188,11 @@ class Unchecked:
         source = (f' (its uncertainty mostly from {", ".join(self.mostly_from)})'
                   if self.mostly_from else '')
         if self.seen_by:
-            return (text + f'{", ".join(self.seen_by)} sees but does not determine where '
-                    f'{self.run} goes{source}; record a run that sees {self.component} there')
+            logs = (self.seen_by[0] + ' sees' if len(self.seen_by) == 1 else
+                    ', '.join(self.seen_by[:-1]) + f' and {self.seen_by[-1]} see')
+            return (text + f'{logs} but do{"es" if len(self.seen_by) == 1 else ""} not '
+                    f'determine where {self.run} goes{source}; record a run that sees '
+                    f'{self.component} there')
         return text + f'these runs cannot check{source}; record a run that sees {self.component}'
 
     def as_dict(self) -> dict[str, Any]:
@@ -1994,15 +1997,18 @@ def _unchecked(sel: _Selector, a: _Active, theta: FloatArray, cov_beta: FloatArr
                                      float(size * to_report[c]), float(sigma * to_report[c]),
                                      float(floor[c] * to_report[c]),
                                      float(np.max(np.abs(z)) * to_report[c]),
-                                     _seen_by(sel, r, c), _largest_shares(params, share)))
+                                     _seen_by(sel, a.effect, r, c),
+                                     _largest_shares(params, share)))
     return out
 
 
-def _seen_by(sel: _Selector, run: _Run, component: int) -> list[str]:
+def _seen_by(sel: _Selector, effect: Effect, run: _Run, component: int) -> list[str]:
     """The other logs whose references see ``component`` of the kind ``run``'s does (a pose
-    component, or a bar's length)."""
+    component, or a bar's length) and that share the effect's parameters for ``run`` (none
+    for a run's own, a drift's; of a per-calibration effect, those of its calibration)."""
+    group = sel.group_index(effect, run)
     return [o.run.path.name for o in sel.runs if o is not run and o.obs.kind == run.obs.kind
-            and component in o.obs.components]
+            and component in o.obs.components and sel.group_index(effect, o) == group]
 
 
 def _largest_shares(params: list[Parameter], share: FloatArray, most: int = 3) -> list[str]:
