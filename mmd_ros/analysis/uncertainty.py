@@ -133,12 +133,14 @@ class ResidualRun:
 
 
 def _term_directions(ctx: FitContext, found: list[FittedEffect], idx: IntArray,
-                     seen_m: FloatArray | None = None
+                     seen_m: FloatArray | None = None,
+                     not_carried: list[tuple[FittedEffect, FloatArray, FloatArray]] | None = None
                      ) -> tuple[list[list[ModelTerm]], FloatArray, FloatArray, FloatArray]:
     """Principal directions of the fitted parameters as model terms (held beyond the lengths
     ``seen_m`` as the model's own terms are), the mean over the samples ``idx`` of
     S Sigma_theta S^T of all of them, (6, 6) [m^2], what another run may hold of the
-    effects whose parameters belong to one run, (6, 6) [m^2] (below), and the mean of those
+    effects whose parameters belong to one run (``not_carried``, :func:`_not_carried` at
+    ``idx``), (6, 6) [m^2] (below), and the mean of those
     directions that are not kept, (6, 6) [m^2]: a stage evaluates at most MAX_DIRECTIONS per
     sample, and what the others carry is claimed as their mean (the largest eight of 42 CDF
     point offsets carried 73 % of a C-axis fit's variance; which eight, among nearly equal
@@ -181,7 +183,7 @@ def _term_directions(ctx: FitContext, found: list[FittedEffect], idx: IntArray,
         chosen.append(terms)
         mean_total += mean
     run_own = np.zeros((6, 6))
-    for f, sig, left in _not_carried(ctx, found, idx):
+    for f, sig, left in not_carried or []:
         # parameters that belong to the fitted run (a drift: an offset at its start and a rate)
         # are not in the model's terms; on any other run such a drift is an error no data
         # checked: each bar's correction is claimed as uncertain as it is large, bar by bar (a
@@ -253,13 +255,13 @@ def _not_carried(ctx: FitContext, found: list[FittedEffect], idx: IntArray
     return out
 
 
-def _constants_carried(ctx: FitContext, found: list[FittedEffect], idx: IntArray) -> bool:
+def _constants_carried(not_carried: list[tuple[FittedEffect, FloatArray, FloatArray]]) -> bool:
     """Whether the model's terms carry the constants the run's own effects took: of each such
-    effect (a drift), what they do not carry moves no bar's mean over the samples ``idx`` by
-    more than twice its own standard deviation there. Then the terms hold each bar's error as
-    it was over the fitted runs, the thermal mismatch of their temperature among it
-    (:func:`_thermal_state`)."""
-    for f, sig, left in _not_carried(ctx, found, idx):
+    effect (a drift; ``not_carried``, :func:`_not_carried`), what they do not carry moves no
+    bar's mean over its samples by more than twice its own standard deviation there. Then the
+    terms hold each bar's error as it was over the fitted runs, the thermal mismatch of their
+    temperature among it (:func:`_thermal_state`)."""
+    for f, sig, left in not_carried:
         mean = sig.mean(axis=0)                                                # (6, P)
         var = np.einsum('ip,pq,iq->i', mean, f.covariance, mean)
         if np.any(np.abs(mean @ left) > 2.0 * np.sqrt(np.maximum(var, 0.0))):
@@ -658,7 +660,8 @@ def fit_uncertainty(ctx: FitContext, found: list[FittedEffect], runs: list[Resid
             else np.flatnonzero(ctx.obs.usable & ctx.base.measured(ctx.obs.kind)))
     validity = Validity.from_model(model)
     sample, seen_m = idx0[:4000], None if validity is None else validity.bar_range_m
-    directions, mean_terms, run_own, rest = _term_directions(ctx, found, sample, seen_m)
+    own = _not_carried(ctx, found, sample)
+    directions, mean_terms, run_own, rest = _term_directions(ctx, found, sample, seen_m, own)
     previous = model.uncertainty.fit
     if not found and previous is not None:
         # nothing fitted now (the residual written as an uncertainty only): the directions of
@@ -671,7 +674,7 @@ def fit_uncertainty(ctx: FitContext, found: list[FittedEffect], runs: list[Resid
                          measured_read_noise([run.ctx for run in runs]), rest_terms_m2=rest,
                          measured_unix_s=_measured_at(runs))
     _sized_from(fit, ctx, found, runs, model, unseen, growing,
-                carried=_constants_carried(ctx, found, sample))
+                carried=_constants_carried(own))
     # a form of an effect the logs could not rule out (a cyclic error the calibration read,
     # fitted from one component): the change to it is claimed too, after the residual and the
     # scale were measured (it is not in these logs' residual: counted there, it lowered the
