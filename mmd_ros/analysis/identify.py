@@ -857,13 +857,13 @@ class _Rows:
         rows of the mean of each component when it is held (``prior_sigma``; zero rows for an
         effect whose physics fixes its mean, ``hold_mean`` False)."""
         if self.jinv is not None:
-            obs = np.einsum('nkj,njp->nkp', self.jinv, cols)
+            obs = self.jinv @ cols
         else:
             obs = cols[:, self.ctx.obs.components, :]
         obs = obs * self.w[None, :, None]
         out = obs.reshape(-1, cols.shape[2])
         if self.axis_jinv is not None:
-            unseen = np.einsum('nkj,njp->nkp', self.axis_jinv, cols) * self.axis_w[None, :, None]
+            unseen = (self.axis_jinv @ cols) * self.axis_w[None, :, None]
             out = np.concatenate([out, self._off_machine(unseen).reshape(-1, cols.shape[2])])
         if self.prior_w is not None:
             held = np.sum(obs, axis=0) * self.prior_w[:, None] if hold_mean else np.zeros((self.k, out.shape[1]))
@@ -886,7 +886,8 @@ class _Rows:
 
     def _off_machine(self, x: FloatArray) -> FloatArray:
         """(n, u, P) unseen-component rows with the machine's motion projected out."""
-        return x - np.einsum('nq,qup->nup', self.axis_q, np.einsum('nq,nup->qup', self.axis_q, x))
+        flat = x.reshape(x.shape[0], -1)          # (as two matrix products: BLAS, not einsum's loop)
+        return (flat - self.axis_q @ (self.axis_q.T @ flat)).reshape(x.shape)
 
     def unseen_piece(self, e: FloatArray) -> FloatArray:
         """The unseen components' rows of this log's slice of a stacked vector, (n, u)
@@ -1137,14 +1138,16 @@ class _Selector:
         names = [p.name for p in params]
         avail, note = self.coverage(effect, hyper)
         c = self.columns(effect, hyper, 'train')
-        norms = np.linalg.norm(c, axis=0)
+        cc = c.T @ c
+        norms = np.sqrt(np.maximum(np.diag(cc), 0.0))
         tie = self.ties(effect, hyper, avail, norms > 0)
         tied = np.zeros(len(names), dtype=bool) if tie is None else np.diag(tie) == 0.0
         lost = [f'{names[j]} (not exercised: follows those seen, {effect.hyper_label(hyper)})'
                 for j in np.flatnonzero(tied)]
         if tie is not None:
             c = c @ tie                       # (the columns of the tied ones fall to zero)
-            norms = np.linalg.norm(c, axis=0)
+            cc = tie.T @ cc @ tie
+            norms = np.sqrt(np.maximum(np.diag(cc), 0.0))
         usable = avail & (norms > 0)
         lost += [f'{names[j]} (not exercised)' for j in np.flatnonzero(~usable & ~tied)]
         out: dict[str, Any] = {'names': names, 'lost': lost, 'note': note,
@@ -1152,11 +1155,21 @@ class _Selector:
         if not usable.any():
             return out
         q, t, yp, qy = self._step_basis()
-        cn = c[:, usable] / norms[usable]
-        qtc = q.T @ cn if q.shape[1] else np.zeros((0, cn.shape[1]))
-        cp = cn - q @ qtc if q.shape[1] else cn
+        # Cp = Cn - Q Q^T Cn is never formed (the columns are (n k) x P, the costliest arrays
+        # of the search): its Gram matrix is Cn^T Cn - (Q^T Cn)^T (Q^T Cn), and what the fit
+        # needs of Cp are products with a vector, each Cn x - Q (Q^T Cn x)
+        scale = 1.0 / norms[usable]
+        qtc = (q.T @ c)[:, usable] * scale if q.shape[1] else np.zeros((0, int(usable.sum())))
+        gram = cc[np.ix_(usable, usable)] * np.outer(scale, scale) - qtc.T @ qtc
+
+        def cp_times(x: FloatArray) -> FloatArray:
+            z = scale * x
+            full = np.zeros(c.shape[1])
+            full[usable] = z
+            return c @ full - q @ (qtc @ x) if q.shape[1] else c @ full
+
         # SVD of Cp through its Gram matrix (P x P): Cp = U S V^T with V, S^2 from eigh
-        w, vecs = np.linalg.eigh(cp.T @ cp)
+        w, vecs = np.linalg.eigh(gram)
         order = np.argsort(w)[::-1]
         w, vecs = np.maximum(w[order], 0.0), vecs[:, order]
         sv = np.sqrt(w)
@@ -1170,10 +1183,11 @@ class _Selector:
         if dropped.shape[0] > 3:
             lost.append(f'… and {dropped.shape[0] - 3} more directions')
         sv, vt = sv[keep], vt[keep]
-        cpv = cp @ vt.T                      # = U S
-        proj = (cpv.T @ yp) / sv              # = U^T y_p
+        cpty = (c.T @ yp)[usable] * scale - qtc.T @ (q.T @ yp) if q.shape[1] else \
+            (c.T @ yp)[usable] * scale
+        proj = (vt @ cpty) / sv               # = U^T y_p (U S = Cp V)
         beta = proj / sv
-        e = yp - cpv @ beta
+        e = yp - cp_times(vt.T @ beta)
         m = yp.size
         dof = max(m - q.shape[1] - sv.size, 1)
         inflation = max(m / self.train.n_eff(e), 1.0)
@@ -1199,7 +1213,7 @@ class _Selector:
         weak_dirs[usable] = vt[keep_weak].T
         out.update(weak=(weak_dirs, sd[keep_weak]))
         if drop.any():
-            e = e + cpv[:, drop] @ beta[drop]
+            e = e + cp_times(vt[drop].T @ beta[drop])
             sv, vt, beta = sv[~drop], vt[~drop], beta[~drop]
         v = vt.T
         basis = np.zeros((len(names), v.shape[1]))
