@@ -34,6 +34,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+import scipy.fft
 from numpy.typing import NDArray
 
 from mmd_ros.analysis.data import DIRECTION_TRAVEL_M, MOVING_M, FitContext
@@ -68,6 +69,8 @@ CYCLIC_MAX_PERIOD_M = 2e-3
 CYCLIC_PEAK_RATIO = 30.0
 #: Candidate periods taken from the spectrum.
 CYCLIC_CANDIDATES = 3
+#: Bins of the spectrum a band of the background's running median reads at most.
+MEDIAN_SAMPLES = 65536
 #: Starting grid of the friction turn-over travel (Dahl), refined between neighbours [m].
 FRICTION_TRAVELS_M = tuple(0.1e-6 * 2.0 ** k for k in range(11))
 #: Harmonics of the scale error over the calibrated span.
@@ -868,7 +871,10 @@ def cyclic_periods(ctxs: list[FitContext], setup: Any) -> list[tuple[float, floa
             hits = np.bincount(q[:, i] - lo, minlength=span)
             series = np.bincount(q[:, i] - lo, weights=g[:, i], minlength=span) / np.maximum(hits, 1)
             nfft = 1 << int(math.ceil(math.log2(2 * span)))
-            power = np.abs(np.fft.rfft(series, nfft)) ** 2
+            # (in single precision: a spectrum of up to 2^23 bins whose peaks stand 30 times over
+            # the background needs no more, and scipy's transform takes 0.6 of the time then)
+            spectrum = scipy.fft.rfft(series.astype(np.float32), nfft)
+            power = spectrum.real ** 2 + spectrum.imag ** 2
             freq = np.arange(power.size) / nfft                      # cycles per count
             band = np.flatnonzero((freq >= 1.0 / longest) & (freq <= 0.25))
             if band.size < 16:
@@ -896,15 +902,21 @@ def cyclic_periods(ctxs: list[FitContext], setup: Any) -> list[tuple[float, floa
     return out[:CYCLIC_CANDIDATES]
 
 
-def _running_median_log(freq: FloatArray, power: FloatArray, factor: float) -> FloatArray:
+def _running_median_log(freq: FloatArray, power: FloatArray, factor: float,
+                        most: int = MEDIAN_SAMPLES) -> FloatArray:
     """Median of ``power`` over frequencies within a factor ``factor`` of each frequency,
-    computed on 200 log-spaced bands and interpolated."""
+    computed on 200 log-spaced bands and interpolated. A band of more than ``most`` bins is
+    read at an even stride (``most`` of them: on a test session's spectra the median moved by
+    0.5-1.3 % at the worst of each spectrum's bands; the bands at short periods hold up to a
+    million bins each, and a bin lies in about 12 of them: read whole, they took half the
+    time of the period search)."""
     edges = np.geomspace(freq[0], freq[-1], 201)
     centres = np.sqrt(edges[:-1] * edges[1:])
     med = np.empty(centres.size)
     for k, c in enumerate(centres):
         lo, hi = np.searchsorted(freq, [c / factor, c * factor])
-        med[k] = np.median(power[lo:max(hi, lo + 1)])
+        hi = max(hi, lo + 1)
+        med[k] = np.median(power[lo:hi:max(1, -(-(hi - lo) // most))])
     return np.interp(np.log(freq), np.log(centres), med)
 
 
