@@ -987,6 +987,7 @@ class _Selector:
         self._base_key: dict[str, Any] = {}
         self._base_q: dict[str, FloatArray] = {}
         self._step: dict[str, Any] = {}
+        self._gram: dict[tuple[str, Any], FloatArray] = {}
 
     @property
     def ctx(self) -> FitContext:
@@ -1063,6 +1064,14 @@ class _Selector:
                 self._sig[(effect.name, hyper, part, i)] = out[i]
         return self._sig[key]
 
+    def column_gram(self, effect: Effect, hyper: Any) -> FloatArray:
+        """C^T C of the effect's training columns (cached with them)."""
+        key = (effect.name, hyper)
+        if key not in self._gram:
+            c = self.columns(effect, hyper, 'train')
+            self._gram[key] = c.T @ c
+        return self._gram[key]
+
     def base(self, part: str) -> FloatArray:
         key = (part, tuple((a.effect.name, a.hyper, a.basis.shape) for a in self.active))
         if self._base_key.get(part) != key:
@@ -1102,8 +1111,17 @@ class _Selector:
         if self._step.get('key') != key:
             y = self.train.y
             qy = q.T @ y
-            self._step = {'key': key, 'T': q.T @ self.base('train'), 'qy': qy, 'yp': y - q @ qy}
+            yp = y - q @ qy
+            self._step = {'key': key, 'T': q.T @ self.base('train'), 'qy': qy, 'yp': yp,
+                          'q_yp': np.column_stack([q, yp]), 'qt_yp': q.T @ yp}
         return q, self._step['T'], self._step['yp'], self._step['qy']
+
+    def _step_products(self, c: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Q^T C and y_p^T C in one pass over the columns C, and Q^T y_p (of the current base,
+        :meth:`_step_basis`)."""
+        self._step_basis()
+        both = self._step['q_yp'].T @ c
+        return both[:-1], both[-1], self._step['qt_yp']
 
     def training_ic(self, fit: dict[str, Any]) -> float:
         """Information criterion of one setting on the training rows, N ln(MSE) + p ln(N).
@@ -1138,7 +1156,7 @@ class _Selector:
         names = [p.name for p in params]
         avail, note = self.coverage(effect, hyper)
         c = self.columns(effect, hyper, 'train')
-        cc = c.T @ c
+        cc = self.column_gram(effect, hyper)
         norms = np.sqrt(np.maximum(np.diag(cc), 0.0))
         tie = self.ties(effect, hyper, avail, norms > 0)
         tied = np.zeros(len(names), dtype=bool) if tie is None else np.diag(tie) == 0.0
@@ -1159,7 +1177,8 @@ class _Selector:
         # of the search): its Gram matrix is Cn^T Cn - (Q^T Cn)^T (Q^T Cn), and what the fit
         # needs of Cp are products with a vector, each Cn x - Q (Q^T Cn x)
         scale = 1.0 / norms[usable]
-        qtc = (q.T @ c)[:, usable] * scale if q.shape[1] else np.zeros((0, int(usable.sum())))
+        qtc, ytc, qt_yp = self._step_products(c)
+        qtc, ytc = qtc[:, usable] * scale, ytc[usable] * scale
         gram = cc[np.ix_(usable, usable)] * np.outer(scale, scale) - qtc.T @ qtc
 
         def cp_times(x: FloatArray) -> FloatArray:
@@ -1183,8 +1202,7 @@ class _Selector:
         if dropped.shape[0] > 3:
             lost.append(f'… and {dropped.shape[0] - 3} more directions')
         sv, vt = sv[keep], vt[keep]
-        cpty = (c.T @ yp)[usable] * scale - qtc.T @ (q.T @ yp) if q.shape[1] else \
-            (c.T @ yp)[usable] * scale
+        cpty = ytc - qtc.T @ qt_yp
         proj = (vt @ cpty) / sv               # = U^T y_p (U S = Cp V)
         beta = proj / sv
         e = yp - cp_times(vt.T @ beta)
