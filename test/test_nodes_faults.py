@@ -116,7 +116,8 @@ def test_pose_node_through_every_fault(tmp_path):
         def wire_and_stream() -> tuple[int, int]:
             with client._lock:
                 stamps = np.array(client.raw_stamps)
-            return int(client.status(': terminal')['values']['missing_samples']), gaps_from_stamps(stamps)
+            wire = int(client.status(': terminal')['values']['missing_samples'])
+            return wire, gaps_from_stamps(stamps)
 
         assert client.wait_for(lambda: len(set(wire_and_stream())) == 1, 10), wire_and_stream()
         assert seen(client, t_faults, ': terminal', 'bad checksum')

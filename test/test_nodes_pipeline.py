@@ -192,10 +192,11 @@ def test_calibrate_measure_record_and_replay(tmp_path):
         def replayed():
             stamps, poses = client.pose_array()
             late_live = np.array([int(s) not in index for s in stamps], bool)
-            assert (stamps[late_live] > received_before_clear).all(), 'a pose neither live nor replayed'
+            assert (stamps[late_live] > received_before_clear).all(), 'neither live nor replayed'
             return stamps[~late_live], poses[~late_live]
 
-        assert client.wait_for(lambda: len(replayed()[0]) >= n_valid, 60), (len(replayed()[0]), n_valid)
+        assert client.wait_for(lambda: len(replayed()[0]) >= n_valid, 60), \
+            (len(replayed()[0]), n_valid)
         stamps, poses = replayed()
         assert len(stamps) == n_valid
         rows = np.array([index[int(s)] for s in stamps])

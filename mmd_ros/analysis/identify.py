@@ -886,7 +886,7 @@ class _Rows:
 
     def _off_machine(self, x: FloatArray) -> FloatArray:
         """(n, u, P) unseen-component rows with the machine's motion projected out."""
-        flat = x.reshape(x.shape[0], -1)          # (as two matrix products: BLAS, not einsum's loop)
+        flat = x.reshape(x.shape[0], -1)      # (two matrix products: BLAS, not einsum's loop)
         return (flat - self.axis_q @ (self.axis_q.T @ flat)).reshape(x.shape)
 
     def unseen_piece(self, e: FloatArray) -> FloatArray:
