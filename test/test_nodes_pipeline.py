@@ -184,8 +184,9 @@ def test_calibrate_measure_record_and_replay(tmp_path):
         assert client.wait_for(lambda: int(kin()['poses_published']) - published_before >= n_valid, 120), \
             'poses {poses_published}, samples {samples}, out of range {out_of_range}, unpaired ' \
             '{unpaired_samples}; '.format(**kin()) + f'offline valid {n_valid}, before {published_before}'
-        time.sleep(1.0)
-        assert int(kin()['poses_published']) - published_before == n_valid, (kin(), published_before, n_valid)
+        # (not exactly: the count may also hold live samples a starved stage was still working
+        # through when it stood still for three reports, 5660 once on a loaded machine; the
+        # replayed ones are counted exactly below, by stamp)
         # ... and, through the batched stream, every one of those poses, equal to mmd process
         index = {int(s): i for i, s in enumerate(run.stamps_ns)}
 
