@@ -110,8 +110,11 @@ def test_pose_node_through_every_fault(tmp_path):
         assert missing >= 45 and int(term['gaps']) >= 3
         # nothing lost that was not lost on the wire: the stream's gaps are the driver's gaps,
         # compared at one moment (the count comes with the diagnostics, once a second, the stamps
-        # as they arrive: on a loaded machine a sample the terminal missed after the count was
-        # sent once made the stamps' gaps one more)
+        # as they arrive), but for one sample at the reconnect: the driver counts the missing
+        # samples by sequence number, while the stamps' offset to the host clock follows the
+        # least-delayed transfers and may move by 500 ppm of the time the cable was out
+        # (nodes/clock.py), half a period after 1 s; a late first transfer on a loaded host
+        # made the stamps' step there one sample more, twice on fresh-clone runs
 
         def wire_and_stream() -> tuple[int, int]:
             with client._lock:
@@ -119,7 +122,13 @@ def test_pose_node_through_every_fault(tmp_path):
             wire = int(client.status(': terminal')['values']['missing_samples'])
             return wire, gaps_from_stamps(stamps)
 
-        assert client.wait_for(lambda: len(set(wire_and_stream())) == 1, 10), wire_and_stream()
+        reconnects = int(term['disconnects'])
+
+        def agree() -> bool:
+            wire, stream = wire_and_stream()
+            return abs(stream - wire) <= reconnects
+
+        assert client.wait_for(agree, 10), wire_and_stream()
         assert seen(client, t_faults, ': terminal', 'bad checksum')
         assert seen(client, t_faults, ': terminal', 'sample(s) missing')
         assert seen(client, t_faults, ': terminal', 'left the bus', level=2)
