@@ -1116,12 +1116,6 @@ class _Selector:
                           'qt_yp': q.T @ yp}
         return q, self._step['T'], self._step['yp'], self._step['qy']
 
-    def _step_products(self, c: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """Q^T C, y_p^T C and Q^T y_p (kept) of the current base (:meth:`_step_basis`). (Q and
-        y_p stacked would read C once, but copy Q: on a 10-minute 6-DOF log some hundreds of MB.)"""
-        q, _, yp, _ = self._step_basis()
-        return q.T @ c, yp @ c, self._step['qt_yp']
-
     def training_ic(self, fit: dict[str, Any]) -> float:
         """Information criterion of one setting on the training rows, N ln(MSE) + p ln(N).
 
@@ -1176,8 +1170,7 @@ class _Selector:
         # of the search): its Gram matrix is Cn^T Cn - (Q^T Cn)^T (Q^T Cn), and what the fit
         # needs of Cp are products with a vector, each Cn x - Q (Q^T Cn x)
         scale = 1.0 / norms[usable]
-        qtc, ytc, qt_yp = self._step_products(c)
-        qtc, ytc = qtc[:, usable] * scale, ytc[usable] * scale
+        qtc, ytc = (q.T @ c)[:, usable] * scale, (yp @ c)[usable] * scale
         gram = cc[np.ix_(usable, usable)] * np.outer(scale, scale) - qtc.T @ qtc
 
         def cp_times(x: FloatArray) -> FloatArray:
@@ -1201,7 +1194,7 @@ class _Selector:
         if dropped.shape[0] > 3:
             lost.append(f'… and {dropped.shape[0] - 3} more directions')
         sv, vt = sv[keep], vt[keep]
-        cpty = ytc - qtc.T @ qt_yp
+        cpty = ytc - qtc.T @ self._step['qt_yp']
         proj = (vt @ cpty) / sv               # = U^T y_p (U S = Cp V)
         beta = proj / sv
         e = yp - cp_times(vt.T @ beta)
