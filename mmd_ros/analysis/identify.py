@@ -2572,6 +2572,7 @@ def _records(runs: list[_Run], found: list[Found], summaries: list[RunSummary],
         'held_out_rms_after': {s.name: s.rms for s in summaries[0].after or []},
         'units': {s.name: s.unit for s in summaries[0].before},
         'per_calibration_parameters_of': runs[-1].cal_key,
+        'per_calibration_uncertainty': runs[-1].calibration.uncertainty.to_dict(),
     }
     if uncertainty_only:
         entry['uncertainty_only'] = uncertainty_only

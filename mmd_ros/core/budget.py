@@ -40,10 +40,12 @@ from mmd_ros.core.terms import (
 )
 from mmd_ros.core.thermal import thermal_sensitivity
 from mmd_ros.core.uncertainty import (
-    InterpolationError, NoiseEstimator, capture_var, fit_interpolation_error, hat_weights,
-    hysteresis_claim, quantisation_cross_weights,
+    CalibrationUncertainty, InterpolationError, NoiseEstimator, capture_var,
+    fit_interpolation_error, hat_weights, hysteresis_claim, quantisation_cross_weights,
 )
-from mmd_ros.core.validity import Validity
+from mmd_ros.core.validity import (
+    CALIBRATION_TERMS, Validity, fitted_calibration_figures, other_calibration,
+)
 
 __all__ = ['DIRECTION_TRAVEL_M', 'FRICTION_FORGET_TRAVELS', 'FRICTION_START_VAR', 'FRICTION_TURNOVER_M',
            'KNOWN_ERROR_SHAPE', 'LengthBudget', 'Observed', 'SHAPES', 'SOURCES']
@@ -464,29 +466,20 @@ class LengthBudget:
         bars = [calibration.bars[m] for m in measuring]
         if len({len(b.distances_m) for b in bars}) != 1:
             raise CalibrationError('all bars need the same number of calibration points')
-        knots, pair_idx, devs, drift = [], [], [], []
+        knots, pair_idx, devs = [], [], []
         pair_names = [p.name for p in device.pairs]
-        for name, b in zip(measuring, bars):
+        self._point_order = []
+        for b in bars:
             d = np.asarray(b.distances_m)
             order = np.argsort(d)
+            self._point_order.append(order)
             knots.append(d[order])
             pair_idx.append([pair_names.index(b.pairs[k]) if b.pairs[k] in pair_names else -1
                              for k in order])
-            beta = figures.drift_m.get(name)
-            drift.append(np.asarray(beta)[order] if beta is not None and len(beta) == d.size
-                         else np.zeros(d.size))
         self.knots_m = np.array(knots)                         # (6, n) increasing
         self.pair_index = np.array(pair_idx, dtype=np.intp)     # (6, n)
-        self.drift_m = np.array(drift)                         # (6, n) each point's thermal error
-        # the measured change is noisy: scale the profile to the unbiased estimate of its square,
-        # and claim it as a covariance e e^T of one change for every bar, not as an error of
-        # known sign (realistic twins whose room held still read changes of up to 0.23 °C, 2.6
-        # of their sigma, with one seating at each end; summed with the bars' sag as a signed
-        # error it cancelled it). In a still room this claim averages 0.48 u^2: the routine
-        # reads both ends from both sides, which halves u^2 (calibration_routine._routine_drift)
-        temp, temp_sigma = figures.routine_temp_change_c, figures.routine_temp_sigma_c or 0.0
-        if temp:
-            self.drift_m *= math.sqrt(max(temp * temp - temp_sigma ** 2, 0.0)) / abs(temp)
+        self._measuring = measuring
+        self.drift_m = self._routine_drift(figures)            # (6, n) each point's thermal error
         if figures.routine_temp_change_c is None:
             self.notes.append('calibration drift: the routine did not measure the temperature '
                               'change over its course (a reference bar on its resting pair first)')
@@ -691,6 +684,38 @@ class LengthBudget:
         # -- what a fit replaced, and how much of the rest it kept
         self.replaced = set(fit.replaces) if fit is not None else set()
         self.systematic_scale = fit.systematic_scale if fit is not None else 1.0
+        # a fit made with another calibration (the device calibrated again since): its residual
+        # measured that calibration's placements, a draw of their own; this calibration's
+        # seating and capture of each point and the routine's drift are claimed anew. Where the
+        # model's terms hold the other's points (cdf_offsets), they hold its placements too and
+        # carry them here (both placements' variance), and where its length terms took up the
+        # other routine's drift, the difference of the two routines' drifts is claimed (when
+        # the model records the other's, else this one's whole). The friction state a
+        # one-sided routine seats a bar in on a pair is the bar's and the pair's (how the guide
+        # enters the sockets) and comes again with the same routine, where the fit's terms
+        # hold it; claimed too when the routines differ (one side or two) or the model does
+        # not say. (A model of calibration A on a run of calibration B of the same twin an
+        # hour later, both two-sided, the room falling 0.41 °C over B's routine: 32, 33, 66
+        # and 6 % of four twins' poses in the 95 % ellipsoid, z 0.28-1.07 times its error)
+        self.new_placements = fit is not None and other_calibration(model, calibration) is not None
+        self._new_share: float | FloatArray = 0.0   # of the points' variance, new draws
+        if self.new_placements:
+            before = fitted_calibration_figures(model)
+            held = any(t.type_name in CALIBRATION_TERMS for t in model.terms)
+            same_routine = before is not None and before.approaches == figures.approaches
+            total = self.point_var_m2 + self.point_friction_m2
+            share = (np.where(total > 0, self.point_var_m2 / np.maximum(total, 1e-300), 1.0)
+                     if same_routine and self._one_sided else np.ones(6))
+            self._new_share = share * (2.0 if held else 1.0)
+            # (a drift is smooth along the bars: a scale series takes it up as well as points)
+            if before is not None and any(t.type_name in LENGTH_TERMS for t in model.terms):
+                self.drift_m = self.drift_m - self._routine_drift(before)
+            self.notes.append(
+                'calibration: the model was fitted with another calibration; this one\'s '
+                'placements (seating, capture' + ('' if same_routine else ', friction state')
+                + ') and the routine\'s drift are claimed anew' + (
+                    ', beside the other\'s, which the model\'s terms of its points hold' if held
+                    else ''))
         self.residual_m2 = fit.residual_m2 if fit is not None else np.zeros((6, 6))
         self.mean_terms_m2 = fit.mean_terms_m2 if fit is not None else np.zeros((6, 6))
         self.rest_terms_m2 = fit.rest_terms_m2 if fit is not None else np.zeros((6, 6))
@@ -739,6 +764,25 @@ class LengthBudget:
                               '(bars.rod_cte_uncertainty_ppm_per_c); the temperature change '
                               'the plates\' expansion is estimated from is claimed as uncertain '
                               'as the reference bar\'s share of the thermal mismatch only')
+
+    def _routine_drift(self, figures: CalibrationUncertainty) -> FloatArray:
+        """Each point's thermal error from the routine's drift (6, n) [m], in increasing length.
+        The measured change is noisy: the profile is scaled to the unbiased estimate of its
+        square, and claimed as a covariance e e^T of one change for every bar, not as an error
+        of known sign (realistic twins whose room held still read changes of up to 0.23 °C,
+        2.6 of their sigma, with one seating at each end; summed with the bars' sag as a
+        signed error it cancelled it). In a still room this claim averages 0.48 u^2: the
+        routine reads both ends from both sides, which halves u^2
+        (calibration_routine._routine_drift)."""
+        drift = np.zeros(self.knots_m.shape)
+        for i, (name, order) in enumerate(zip(self._measuring, self._point_order)):
+            beta = figures.drift_m.get(name)
+            if beta is not None and len(beta) == order.size:
+                drift[i] = np.asarray(beta, dtype=np.float64)[order]
+        temp, temp_sigma = figures.routine_temp_change_c, figures.routine_temp_sigma_c or 0.0
+        if temp:
+            drift *= math.sqrt(max(temp * temp - temp_sigma ** 2, 0.0)) / abs(temp)
+        return drift
 
     @property
     def point_nugget_m2(self) -> FloatArray:
@@ -877,7 +921,8 @@ class LengthBudget:
         factor, points = self._table_factors(x, bar_error_m, eps)
         for name, tab in tables.items():
             k = (self._subdivision_factor if name == 'subdivision'
-                 else points if name == 'calibration_points' else factor)
+                 else points if name == 'calibration_points'
+                 else self._routine_drift_factor(factor) if name == 'calibration_drift' else factor)
             if not np.any(k):
                 continue
             value = tab[rows, i0] * (1.0 - f) + tab[rows, i0 + 1] * f
@@ -1072,11 +1117,23 @@ class LengthBudget:
         (N, 6) each."""
         kept = self._kept('interpolation')
         if self._fit_range_m is None or kept >= 1.0:
-            return kept, kept
+            return kept, self._with_new_placements(kept)
         cdf = x + (self.bar_error(x, eps) if bar_error_m is None else bar_error_m)
         rho = self._correlation_beyond(cdf, self._seen_range_m)
         return (kept + (1.0 - kept) * (1.0 - rho * rho),
-                kept + (1.0 - kept) * self._unchecked_share(cdf))
+                self._with_new_placements(kept + (1.0 - kept) * self._unchecked_share(cdf)))
+
+    def _with_new_placements(self, points: float | FloatArray) -> float | FloatArray:
+        """The factor on the points' own errors with a calibration the fit was not made with:
+        the share of their variance that is a new draw claimed whole (``_new_share``)."""
+        if not self.new_placements:
+            return points
+        return points + (1.0 - points) * self._new_share
+
+    def _routine_drift_factor(self, factor: float | FloatArray) -> float | FloatArray:
+        """The factor on the routine's drift: the interpolation's (:meth:`_table_factors`),
+        or 1 when this calibration is not the one the fit was made with (its own drift)."""
+        return 1.0 if self.new_placements else factor
 
     def _unchecked_share(self, cdf: FloatArray) -> float | FloatArray:
         """The share of the points' variance at CDF lengths ``cdf`` (N, 6) from points no data
@@ -1440,13 +1497,13 @@ class LengthBudget:
             tab = fast['points']
             pts = points * (tab[rows, i0] * g + tab[rows, i0 + 1] * f)
             diag += pts
-        if np.any(factor):
-            if fast['interpolation'] is not None:
-                tab = fast['interpolation']
-                diag += factor * (tab[rows, i0] * g + tab[rows, i0 + 1] * f)
-            if fast['drift'] is not None:
-                tab = fast['drift']
-                drift = np.sqrt(factor) * (tab[rows, i0] * g + tab[rows, i0 + 1] * f)
+        if np.any(factor) and fast['interpolation'] is not None:
+            tab = fast['interpolation']
+            diag += factor * (tab[rows, i0] * g + tab[rows, i0 + 1] * f)
+        drift_factor = self._routine_drift_factor(factor)
+        if np.any(drift_factor) and fast['drift'] is not None:
+            tab = fast['drift']
+            drift = np.sqrt(drift_factor) * (tab[rows, i0] * g + tab[rows, i0 + 1] * f)
         if fast['subdivision'] is not None and self._subdivision_factor:
             tab = fast['subdivision']
             diag += self._subdivision_factor * (tab[rows, i0] * g + tab[rows, i0 + 1] * f)
@@ -1585,6 +1642,7 @@ class LengthBudget:
             'subdivision_left_nm': [round(math.sqrt(2.0 * v) * 1e9, 3) for v in self.subdivision_left_m2],
             'fit': None if self.fit is None else {
                 'replaces': sorted(self.replaced), 'systematic_scale': self.systematic_scale,
+                'made_with_another_calibration': self.new_placements,
                 'residual_nm': [round(float(math.sqrt(max(v, 0.0))) * 1e9, 2)
                                 for v in np.diag(self.residual_m2)],
                 'directions': len(self.fit.directions)},

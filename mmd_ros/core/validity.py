@@ -24,10 +24,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mmd_ros.core.calibration import Calibration
+from mmd_ros.core.errors import ConfigError
 from mmd_ros.core.model import Model
+from mmd_ros.core.uncertainty import CalibrationUncertainty
 from mmd_ros.core.units import M_PER_MM
 
-__all__ = ['BAR_MARGIN_M', 'CALIBRATION_TERMS', 'TEMP_MARGIN_C', 'Validity', 'other_calibration']
+__all__ = ['BAR_MARGIN_M', 'CALIBRATION_TERMS', 'TEMP_MARGIN_C', 'Validity',
+           'fitted_calibration_figures', 'other_calibration']
 
 FloatArray = NDArray[np.float64]
 
@@ -41,6 +44,28 @@ TEMP_MARGIN_C = 0.5
 CALIBRATION_TERMS = ('cdf_offsets', 'cyclic_error')
 
 
+def _last_analysis(model: Model) -> dict[str, Any]:
+    """The last ``analysis`` entry of a model file ({} when it has none)."""
+    analysis: Any = model.extra.get('analysis')
+    if isinstance(analysis, list):
+        analysis = analysis[-1] if analysis else None
+    return analysis if isinstance(analysis, dict) else {}
+
+
+def fitted_calibration_figures(model: Model) -> CalibrationUncertainty | None:
+    """What the routine of the calibration a model's per-calibration parameters were fitted
+    with measured of its own points (``per_calibration_uncertainty`` of its last ``analysis``
+    entry: approaches, seating, the routine's drift), or None when the model does not say
+    (written before it was recorded, not by ``mmd analyze``, or malformed)."""
+    data = _last_analysis(model).get('per_calibration_uncertainty')
+    if not isinstance(data, dict):
+        return None
+    try:
+        return CalibrationUncertainty.from_dict(data, '<model analysis record>')
+    except ConfigError:
+        return None
+
+
 def other_calibration(model: Model, calibration: Calibration) -> str | None:
     """Why ``model`` does not fit ``calibration``, or None: a model ``mmd analyze`` wrote
     names the calibration its per-calibration parameters were fitted with
@@ -50,10 +75,7 @@ def other_calibration(model: Model, calibration: Calibration) -> str | None:
     device calibrated again, another device of the same description) the first are wrong and
     the second is not this calibration's (a model of one twin on another twin's log: its
     95 % ellipsoid held none of the samples). None for a model without that record."""
-    analysis: Any = model.extra.get('analysis')
-    if isinstance(analysis, list):
-        analysis = analysis[-1] if analysis else None
-    fitted = analysis.get('per_calibration_parameters_of') if isinstance(analysis, dict) else None
+    fitted = _last_analysis(model).get('per_calibration_parameters_of')
     if not isinstance(fitted, str) or not fitted:
         return None
     mine = calibration.key()
