@@ -368,6 +368,15 @@ def test_logs_of_two_devices_are_refused(session, tmp_path, capsys):
     assert main(['analyze', str(session['pose_a']), str(other), '--quiet']) == 2
     err = capsys.readouterr().err
     assert 'one analysis takes logs of one device' in err and 'Traceback' not in err
+    # two MMDs of one description: their calibrations name the terminals they were made with
+    from mmd_ros.analysis.errors import AnalysisError
+    from mmd_ros.core.calibration import TerminalBinding
+    a, b = (read_run(session[k]) for k in ('pose_a', 'pose_b'))
+    a, b = (dataclasses.replace(r, calibration=dataclasses.replace(
+        r.calibration, terminal=TerminalBinding(serial, False))) for r, serial in
+        ((a, 'MMD-0042'), (b, 'MMD-0043')))
+    with pytest.raises(AnalysisError, match='MMD-0043.*MMD-0042.*one device'):
+        analyze([a, b])
 
 
 # -- the realistic twin calibrated from both sides ---------------------------------------------

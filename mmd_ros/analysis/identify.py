@@ -483,6 +483,14 @@ def _check_one_device(runs: list[RunLog]) -> None:
             raise AnalysisError(f'{run.path} is a log of device {b.name!r} and {first.path} of '
                                 f'{a.name!r} (or their joints differ): one analysis takes logs of '
                                 'one device; analyse each device on its own')
+        # two MMDs of one description differ by their terminals (the channels' delays are the
+        # terminal's): the serial numbers their calibrations were made with, where both say
+        ta, tb = (None if r.calibration is None else r.calibration.terminal for r in (first, run))
+        if ta is not None and tb is not None and ta.serial and tb.serial and ta.serial != tb.serial:
+            raise AnalysisError(f'{run.path} was calibrated with {tb.describe()} and {first.path} '
+                                f'with {ta.describe()}: one analysis takes logs of one device '
+                                '(its terminal\'s channel delays are among what it fits); '
+                                'analyse each device on its own')
 
 
 def _prepare(index: int, run: RunLog, model: Model, calibration: Calibration | None,
