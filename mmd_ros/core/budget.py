@@ -43,9 +43,7 @@ from mmd_ros.core.uncertainty import (
     CalibrationUncertainty, InterpolationError, NoiseEstimator, capture_var,
     fit_interpolation_error, hat_weights, hysteresis_claim, quantisation_cross_weights,
 )
-from mmd_ros.core.validity import (
-    CALIBRATION_TERMS, Validity, fitted_calibration_figures, other_calibration,
-)
+from mmd_ros.core.validity import Validity, fitted_calibration_figures, other_calibration
 
 __all__ = ['DIRECTION_TRAVEL_M', 'FRICTION_FORGET_TRAVELS', 'FRICTION_START_VAR', 'FRICTION_TURNOVER_M',
            'KNOWN_ERROR_SHAPE', 'LengthBudget', 'Observed', 'SHAPES', 'SOURCES']
@@ -701,7 +699,7 @@ class LengthBudget:
         self._new_share: float | FloatArray = 0.0   # of the points' variance, new draws
         if self.new_placements:
             before = fitted_calibration_figures(model)
-            held = any(t.type_name in CALIBRATION_TERMS for t in model.terms)
+            held = any(t.type_name == 'cdf_offsets' for t in model.terms)
             same_routine = before is not None and before.approaches == figures.approaches
             total = self.point_var_m2 + self.point_friction_m2
             share = (np.where(total > 0, self.point_var_m2 / np.maximum(total, 1e-300), 1.0)
