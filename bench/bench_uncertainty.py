@@ -109,7 +109,7 @@ def judge(errors: list[np.ndarray], covs: list[np.ndarray], tails: list[np.ndarr
 def run_case(device, name: str, scenario: str, runs: int, seconds: float, after: bool,
              approaches: int = 2, datum: str = 'none', stated_sag: bool = True,
              lengths: bool = False, clock: str = 'shared', session: bool = False,
-             later_h: float = 0.0) -> dict:
+             later_h: float = 0.0, recalibrate_at: float | None = None) -> dict:
     preset, effect_params, ambient = CASES[name]
     kind, params, rate = SCENARIOS[scenario]
     room = ambient_profile(ambient)
@@ -125,6 +125,11 @@ def run_case(device, name: str, scenario: str, runs: int, seconds: float, after:
             model, found, start = (fit_session(twin, room, calibration, k, datum) if session
                                    else fit(twin, room, calibration, k, datum, stated_sag, clock))
             notes.append(found)
+            if recalibrate_at is not None:
+                # the device calibrated again after the fit: the model's calibration is another
+                calibration = twin.calibrate(recalibrate_at, room, approaches=approaches,
+                                             epoch_s=EPOCH_S)
+                start = recalibrate_at + 600.0
         p = [v.format(seconds=seconds, k=k) for v in params]
         start += 3600.0 * later_h        # (the judged run hours after the fit or calibration)
         run = twin.simulate(make_scenario(kind, p), room, start_s=start, reference='pose6',
@@ -285,6 +290,10 @@ def main() -> None:
                         help='judge each twin on a run H hours later than by default (after its '
                         'calibration, or after the run --after fits): the room\'s course and the '
                         'readings\' drift in between')
+    parser.add_argument('--recalibrate-at', type=float, default=None, dest='recalibrate_at',
+                        metavar='S', help='with --after: calibrate each twin again at S s of the '
+                        'room\'s day after its fit (the same routine) and judge it on a run '
+                        '600 s later with its model, which names the first calibration')
     parser.add_argument('--build', type=int, default=0, metavar='N',
                         help='time a budget\'s construction N times, its interpolation fit anew '
                         'and kept (instead of the coverage cases)')
@@ -301,7 +310,7 @@ def main() -> None:
         t0 = time.perf_counter()
         r = run_case(device, name, args.scenario, args.runs, args.seconds, args.after, args.approaches,
                      args.datum, not args.no_stated_sag, args.lengths, args.clock, args.session,
-                     args.later_h)
+                     args.later_h, args.recalibrate_at)
         r['seconds'] = round(time.perf_counter() - t0, 1)
         results.append(r)
         print(f'{name:17s} {args.scenario:8s} ratio ' + ' '.join(f'{v:.2f}' for v in r['ratio'])
