@@ -352,6 +352,40 @@ def test_the_model_file_says_what_it_was_validated_on(session, tmp_path, capsys)
     assert json.loads(capsys.readouterr().out)['in_sample'] == {'MMD before': False, 'MMD after': False}
 
 
+def test_a_model_of_another_terminal_is_refused_with_both_serials(session, tmp_path, capsys):
+    """A model names the terminal its logs were calibrated with; a calibration made by the
+    nodes names its own. Another terminal is another device (or at least other channel
+    delays): the pipeline, and so the nodes and every command, refuse the model, naming both,
+    where before it was applied (a twin's model on another twin's log made x 2.1 µm of 1.0,
+    its 95 % ellipsoid holding 16 % of the poses)."""
+    from mmd_ros.core.calibration import TerminalBinding
+    from mmd_ros.core.errors import ModelError
+    from mmd_ros.core.streaming import Compensator
+    run = read_run(session['pose_a'])
+    ours = dataclasses.replace(run.calibration, terminal=TerminalBinding('MMD-0042', False))
+    fitted = analyze(dataclasses.replace(run, calibration=ours),
+                     options=AnalysisOptions(effects=['sampling_skew'])).model
+    assert fitted is not None
+    model = Model.from_yaml(fitted.to_yaml())
+    assert model.extra['analysis'][-1]['per_calibration_terminal'] == 'MMD-0042'
+    Pipeline(run.device, ours, model)                       # its own terminal: used
+    Pipeline(run.device, run.calibration, model)            # a calibration naming none: used
+    theirs = dataclasses.replace(ours, terminal=TerminalBinding('MMD-0043', False))
+    with pytest.raises(ModelError, match='model refused.*MMD-0042.*MMD-0043'):
+        Pipeline(run.device, theirs, model)
+    comp = Compensator(run.device, model)
+    assert 'MMD-0043' in comp.set_calibration(theirs, 'test') and comp.set_calibration(ours, 'test') is None
+    theirs.save(tmp_path / 'theirs.yaml')
+    model.save(tmp_path / 'model.yaml')
+    capsys.readouterr()
+    assert main(['process', str(session['pose_a']), '--model', str(tmp_path / 'model.yaml'),
+                 '--calibration', str(tmp_path / 'theirs.yaml'), '--out',
+                 str(tmp_path / 'p.mcap')]) == 2
+    err = capsys.readouterr().err
+    assert 'model refused' in err and 'MMD-0042' in err and 'Traceback' not in err
+    assert not (tmp_path / 'p.mcap').exists()
+
+
 def test_the_terms_a_model_holds_of_its_calibration_are_the_catalogue_s():
     """core.validity names the term types of a calibration (the analysis is above it): the
     effects of scope 'calibration' in the catalogue."""

@@ -2582,6 +2582,9 @@ def _records(runs: list[_Run], found: list[Found], summaries: list[RunSummary],
         'per_calibration_parameters_of': runs[-1].cal_key,
         'per_calibration_uncertainty': runs[-1].calibration.uncertainty.to_dict(),
     }
+    terminal = runs[-1].calibration.terminal
+    if terminal is not None and terminal.serial:
+        entry['per_calibration_terminal'] = terminal.serial
     if uncertainty_only:
         entry['uncertainty_only'] = uncertainty_only
     if stated:

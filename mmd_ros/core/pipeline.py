@@ -20,13 +20,14 @@ from numpy.typing import NDArray
 from mmd_ros.core.budget import KNOWN_ERROR_SHAPE, LengthBudget, Observed
 from mmd_ros.core.calibration import Calibration, CdfBank
 from mmd_ros.core.device import DeviceDescription
-from mmd_ros.core.errors import CalibrationError
+from mmd_ros.core.errors import CalibrationError, ModelError
 from mmd_ros.core.kinematics import FkStatus, ForwardKinematics
 from mmd_ros.core.model import Model, TermContext
 from mmd_ros.core.thermal import (
     ReferenceBar, ThermalCompensation, ThermalState, reference_plate_growth,
 )
 from mmd_ros.core.uncertainty import pose_covariance, tail_columns
+from mmd_ros.core.validity import other_device
 
 __all__ = ['Compensated', 'Pipeline', 'ProcessResult', 'SampleResult', 'bars_without_signal']
 
@@ -129,6 +130,8 @@ class Pipeline:
                  model: Model | None = None) -> None:
         self.device = device
         self.calibration = calibration
+        if model is not None and (problem := other_device(model, calibration)) is not None:
+            raise ModelError(f'model refused: {problem}')
         self.model = copy.deepcopy(model) if model is not None else Model()
         self.model.reset()
         names = device.channel_names

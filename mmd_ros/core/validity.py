@@ -30,7 +30,7 @@ from mmd_ros.core.uncertainty import CalibrationUncertainty
 from mmd_ros.core.units import M_PER_MM
 
 __all__ = ['BAR_MARGIN_M', 'CALIBRATION_TERMS', 'TEMP_MARGIN_C', 'Validity',
-           'fitted_calibration_figures', 'other_calibration']
+           'fitted_calibration_figures', 'other_calibration', 'other_device']
 
 FloatArray = NDArray[np.float64]
 
@@ -64,6 +64,23 @@ def fitted_calibration_figures(model: Model) -> CalibrationUncertainty | None:
         return CalibrationUncertainty.from_dict(data, '<model analysis record>')
     except ConfigError:
         return None
+
+
+def other_device(model: Model, calibration: Calibration) -> str | None:
+    """Why ``model`` belongs to another device than ``calibration``, or None: a model ``mmd
+    analyze`` wrote names the terminal its logs' calibrations were made with
+    (``per_calibration_terminal`` of its last ``analysis`` entry); a calibration made by the
+    nodes names its own (``terminal.serial``). When both do and they differ, the model's terms
+    (the channels' delays are the terminal's; each bar's friction and points are the bars')
+    are another MMD's, and its uncertainty that MMD's. None when either does not say."""
+    fitted = _last_analysis(model).get('per_calibration_terminal')
+    mine = calibration.terminal.serial if calibration.terminal is not None else ''
+    if not isinstance(fitted, str) or not fitted or not mine or fitted == mine:
+        return None
+    return (f'the model was fitted on logs of terminal {fitted} and this calibration was made '
+            f'with terminal {mine}: its terms (the channels\' delays, each bar\'s friction and '
+            'points) and its uncertainty are another device\'s; use the model of this device, or '
+            'run mmd analyze on its logs')
 
 
 def other_calibration(model: Model, calibration: Calibration) -> str | None:
