@@ -683,16 +683,16 @@ class LengthBudget:
         self.replaced = set(fit.replaces) if fit is not None else set()
         self.systematic_scale = fit.systematic_scale if fit is not None else 1.0
         # a fit made with another calibration (the device calibrated again since): its residual
-        # measured that calibration's placements, a draw of their own; this calibration's
-        # seating and capture of each point and the routine's drift are claimed anew. Where the
-        # model's terms hold the other's points (cdf_offsets), they hold its placements too and
-        # carry them here (both placements' variance), and where its length terms took up the
-        # other routine's drift, the difference of the two routines' drifts is claimed (when
-        # the model records the other's, else this one's whole). The friction state a
-        # one-sided routine seats a bar in on a pair is the bar's and the pair's (how the guide
-        # enters the sockets) and comes again with the same routine, where the fit's terms
-        # hold it; claimed too when the routines differ (one side or two) or the model does
-        # not say. (A model of calibration A on a run of calibration B of the same twin an
+        # measured that calibration's placements and routine drift, draws of their own. The
+        # routine's drift is this calibration's, measured: claimed whole, or, where the model's
+        # length terms took up the other routine's, as the difference of the two (when the
+        # model records the other's). The placements (seating, capture): where a points term
+        # (cdf_offsets) holds the other's, its correction carries them here beside this one's,
+        # twice their variance; else the residual holds a draw of the same kind and stands for
+        # this one's. The friction state a one-sided routine seats a bar in on a pair is the
+        # bar's and the pair's (how the guide enters the sockets) and comes again with the same
+        # routine; claimed when the routines differ (one side or two) or the model does not
+        # say. (A model of calibration A on a run of calibration B of the same twin an
         # hour later, both two-sided, the room falling 0.41 °C over B's routine: 32, 33, 66
         # and 6 % of four twins' poses in the 95 % ellipsoid, z 0.28-1.07 times its error)
         self.new_placements = fit is not None and other_calibration(model, calibration) is not None
@@ -701,19 +701,22 @@ class LengthBudget:
             before = fitted_calibration_figures(model)
             held = any(t.type_name == 'cdf_offsets' for t in model.terms)
             same_routine = before is not None and before.approaches == figures.approaches
-            total = self.point_var_m2 + self.point_friction_m2
-            share = (np.where(total > 0, self.point_var_m2 / np.maximum(total, 1e-300), 1.0)
-                     if same_routine and self._one_sided else np.ones(6))
-            self._new_share = share * (2.0 if held else 1.0)
+            # of a point's variance p + f (placement, friction state), what is new: the
+            # placements twice where a points term holds the other's (its correction, and
+            # this one's own), else none (the residual measured a draw of the same kind);
+            # the friction states unless the same one-sided routine seats them alike
+            p, f = self.point_var_m2, self.point_friction_m2
+            new = (2.0 if held else 0.0) * p + (0.0 if same_routine else 1.0) * f
+            self._new_share = np.where(p + f > 0, new / np.maximum(p + f, 1e-300), 0.0)
             # (a drift is smooth along the bars: a scale series takes it up as well as points)
             if before is not None and any(t.type_name in LENGTH_TERMS for t in model.terms):
                 self.drift_m = self.drift_m - self._routine_drift(before)
             self.notes.append(
                 'calibration: the model was fitted with another calibration; this one\'s '
-                'placements (seating, capture' + ('' if same_routine else ', friction state')
-                + ') and the routine\'s drift are claimed anew' + (
-                    ', beside the other\'s, which the model\'s terms of its points hold' if held
-                    else ''))
+                'routine drift is claimed' + (', and its placements beside the other\'s, which '
+                                              'the model\'s terms of its points hold' if held
+                                              else '')
+                + ('' if same_routine else ', and the friction state of its placements'))
         self.residual_m2 = fit.residual_m2 if fit is not None else np.zeros((6, 6))
         self.mean_terms_m2 = fit.mean_terms_m2 if fit is not None else np.zeros((6, 6))
         self.rest_terms_m2 = fit.rest_terms_m2 if fit is not None else np.zeros((6, 6))
