@@ -386,6 +386,32 @@ def test_a_model_of_another_terminal_is_refused_with_both_serials(session, tmp_p
     assert not (tmp_path / 'p.mcap').exists()
 
 
+def test_a_calibration_of_another_terminal_cannot_read_a_log_s_counts(session, tmp_path, capsys):
+    """``--calibration`` replaces a log's own; when the log's calibration names the terminal
+    its counts came from, a calibration made with another cannot read them (its counter
+    zeros, its bars on those channels): ``mmd process`` and ``mmd analyze`` refuse it, naming
+    both, as the live nodes refuse it, where before they computed poses from it."""
+    from mmd_ros.core.calibration import TerminalBinding
+    run = read_run(session['pose_a'])
+    ours = dataclasses.replace(run.calibration, terminal=TerminalBinding('MMD-0042', False))
+    log = tmp_path / 'bound.mcap'
+    write_run(log, run.device, ours, run.stamps_ns[:2000], run.counts[:2000],
+              reference_pose=run.reference_pose[:2000])
+    theirs = dataclasses.replace(ours, terminal=TerminalBinding('MMD-0043', False))
+    theirs.save(tmp_path / 'theirs.yaml')
+    ours.save(tmp_path / 'ours.yaml')
+    capsys.readouterr()
+    for command in (['process', str(log), '--out', str(tmp_path / 'p.mcap')],
+                    ['analyze', str(log), '--out', str(tmp_path / 'a'), '--quiet']):
+        assert main(command + ['--calibration', str(tmp_path / 'theirs.yaml')]) == 2, command
+        err = capsys.readouterr().err
+        assert 'calibration refused' in err and 'MMD-0042' in err and 'MMD-0043' in err, err
+    assert not (tmp_path / 'p.mcap').exists() and not (tmp_path / 'a' / 'model.yaml').exists()
+    # a calibration of the same terminal reads them
+    assert main(['process', str(log), '--out', str(tmp_path / 'q.mcap'), '--no-coverage',
+                 '--calibration', str(tmp_path / 'ours.yaml')]) == 0
+
+
 def test_the_terms_a_model_holds_of_its_calibration_are_the_catalogue_s():
     """core.validity names the term types of a calibration (the analysis is above it): the
     effects of scope 'calibration' in the catalogue."""

@@ -212,6 +212,20 @@ def binding_problem(calibration: Calibration, terminal: TerminalBinding) -> str 
     return None
 
 
+def replacement_problem(recorded: Calibration | None, given: Calibration) -> str | None:
+    """Why ``given`` must not read the counts of a log recorded under the calibration
+    ``recorded`` (the log's own), or None: the log's calibration names the terminal its counts
+    came from, and ``given`` was made with another (:func:`binding_problem`). None when the
+    log's calibration is missing or names no terminal."""
+    if recorded is None or recorded.terminal is None:
+        return None
+    problem = binding_problem(given, recorded.terminal)
+    if problem is None:
+        return None
+    return (f'the log\'s counts came from {recorded.terminal.describe()} (its own calibration '
+            f'says so), and the calibration given cannot read them: {problem}')
+
+
 def unix_seconds(when: str) -> float | None:
     """An ISO 8601 time as a Unix time [s] (one without a zone taken as UTC), or None when
     the text is not one."""
