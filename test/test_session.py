@@ -390,7 +390,8 @@ def test_a_calibration_of_another_terminal_cannot_read_a_log_s_counts(session, t
     """``--calibration`` replaces a log's own; when the log's calibration names the terminal
     its counts came from, a calibration made with another cannot read them (its counter
     zeros, its bars on those channels): ``mmd process`` and ``mmd analyze`` refuse it, naming
-    both, as the live nodes refuse it, where before they computed poses from it."""
+    both (so does ``mmd iso230-2``; ``mmd machine analyze`` reads through ``mmd process``'s
+    pipeline), as the live nodes refuse it, where before they computed poses from it."""
     from mmd_ros.core.calibration import TerminalBinding
     run = read_run(session['pose_a'])
     ours = dataclasses.replace(run.calibration, terminal=TerminalBinding('MMD-0042', False))
@@ -402,7 +403,8 @@ def test_a_calibration_of_another_terminal_cannot_read_a_log_s_counts(session, t
     ours.save(tmp_path / 'ours.yaml')
     capsys.readouterr()
     for command in (['process', str(log), '--out', str(tmp_path / 'p.mcap')],
-                    ['analyze', str(log), '--out', str(tmp_path / 'a'), '--quiet']):
+                    ['analyze', str(log), '--out', str(tmp_path / 'a'), '--quiet'],
+                    ['iso230-2', str(log), '--axis', 'x']):
         assert main(command + ['--calibration', str(tmp_path / 'theirs.yaml')]) == 2, command
         err = capsys.readouterr().err
         assert 'calibration refused' in err and 'MMD-0042' in err and 'MMD-0043' in err, err
