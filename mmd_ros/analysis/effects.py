@@ -874,18 +874,26 @@ def cyclic_periods(ctxs: list[FitContext], setup: Any) -> list[tuple[float, floa
             # (in single precision: a spectrum of up to 2^23 bins whose peaks stand 30 times over
             # the background needs no more, and scipy's transform takes 0.6 of the time then)
             spectrum = scipy.fft.rfft(series.astype(np.float32), nfft)
-            power = spectrum.real ** 2 + spectrum.imag ** 2
-            freq = np.arange(power.size) / nfft                      # cycles per count
-            band = np.flatnonzero((freq >= 1.0 / longest) & (freq <= 0.25))
-            if band.size < 16:
+            # the band of periods from ``longest`` down to 4 counts (cycles per count k / nfft),
+            # and the power of its bins only (a spectrum of 2^22 bins holds twice as many)
+            k0 = max(int(math.ceil(nfft / longest)), 0)
+            while k0 > 0 and (k0 - 1) / nfft >= 1.0 / longest:
+                k0 -= 1
+            while k0 / nfft < 1.0 / longest:
+                k0 += 1
+            k1 = nfft // 4
+            if k1 - k0 + 1 < 16:
                 continue
-            background = _running_median_log(freq[band], power[band], 1.3)
-            ratio = power[band] / np.maximum(background, 1e-300)
+            part = spectrum[k0 - 1:k1 + 2]
+            power = part.real ** 2 + part.imag ** 2                  # bins k0 - 1 ... k1 + 1
+            band_power = power[1:-1]
+            background = _running_median_log(np.arange(k0, k1 + 1) / nfft, band_power, 1.3)
+            ratio = band_power / np.maximum(background, 1e-300)
             for j in _local_maxima(ratio, CYCLIC_CANDIDATES):
-                if ratio[j] < CYCLIC_PEAK_RATIO or j == 0 or j == band.size - 1:
+                if ratio[j] < CYCLIC_PEAK_RATIO or j == 0 or j == ratio.size - 1:
                     continue
-                k = band[j]
-                a, b, c = np.log(power[k - 1:k + 2] + 1e-300)
+                k = k0 + j
+                a, b, c = np.log(power[j:j + 3] + 1e-300)
                 den = a - 2 * b + c
                 shift = 0.5 * (a - c) / den if den < 0 else 0.0
                 peaks.append((res_m / ((k + shift) / nfft), float(ratio[j])))
