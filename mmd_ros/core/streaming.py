@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 from mmd_ros.core.budget import LengthBudget, Observed
 from mmd_ros.core.calibration import Calibration
 from mmd_ros.core.device import DeviceDescription
-from mmd_ros.core.errors import MmdError
+from mmd_ros.core.errors import MmdError, ModelError
 from mmd_ros.core.kinematics import FkStatus, ForwardKinematics
 from mmd_ros.core.model import Model
 from mmd_ros.core.pipeline import Pipeline, bars_without_signal
@@ -136,6 +136,8 @@ class Compensator:
         else:
             try:
                 pipeline = Pipeline(self.device, calibration, self.model)
+            except ModelError as exc:      # (the model, not the calibration: another device's)
+                problem = f'{exc} (calibration from {source})'
             except MmdError as exc:
                 problem = f'calibration from {source} cannot be used: {exc}'
         mismatch = other_calibration(self.model, calibration) if calibration is not None else None
