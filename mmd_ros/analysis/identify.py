@@ -2806,10 +2806,12 @@ def _glitches(runs: list[_Run], afters: list[tuple[Processed, FloatArray]] | Non
         if r.obs.kind == 'pose':
             ok &= np.all(np.isfinite(processed.poses), axis=1)
         idx = np.flatnonzero(ok)
-        bars = bar_residual(r.run.device, r.run.times_s, processed.poses, r.obs, residual, idx)
+        bars = bar_residual(r.run.device, r.run.times_s, processed.poses, r.obs, residual, idx,
+                            processed.cdf_lengths_m)
         if bars is not None:
+            times, values, which, lengths = bars
             out += [(r.run.path.name, step) for step in residual_steps(
-                *bars, r.run.device.encoder_resolution_m)]
+                times, values, which, r.run.device.encoder_resolution_m, lengths)]
     return out
 
 
