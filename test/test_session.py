@@ -352,17 +352,22 @@ def test_the_model_file_says_what_it_was_validated_on(session, tmp_path, capsys)
     assert json.loads(capsys.readouterr().out)['in_sample'] == {'MMD before': False, 'MMD after': False}
 
 
+def on_terminal(calibration, serial: str):
+    """``calibration`` as if made with the (hardware) terminal ``serial``, as the nodes' are."""
+    from mmd_ros.core.calibration import TerminalBinding
+    return dataclasses.replace(calibration, terminal=TerminalBinding(serial, False))
+
+
 def test_a_model_of_another_terminal_is_refused_with_both_serials(session, tmp_path, capsys):
     """A model names the terminal its logs were calibrated with; a calibration made by the
     nodes names its own. Another terminal is another device (or at least other channel
     delays): the pipeline, and so the nodes and every command, refuse the model, naming both,
     where before it was applied (a twin's model on another twin's log made x 2.1 µm of 1.0,
     its 95 % ellipsoid holding 16 % of the poses)."""
-    from mmd_ros.core.calibration import TerminalBinding
     from mmd_ros.core.errors import ModelError
     from mmd_ros.core.streaming import Compensator
     run = read_run(session['pose_a'])
-    ours = dataclasses.replace(run.calibration, terminal=TerminalBinding('MMD-0042', False))
+    ours = on_terminal(run.calibration, 'MMD-0042')
     fitted = analyze(dataclasses.replace(run, calibration=ours),
                      options=AnalysisOptions(effects=['sampling_skew'])).model
     assert fitted is not None
@@ -370,7 +375,7 @@ def test_a_model_of_another_terminal_is_refused_with_both_serials(session, tmp_p
     assert model.extra['analysis'][-1]['per_calibration_terminal'] == 'MMD-0042'
     Pipeline(run.device, ours, model)                       # its own terminal: used
     Pipeline(run.device, run.calibration, model)            # a calibration naming none: used
-    theirs = dataclasses.replace(ours, terminal=TerminalBinding('MMD-0043', False))
+    theirs = on_terminal(ours, 'MMD-0043')
     with pytest.raises(ModelError, match='model refused.*MMD-0042.*MMD-0043'):
         Pipeline(run.device, theirs, model)
     comp = Compensator(run.device, model)
@@ -393,13 +398,12 @@ def test_a_calibration_of_another_terminal_cannot_read_a_log_s_counts(session, t
     zeros, its bars on those channels): ``mmd process`` and ``mmd analyze`` refuse it, naming
     both (so does ``mmd iso230-2``; ``mmd machine analyze`` reads through ``mmd process``'s
     pipeline), as the live nodes refuse it, where before they computed poses from it."""
-    from mmd_ros.core.calibration import TerminalBinding
     run = read_run(session['pose_a'])
-    ours = dataclasses.replace(run.calibration, terminal=TerminalBinding('MMD-0042', False))
+    ours = on_terminal(run.calibration, 'MMD-0042')
     log = tmp_path / 'bound.mcap'
     write_run(log, run.device, ours, run.stamps_ns[:2000], run.counts[:2000],
               reference_pose=run.reference_pose[:2000])
-    theirs = dataclasses.replace(ours, terminal=TerminalBinding('MMD-0043', False))
+    theirs = on_terminal(ours, 'MMD-0043')
     theirs.save(tmp_path / 'theirs.yaml')
     ours.save(tmp_path / 'ours.yaml')
     capsys.readouterr()
@@ -433,11 +437,9 @@ def test_logs_of_two_devices_are_refused(session, tmp_path, capsys):
     assert 'one analysis takes logs of one device' in err and 'Traceback' not in err
     # two MMDs of one description: their calibrations name the terminals they were made with
     from mmd_ros.analysis.errors import AnalysisError
-    from mmd_ros.core.calibration import TerminalBinding
     a, b = (read_run(session[k]) for k in ('pose_a', 'pose_b'))
-    a, b = (dataclasses.replace(r, calibration=dataclasses.replace(
-        r.calibration, terminal=TerminalBinding(serial, False))) for r, serial in
-        ((a, 'MMD-0042'), (b, 'MMD-0043')))
+    a, b = (dataclasses.replace(r, calibration=on_terminal(r.calibration, serial))
+            for r, serial in ((a, 'MMD-0042'), (b, 'MMD-0043')))
     with pytest.raises(AnalysisError, match='MMD-0043.*MMD-0042.*one device'):
         analyze([a, b])
 

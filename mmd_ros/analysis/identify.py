@@ -68,7 +68,7 @@ from mmd_ros.analysis.uncertainty import (
 from mmd_ros.core.accuracy import (ABSOLUTE_WITHIN_SIGMAS, GROSS_ERROR, ReferenceScale,
                                    read_datum)
 from mmd_ros.core.budget import LENGTH_TERMS, SAG_TERMS
-from mmd_ros.core.calibration import Calibration, replacement_problem
+from mmd_ros.core.calibration import Calibration, calibration_for
 from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.kinematics import jacobian
 from mmd_ros.core.lag import (
@@ -2066,8 +2066,7 @@ def _analyze(logs: list[RunLog], model: Model | None, calibration: Calibration |
     say = progress or (lambda text: None)
     _check_one_device(logs)
     for run in logs if calibration is not None else []:
-        if (problem := replacement_problem(run.calibration, calibration)) is not None:
-            raise AnalysisError(f'{run.path}: calibration refused: {problem}')
+        calibration_for(run.calibration, calibration, str(run.path))   # (refused: raises)
     recorded = sum(run.n_samples for run in logs)
     logs, one_in = _thinned(logs, recorded, o.max_log_samples, say)
     model = model or logs[0].model or Model()

@@ -15,8 +15,7 @@ from mmd_ros.analysis.iso230 import (
     AXIS_NAMES, FIGURE_LABELS, FIGURES, IsoResult, axis_index, evaluate_run, figure_table,
     target_table,
 )
-from mmd_ros.core.calibration import load_calibration, replacement_problem
-from mmd_ros.core.errors import CalibrationError
+from mmd_ros.core.calibration import calibration_for, load_calibration
 from mmd_ros.core.model import Model
 from mmd_ros.core.units import M_PER_MM
 from mmd_ros.logs.layout import RunLog
@@ -121,11 +120,8 @@ def iso230_of_run(run: RunLog, axis: str | None = None, models: dict[str, Model]
     k = axis_index(axis)
     if targets is None and meta.get('positions') and axis_index(str(meta.get('axis'))) == k:
         targets = np.asarray(meta['positions'], dtype=np.float64)
-    calibration = load_calibration(calibration_path) if calibration_path else run.calibration
-    if calibration_path and (problem := replacement_problem(run.calibration, calibration)):
-        raise CalibrationError(f'{run.path}: calibration refused: {problem}')
-    if calibration is None:
-        raise CalibrationError(f'{run.path} carries no calibration; pass --calibration FILE')
+    calibration = calibration_for(run.calibration, load_calibration(calibration_path)
+                                  if calibration_path else None, str(run.path))
     ref = None
     if run.reference_pose is not None and np.isfinite(run.reference_pose[:, k]).mean() > 0.5:
         ref = run.reference_pose[:, k]

@@ -34,8 +34,9 @@ from mmd_ros.core.yamlio import (
 )
 
 __all__ = ['AMBIENT_RANGE_C', 'BarCalibration', 'Calibration', 'CdfBank', 'CentreDistanceFunction',
-           'RecoveredCalibration', 'TerminalBinding', 'binding_problem', 'channel_roles',
-           'iso_utc', 'load_calibration', 'recover_interrupted_save', 'unix_seconds']
+           'RecoveredCalibration', 'TerminalBinding', 'binding_problem', 'calibration_for',
+           'channel_roles', 'iso_utc', 'load_calibration', 'recover_interrupted_save',
+           'replacement_problem', 'unix_seconds']
 
 FloatArray = NDArray[np.float64]
 #: The keys of a calibration file, of one bar's points and of the terminal it was made with;
@@ -224,6 +225,22 @@ def replacement_problem(recorded: Calibration | None, given: Calibration) -> str
         return None
     return (f'the log\'s counts came from {recorded.terminal.describe()} (its own calibration '
             f'says so), and the calibration given cannot read them: {problem}')
+
+
+def calibration_for(recorded: Calibration | None, given: Calibration | None, where: str
+                    ) -> Calibration:
+    """The calibration to read a log's counts with: ``given`` (a file passed for the log) or
+    the log's own, ``recorded``. Raises :class:`CalibrationError` naming ``where`` when there
+    is neither, or when ``given`` cannot read counts of the terminal the log's own names
+    (:func:`replacement_problem`)."""
+    if given is not None:
+        problem = replacement_problem(recorded, given)
+        if problem is not None:
+            raise CalibrationError(f'{where}: calibration refused: {problem}')
+        return given
+    if recorded is None:
+        raise CalibrationError(f'{where} carries no calibration; pass --calibration FILE')
+    return recorded
 
 
 def unix_seconds(when: str) -> float | None:

@@ -28,7 +28,7 @@ from mmd_ros.core.accuracy import (
     POSE_NAMES, CoverageAccumulator, ErrorAccumulator, ReferenceNoise, ReferenceScale,
     length_error, pose_error, read_datum,
 )
-from mmd_ros.core.calibration import Calibration, load_calibration, replacement_problem
+from mmd_ros.core.calibration import Calibration, calibration_for, load_calibration
 from mmd_ros.core.device import DeviceDescription
 from mmd_ros.core.errors import CalibrationError
 from mmd_ros.core.kinematics import FkStatus
@@ -131,13 +131,7 @@ class ProcessedRun:
 def _resolve_calibration(source: RunSource, calibration: Calibration | str | None) -> Calibration:
     if isinstance(calibration, str):
         calibration = load_calibration(calibration)
-    if calibration is not None and (problem := replacement_problem(source.calibration,
-                                                                   calibration)) is not None:
-        raise CalibrationError(f'{source.path}: calibration refused: {problem}')
-    calibration = calibration or source.calibration
-    if calibration is None:
-        raise CalibrationError(f'{source.path} carries no calibration; pass --calibration FILE')
-    return calibration
+    return calibration_for(source.calibration, calibration, str(source.path))
 
 
 def process_blocks(source: RunSource, model: Model, *, calibration: Calibration | str | None = None,
