@@ -87,7 +87,9 @@ def test_full_routine_matches_the_twins_own_calibration(world):
     order = [(r.step.channel, r.step.pair) for r in results]
     schedule = [(device.channel_names[p.channel], p.pair)
                 for p in twin.calibration_schedule(0.0, approaches=1)]
-    assert order == schedule  # the paper's order: bar by bar, the reference bar last on dr4
+    # the paper's order, bar by bar, the reference bar last on dr4, after that bar read where
+    # it rests (the temperature before the routine)
+    assert order == schedule and order[0] == ('ref1', 'dr4') and results[0].step.kind == 'drift'
     cal = routine.calibration
     assert cal is not None and cal.valid and set(cal.bars) == set(device.channel_names[:7])
     assert [r.completed for r in results if r.completed] == device.channel_names[:7]
@@ -111,11 +113,35 @@ def test_full_routine_matches_the_twins_own_calibration(world):
     assert again.quality['bars']['bar3'] == cal.quality['bars']['bar3']
 
 
+def test_the_one_sided_routine_reads_its_drift_from_the_reference_bar_where_it_rests(world):
+    """The paper's routine with one placement per pair reads the reference bar first where it
+    rests on its resting pair, as it comes: against its placement there at the end (the same
+    friction state), the temperature change over the routine, in a constant room within its
+    stated uncertainty."""
+    device, twin, room = world
+    routine = CalibrationRoutine(device)
+    plate = Plate(device, twin, room)
+    step, k = routine.next_step(), 0
+    assert (step.kind, step.channel, step.pair, step.approach) == ('drift', 'ref1', 'dr4', '')
+    while step is not None:
+        plate.place(step)
+        k += 1
+        res = routine.capture(step, plate.window(seat=4 if k == 1 else 0),
+                              f'2024-01-01T00:{k // 60:02d}:{k % 60:02d}+00:00')
+        assert res.accepted, res.message
+        step = res.next_step
+    assert k == 1 + 7 * 7
+    unc = routine.calibration.uncertainty
+    assert unc.approaches == 1 and unc.routine_temp_change_c is not None
+    assert abs(unc.routine_temp_change_c) < 3 * unc.routine_temp_sigma_c
+    assert len(unc.drift_m['bar1']) == 7
+
+
 def test_a_moving_bar_and_a_wrong_pair_are_refused(world):
     device, twin, room = world
     routine = CalibrationRoutine(device)
     plate = Plate(device, twin, room)
-    for _ in range(2):
+    for _ in range(3):      # the reference bar where it rests, bar1 on dr1 and dr2
         step = routine.next_step()
         plate.place(step)
         assert routine.capture(step, plate.window(), 'now').accepted

@@ -62,7 +62,8 @@ def test_a_device_in_another_namespace(tmp_path):
         assert client.wait_for(lambda: len(client.raw_stamps) > 200, 60), nodes.dump()
         statuses = lambda: client.status('/cell3/mmd/calibration_node: calibration')  # noqa: E731
         assert client.wait_for(lambda: statuses() is not None, 30)
-        assert statuses()['values']['next_step'].startswith('place bar1 on dr1')
+        # first the reference bar where it rests: the temperature before the routine
+        assert statuses()['values']['next_step'].startswith('place ref1 on dr4')
         ok, why = client.set_param('calibration_node', 'bar', 'bar9')
         assert not ok and 'bar must be one of' in why
         ok, why = client.set_param('calibration_node', 'settle_window_s', 1.0)

@@ -67,9 +67,9 @@ def test_calibrate_measure_record_and_replay(tmp_path):
         events = {}
 
         def faults(k: int, bar: str, pair: str) -> None:
-            if k == 9:  # bar2's third point: someone bumps the bar during the capture
+            if k == 10:  # bar2's third point: someone bumps the bar during the capture
                 assert client.set_param('encoder_node', 'sim_command', f'move {bar} 1.5')[0]
-            if k == 16:  # bar3's third point: the operator uses the wrong sockets first
+            if k == 17:  # bar3's third point: the operator uses the wrong sockets first
                 assert client.set_param('encoder_node', 'sim_command', f'place {bar} dr6')[0]
                 time.sleep(TRANSITION + SETTLE + 0.3)
                 ok, message = client.trigger('calibrate_bar')
@@ -80,7 +80,10 @@ def test_calibrate_measure_record_and_replay(tmp_path):
         log = guided_calibration(client, sim_node='encoder_node', wait_s=TRANSITION + SETTLE + 0.15,
                                  retry_s=0.3, before_capture=faults, timeout_s=240)
         answers = [m for ok, m in log.answers]
-        assert sum(ok for ok, _ in log.answers) == 49  # six bars and the reference bar, 7 pairs each
+        # the reference bar where it rests (the routine's drift), then six bars and the
+        # reference bar on 7 pairs each
+        assert sum(ok for ok, _ in log.answers) == 50
+        assert 'before the measuring bars' in answers[0]
         assert log.refused_moving >= 1 and any('bar2 is still moving' in m for m in answers)
         ok, message = events['wrong_pair']
         assert not ok and 'does not fit dr3' in message and 'dr6' in message

@@ -178,8 +178,24 @@ def test_calibration_routine(device):
     assert calibration.ambient_c == pytest.approx(24.2)
     assert calibration.quality == {} and calibration.device == device.name
     schedule = twin.calibration_schedule(0.0, approaches=1)
-    assert len(schedule) == 7 * 7
+    assert len(schedule) == 1 + 7 * 7
     assert schedule[-1].channel == 6 and schedule[-1].pair == 'dr4'
+    # first the reference bar where the last routine left it, before the routine's start; the
+    # routine's placements keep their times
+    first = schedule[0]
+    assert (first.channel, first.pair, first.approach, first.end_s) == (6, 'dr4', None, 0.0)
+    assert first.seat != schedule[-1].seat and schedule[1].start_s == 3.0
+    # the temperature change over the routine, within its stated uncertainty (the ideal
+    # preset: bars of the device's CTE; the section 4.1 room falls 0.12 °C over a routine
+    # started at 3000 s)
+    ideal = TwinDevice(device, Effects.ideal(), seed=1)
+    unc = ideal.calibrate(3000.0, ambient, approaches=1).uncertainty
+    later = ideal.calibration_schedule(3000.0, approaches=1)
+    ends = ambient.lagged(np.array([0.5 * (p.start_s + p.end_s) for p in (later[0], later[-1])]),
+                          ideal.physics.time_constant_s[6])
+    assert unc.approaches == 1 and unc.routine_temp_change_c < -0.08
+    assert abs(unc.routine_temp_change_c - (ends[1] - ends[0])) < 3 * unc.routine_temp_sigma_c
+    assert len(unc.drift_m['bar1']) == 7 and unc.drift_m['bar1'][0] != 0.0
 
 
 def test_the_routine_s_temperature_change_is_claimed_as_it_scatters(device):

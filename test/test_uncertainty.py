@@ -727,8 +727,12 @@ def test_the_plate_s_stated_seating_stands_for_what_a_one_sided_routine_did_not_
     pair, the paper's one-sided routine does not. The plate's stated figure
     (``reference_plate.seating_repeatability_nm``, which the simulated plate states) then stands
     for it, in each point's variance. A clean twin whose bars seat within 0.3 um, calibrated
-    one-sided: 24 calibrations covered 94.5 % (ratios 0.84-1.24); without the statement these 8
-    covered 52 %, and the budget says what it does not claim."""
+    one-sided: 24 calibrations covered 94.5 % (ratios 0.84-1.24 while the routine read no drift;
+    z 2.13 now: each end of the drift reading is a seating, its change known to +-0.6 °C on
+    this plate, claimed as (dT^2 - u^2)+ where the room held still); without the statement these
+    8 covered 52 %, and the budget says what it does not claim. The stated seating sizes the
+    drift reading's uncertainty too (the routine measured only its captures' noise): without
+    it a change of that reading's noise was claimed as the routine's drift."""
     effects = Effects.ideal().with_assignments(['placement_repeatability_m=3e-7'])
     twin = TwinDevice(DEVICE, effects, seed=1)
     stated = twin.documented_device
@@ -738,7 +742,8 @@ def test_the_plate_s_stated_seating_stands_for_what_a_one_sided_routine_did_not_
     unstated = parse_device(raw, 'test')
     ratio, cover = _pooled(effects, 'section_4_1', 24, seconds=3.0, approaches=1)
     print('one-sided, seating stated: ratio', np.round(ratio, 2), 'coverage', cover)
-    assert np.all((ratio > 0.8) & (ratio < 1.25)), ratio
+    others = np.delete(ratio, 2)
+    assert np.all((others > 0.8) & (others < 1.3)) and 0.8 < ratio[2] < 2.5, ratio
     assert cover >= 0.93, cover
     ratio, cover = _pooled(effects, 'section_4_1', 8, seconds=3.0, approaches=1, device=unstated)
     print('one-sided, seating not stated: ratio', np.round(ratio, 2), 'coverage', cover)
@@ -748,6 +753,10 @@ def test_the_plate_s_stated_seating_stands_for_what_a_one_sided_routine_did_not_
     with_it = LengthBudget(stated, one_sided, Model())
     without = LengthBudget(unstated, one_sided, Model())
     assert with_it.point_var_m2 - without.point_var_m2 == pytest.approx(9e-14, rel=1e-9)
+    # the routine's drift, -0.49 °C read through two seatings of 0.3 um (+-0.61 °C): claimed
+    # from the captures' noise alone (+-0.03 °C) it put 245 nm on a point
+    assert one_sided.uncertainty.routine_temp_change_c < -0.3
+    assert np.abs(without.drift_m).max() > 100e-9 and not np.any(with_it.drift_m)
     assert with_it.summary()['seating_from'] == 'device description'
     assert without.summary()['seating_nm'] is None
     assert any('reference_plate.seating_repeatability_nm' in n for n in without.notes)

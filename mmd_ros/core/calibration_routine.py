@@ -6,10 +6,11 @@ reference distance d_r^j make one calibration point (q_i^j, d_r^j). Seven points
 centre distance function (Eq. 10). :class:`CalibrationRoutine` is the state machine behind
 ``/mmd/calibrate_bar``:
 
-- **which placement comes next** (:meth:`CalibrationRoutine.next_step`): measuring bars in bar
-  order on dr1..dr7, then each reference bar on the other pairs and last on its resting pair,
-  where it stays (as :meth:`mmd_ros.twin.TwinDevice.calibration_schedule`); the operator may
-  select another bar or override the pair;
+- **which placement comes next** (:meth:`CalibrationRoutine.next_step`): first the reference
+  bar read on its resting pair (the temperature before the routine), then the measuring bars
+  in bar order on dr1..dr7, then each reference bar on the other pairs and last on its resting
+  pair, where it stays (as :meth:`mmd_ros.twin.TwinDevice.calibration_schedule`); the operator
+  may select another bar or override the pair;
 - **whether a capture is acceptable** (:meth:`CalibrationRoutine.capture`): the bar has settled
   (the counts' standard deviation and linear drift over the window are small) and the reading
   is plausible for that pair (its count differences to the bar's other points match the
@@ -94,7 +95,8 @@ def capture_uncertainty(device: DeviceDescription, captures: list[CaptureStats],
       h (half their mean difference, as CDF lengths) and the seating repeatability (their
       scatter about h, pooled over bars);
     - with ``drift`` captures of a reference bar on its resting pair before the measuring bars
-      (from short and from long with two approaches) and its captures there at the end (its
+      (as it rests, or from short and from long with two approaches) and its captures there
+      at the end (its
       thermal zero the last): the temperature change over the routine dT (the change of its
       reading over its sensitivity, Fig. 10, at the rate the two sides' mean times give), and
       the thermal error every point carries from its capture time,
@@ -215,8 +217,9 @@ class RoutineSettings:
     approaches : 1 — each bar once on each pair (the paper's routine); 2 — each bar on each
         pair twice, seated from shorter and from longer (the point is the mean: the friction
         state cancels, and half the difference and its scatter measure the bar's friction
-        hysteresis and the seating repeatability), and first a reference bar on its resting
-        pair (with its thermal zero at the end: the temperature drift over the routine)
+        hysteresis and the seating repeatability). Either way a reference bar is read first
+        on its resting pair (where the last routine left it; from both sides with 2): against
+        its placement there at the end, the temperature drift over the routine
     """
 
     settle_std_m: float = 0.25e-6
@@ -517,9 +520,9 @@ class CalibrationRoutine:
             channel = next((c for c in self.bar_channels if c not in self._completed), None)
             if channel is None:
                 return None
-            way = next((w for w in APPROACHES if w not in self._drifts), None)
-            if self.settings.approaches == 2 and way is not None and self.references \
-                    and not self._completed and not self._points:
+            sides = tuple(APPROACHES) if self.settings.approaches == 2 else ('',)
+            way = next((w for w in sides if w not in self._drifts), None)
+            if way is not None and self.references and not self._completed and not self._points:
                 ref = self.references[0]
                 return Step('drift', ref, self._resting[ref], way)
         if channel in self._needs_zero and not pair:

@@ -71,7 +71,7 @@ def live_step(out_dir: Path, *, stream_s: float = 20.0, heading=print) -> int:
         print(f'pose_node is up: {term["message"] if term else "terminal starting"}')
         print(f'calibration: {client.status(": calibration")["message"]}')
 
-        heading('4a. calibrate: ros2 service call /mmd/calibrate_bar std_srvs/srv/Trigger, 49 times')
+        heading('4a. calibrate: ros2 service call /mmd/calibrate_bar std_srvs/srv/Trigger, 50 times')
         count = [0]
 
         def show(message: str) -> None:

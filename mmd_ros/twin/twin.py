@@ -360,7 +360,11 @@ class TwinDevice:
         its resting pair last and stays there. A placement takes ``settle_s`` to seat the bar,
         then counts are averaged for ``average_s``.
 
-        approaches : 1 — one placement per pair, as the bar lies there (the paper's routine);
+        approaches : 1 — one placement per pair, as the bar lies there (the paper's routine),
+            and before it each reference bar read where the last routine left it, on its
+            resting pair, over the ``average_s`` before ``at_s`` (a seating of its own: the
+            routine's temperature drift, seen against its placement there at the end; the
+            placements of the routine keep their times);
             2 — two placements per pair, seated once from shorter and once from longer (a
             reference bar's last one on its resting pair is its resting placement), and before
             the measuring bars each reference bar on its resting pair in the same two ways (the
@@ -392,6 +396,9 @@ class TwinDevice:
                 else:
                     plan.append((channel, pair, [(1.0, 1), (-1.0, 2)]))
         out, t = [], float(at_s)
+        if approaches == 1:
+            out += [Placement(ref.index, ref.pair, t - average_s, t, None, RESEATS)
+                    for ref in self.device.reference_channels]
         for channel, pair, ways in plan:
             for approach, seat in ways:
                 out.append(Placement(channel, pair, t + settle_s, t + settle_s + average_s,
@@ -428,7 +435,7 @@ class TwinDevice:
         names = self.device.channel_names
         way = {1.0: 'short', -1.0: 'long'}
         schedule = self.calibration_schedule(at_s, settle_s, average_s, approaches)
-        n_drift = 2 * len(self.device.reference_channels) if approaches == 2 else 0
+        n_drift = approaches * len(self.device.reference_channels)     # (first in the schedule)
         for k, p in enumerate(schedule):
             times = p.start_s + np.arange(max(1, int(round((p.end_s - p.start_s) * rate)))) / rate
             c = self.counts_on_pair(p.channel, p.pair, times, ambient, approach=p.approach,
