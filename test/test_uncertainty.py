@@ -1078,7 +1078,9 @@ def test_after_a_fit_the_drift_is_counted_from_when_its_residual_was_measured(tm
         calibration.created_s
 
 
-def test_a_model_on_a_new_calibration_claims_that_calibration_s_placements_and_drift():
+@pytest.mark.parametrize('approaches, seed', [(2, 2), (1, 4)])
+def test_a_model_on_a_new_calibration_claims_that_calibration_s_placements_and_drift(approaches,
+                                                                                    seed):
     """The device calibrated again after ``mmd analyze``: the model names the calibration it
     was fitted with (and the nodes and ``mmd process`` warn), and its fit's residual measured
     that calibration's placements and routine drift, a draw of their own. The new
@@ -1090,31 +1092,34 @@ def test_a_model_on_a_new_calibration_claims_that_calibration_s_placements_and_d
     later against its true pose: 98 % of the poses in the 95 % ellipsoid, 42 % before
     (though every axis was claimed 1.1-2.3 times its error: the error lay along the new
     routine's drift, which the covariance held known; four other twins' new runs against
-    their reference in ``mmd process``, 6-66 %, 95-99 % now)."""
+    their reference in ``mmd process``, 6-66 %, 95-99 % now). Calibrated one-sided both times
+    (the paper's routine, which reads its drift from the reference bar where it rests before
+    its first placement), twin 4: 96.6 %, 83.2 % while that routine did not read its drift
+    (twins 2, 3, 5: 93.6, 97.8, 90.1 % then, 100 % now)."""
     from mmd_ros.analysis import analyze
     from mmd_ros.core.validity import fitted_calibration_figures
     from mmd_ros.logs.processing import process_run
     from mmd_ros.twin.recording import EPOCH_S
-    twin = TwinDevice(DEVICE, Effects.realistic(), seed=2)
+    twin = TwinDevice(DEVICE, Effects.realistic(), seed=seed)
     room = ambient_profile('section_4_1')
-    first = twin.calibrate(0.0, room, approaches=2, epoch_s=EPOCH_S)
+    first = twin.calibrate(0.0, room, approaches=approaches, epoch_s=EPOCH_S)
     fitted = twin.simulate(make_scenario('random_motion', ['duration_s=10', 'seed=100']), room,
                            start_s=600.0, reference='pose6', sample_rate_hz=200.0)
     model = Model.from_yaml(analyze(run_log(twin, first, fitted, 600.0)).model.to_yaml())
     recorded = fitted_calibration_figures(model)
-    assert recorded is not None and recorded.approaches == 2
+    assert recorded is not None and recorded.approaches == approaches
     assert recorded.routine_temp_change_c == pytest.approx(first.uncertainty.routine_temp_change_c,
                                                            abs=1e-6)
     assert any(t.type_name in ('cdf_offsets', 'scale_nonlinearity') for t in model.terms)
-    again = twin.calibrate(3000.0, room, approaches=2, epoch_s=EPOCH_S)
-    assert again.uncertainty.routine_temp_change_c < -0.3
+    again = twin.calibrate(3000.0, room, approaches=approaches, epoch_s=EPOCH_S)
+    assert again.uncertainty.routine_temp_change_c < (-0.3 if approaches == 2 else -0.1)
     new = twin.simulate(make_scenario('random_motion', ['duration_s=10', 'seed=52']), room,
                         start_s=3600.0, reference='pose6', sample_rate_hz=200.0)
     out = process_run(run_log(twin, again, new, 3600.0), model, with_covariance=True)
     ok = out.valid
     ratio, inside = _judged(pose_error(out.poses, new.true_poses)[ok], out.covariance[ok])
     print('a model on a new calibration: ratio', np.round(ratio, 2), 'coverage', inside)
-    assert inside >= 0.93 and ratio[2] > 0.9, (ratio, inside)
+    assert inside >= 0.93 and ratio[2] > 0.8, (ratio, inside)
     budget = LengthBudget(twin.documented_device, again, model)
     assert budget.new_placements and any('another calibration' in n for n in budget.notes)
     # the difference of the two routines' drifts, not the new one's alone
