@@ -374,21 +374,22 @@ def test_a_model_of_another_terminal_is_refused_with_both_serials(session, tmp_p
     model = Model.from_yaml(fitted.to_yaml())
     assert model.extra['analysis'][-1]['per_calibration_terminal'] == 'MMD-0042'
     Pipeline(run.device, ours, model)                       # its own terminal: used
-    Pipeline(run.device, run.calibration, model)            # a calibration naming none: used
+    Pipeline(run.device, dataclasses.replace(run.calibration, terminal=None),
+             model)                                         # a calibration naming none: used
     theirs = on_terminal(ours, 'MMD-0043')
     with pytest.raises(ModelError, match='model refused.*MMD-0042.*MMD-0043'):
         Pipeline(run.device, theirs, model)
     comp = Compensator(run.device, model)
     assert comp.set_calibration(theirs, 'test').startswith('model refused') and 'MMD-0043' in comp.problem
     assert comp.set_calibration(ours, 'test') is None
-    theirs.save(tmp_path / 'theirs.yaml')
     model.save(tmp_path / 'model.yaml')
     capsys.readouterr()
+    # the log's own calibration names the twin's terminal (mmd simulate: TWIN-<seed>)
     assert main(['process', str(session['pose_a']), '--model', str(tmp_path / 'model.yaml'),
-                 '--calibration', str(tmp_path / 'theirs.yaml'), '--out',
-                 str(tmp_path / 'p.mcap')]) == 2
+                 '--out', str(tmp_path / 'p.mcap')]) == 2
     err = capsys.readouterr().err
-    assert 'model refused' in err and 'MMD-0042' in err and 'Traceback' not in err
+    assert 'model refused' in err and 'MMD-0042' in err and 'TWIN-1' in err, err
+    assert 'Traceback' not in err
     assert not (tmp_path / 'p.mcap').exists()
 
 
@@ -442,6 +443,17 @@ def test_logs_of_two_devices_are_refused(session, tmp_path, capsys):
             for r, serial in ((a, 'MMD-0042'), (b, 'MMD-0043')))
     with pytest.raises(AnalysisError, match='MMD-0043.*MMD-0042.*one device'):
         analyze([a, b])
+    # and two twins of one description: `mmd simulate` names each one's terminal by its seed
+    # (before, the seed 1 and seed 2 twins were fitted as one device)
+    second = tmp_path / 'second.mcap'
+    simulate_to_log(dataclasses.replace(SimulationSpec(
+        scenario='random_motion', scenario_params=('duration_s=5',), effects='realistic',
+        sample_rate_hz=RATE), seed=2), second, progress=False)
+    assert read_run(session['pose_a']).calibration.terminal.serial == 'TWIN-1'
+    capsys.readouterr()
+    assert main(['analyze', str(session['pose_a']), str(second), '--quiet']) == 2
+    err = capsys.readouterr().err
+    assert 'TWIN-1' in err and 'TWIN-2' in err and 'Traceback' not in err, err
 
 
 # -- the realistic twin calibrated from both sides ---------------------------------------------

@@ -5,13 +5,13 @@ the tests and benchmarks)."""
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from mmd_ros.core.calibration import Calibration
+from mmd_ros.core.calibration import Calibration, TerminalBinding, channel_roles
 from mmd_ros.core.device import DeviceDescription, find_config, load_device
 from mmd_ros.core.errors import ConfigError
 from mmd_ros.core.progress import Progress
@@ -28,7 +28,8 @@ from mmd_ros.twin.scenarios import make_scenario
 from mmd_ros.twin.thermal import AmbientProfile, check_room
 from mmd_ros.twin.twin import TwinDevice
 
-__all__ = ['EPOCH_S', 'SimulationSpec', 'ambient_profile', 'run_log', 'simulate_to_log', 'spec_inputs']
+__all__ = ['EPOCH_S', 'SimulationSpec', 'ambient_profile', 'run_log', 'simulate_to_log',
+           'simulated_terminal', 'spec_inputs']
 
 #: Default time stamp of the twin's clock zero: 2024-01-01T00:00:00Z [s since the epoch].
 EPOCH_S = 1_704_067_200
@@ -118,6 +119,13 @@ def run_log(twin: TwinDevice, calibration: Calibration, run: Any, start_s: float
                   twin.device.channel_names, run.reference, metadata=run.metadata)
 
 
+def simulated_terminal(device: DeviceDescription, seed: int) -> TerminalBinding:
+    """The terminal a twin's calibration names: simulated, its serial the twin's seed
+    (``TWIN-<seed>``: the twins of two seeds are two devices, and a log, a calibration or a
+    model of one is refused for the other as another terminal's would be)."""
+    return TerminalBinding(f'TWIN-{int(seed)}', True, channel_roles(device.channels))
+
+
 def simulate_to_log(spec: SimulationSpec, out: Path, *, progress: bool = True
                     ) -> tuple[DeviceDescription, Calibration, dict[str, Any]]:
     """Calibrate the twin on its reference plate, run the scenario, write the log (under a
@@ -130,8 +138,10 @@ def simulate_to_log(spec: SimulationSpec, out: Path, *, progress: bool = True
     twin = TwinDevice(device, effects, seed=spec.seed)
     device = twin.documented_device      # what the log says of the device, its terminal included
     room = ambient_profile(spec.ambient)
-    calibration = twin.calibrate(spec.calibrate_at_s, room, approaches=spec.calibration_approaches,
-                                 epoch_s=spec.epoch_s)
+    calibration = replace(
+        twin.calibrate(spec.calibrate_at_s, room, approaches=spec.calibration_approaches,
+                       epoch_s=spec.epoch_s),
+        terminal=simulated_terminal(device, spec.seed))
     scenario = make_scenario(spec.scenario, spec.scenario_params)
     chunks = twin.stream(scenario, room, start_s=spec.start_s, reference=spec.reference,
                          sample_rate_hz=spec.sample_rate_hz, chunk_samples=CHUNK)
