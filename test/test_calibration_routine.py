@@ -137,6 +137,31 @@ def test_the_one_sided_routine_reads_its_drift_from_the_reference_bar_where_it_r
     assert len(unc.drift_m['bar1']) == 7
 
 
+def test_a_drift_reading_off_the_resting_pair_is_refused_or_not_taken_for_a_drift(world):
+    """The drift step's reading of the reference bar is checked against its calibration (on
+    another pair it is refused); with none to check it, a reading millimetres from its last
+    placement there is not a temperature change and gives no drift."""
+    device, twin, room = world
+    plate = Plate(device, twin, room)
+    elsewhere = Step('drift', 'ref1', 'dr6')       # the bar lies on dr6, the step says dr4
+    first = CalibrationRoutine(device)
+    step, k = first.next_step(), 0
+    while step is not None:
+        plate.place(elsewhere if step.kind == 'drift' else step)
+        k += 1
+        res = first.capture(step, plate.window(), f'2024-01-01T00:{k // 60:02d}:{k % 60:02d}+00:00')
+        assert res.accepted, res.message
+        step = res.next_step
+    assert first.calibration.uncertainty.routine_temp_change_c is None
+    again = CalibrationRoutine(device, first.calibration)
+    step = again.next_step()
+    plate.place(elsewhere)
+    res = again.capture(step, plate.window(), 'now')
+    assert not res.accepted and 'expects' in res.message and 'dr4' in res.message, res.message
+    plate.place(step)
+    assert again.capture(step, plate.window(), 'now').accepted
+
+
 def test_a_moving_bar_and_a_wrong_pair_are_refused(world):
     device, twin, room = world
     routine = CalibrationRoutine(device)

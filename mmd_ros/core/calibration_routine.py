@@ -56,6 +56,10 @@ FloatArray = NDArray[np.float64]
 
 KINDS = ('calibrate', 'thermal_zero', 're_reference', 'drift')
 MODES = ('auto', 'full', 're_reference')
+#: Largest change of a reference bar's reading on its resting pair over a routine taken for a
+#: temperature change [m] (100 °C of the prototype's; a bar not on that pair at one end, in its
+#: case or on another pair 16 mm away, reads millimetres off).
+DRIFT_READING_LIMIT_M = 0.1e-3
 #: How a bar is seated on a pair: from shorter (its guide lengthens into the sockets: friction
 #: state +1) or from longer (-1); '' when the routine does not say.
 APPROACHES = {'short': 1.0, 'long': -1.0}
@@ -96,9 +100,9 @@ def capture_uncertainty(device: DeviceDescription, captures: list[CaptureStats],
       scatter about h, pooled over bars);
     - with ``drift`` captures of a reference bar on its resting pair before the measuring bars
       (as it rests, or from short and from long with two approaches) and its captures there
-      at the end (its
-      thermal zero the last): the temperature change over the routine dT (the change of its
-      reading over its sensitivity, Fig. 10, at the rate the two sides' mean times give), and
+      at the end (its thermal zero the last): the temperature change over the routine dT (the
+      change of its reading over its sensitivity, Fig. 10, at the rate the two sides' mean
+      times give; none when the reading moved more than :data:`DRIFT_READING_LIMIT_M`), and
       the thermal error every point carries from its capture time,
       -S(d_j) dT (t_ij - t_zero) / (t_zero - t_drift).
 
@@ -184,8 +188,8 @@ def _routine_drift(device: DeviceDescription, points: list[CaptureStats], drifts
 
         (first, t0, v0), (last, t1, v1) = side(starts), side(ends)
         span = t1 - t0
-        if not span > 0:
-            continue
+        if not span > 0 or abs(last - first) > DRIFT_READING_LIMIT_M:
+            continue    # (not on that pair at one end: no temperature moves it a millimetre)
         at_ref = thermal_sensitivity(device, device.pair(pair).distance_m)
         rate = (last - first) / at_ref / span               # [°C/s]
         times: dict[str, dict[str, list[float]]] = {}
@@ -651,6 +655,9 @@ class CalibrationRoutine:
             if step.channel not in self._resting or step.pair != self._resting[step.channel]:
                 return self._refuse(step, 'the drift reading is taken with a reference bar on its '
                                     'resting pair', bar, pair, mode)
+            why = self._plausible(step.channel, step.pair, q)
+            if why:
+                return self._refuse(step, why, bar, pair, mode)
             self._drifts[step.approach] = CaptureStats(step.channel, step.pair, step.approach, q,
                                                        (std_m / res) ** 2, n, _seconds(when),
                                                        'drift')
