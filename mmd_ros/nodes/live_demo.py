@@ -82,9 +82,9 @@ def live_step(out_dir: Path, *, stream_s: float = 20.0, heading=print) -> int:
 
         log = guided_calibration(client, sim_node='pose_node', wait_s=transition + settle + 0.2,
                                  retry_s=0.3, timeout_s=300, show=show)
-        print(f'{sum(ok for ok, _ in log.answers)} points captured in {log.seconds:.0f} s '
-              f'({log.refused_moving} capture(s) refused while a bar was still settling); '
-              f'saved to {cal_file}')
+        print(f'{sum(ok for ok, _ in log.answers)} captures (the points and the reference bar\'s '
+              f'drift reading) in {log.seconds:.0f} s ({log.refused_moving} capture(s) refused '
+              f'while a bar was still settling); saved to {cal_file}')
 
         heading(f'4b. measure: ros2 topic echo /mmd/pose, {stream_s:.0f} s of random 6-DOF motion')
         client.set_param('pose_node', 'sim_command', 'mount')
