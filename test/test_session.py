@@ -384,11 +384,11 @@ def test_a_model_of_another_terminal_is_refused_with_both_serials(session, tmp_p
     assert comp.set_calibration(ours, 'test') is None
     model.save(tmp_path / 'model.yaml')
     capsys.readouterr()
-    # the log's own calibration names the twin's terminal (mmd simulate: TWIN-<seed>)
+    # the log's own calibration names the twin's terminal (mmd simulate: MMD-SIM-<seed>)
     assert main(['process', str(session['pose_a']), '--model', str(tmp_path / 'model.yaml'),
                  '--out', str(tmp_path / 'p.mcap')]) == 2
     err = capsys.readouterr().err
-    assert 'model refused' in err and 'MMD-0042' in err and 'TWIN-1' in err, err
+    assert 'model refused' in err and 'MMD-0042' in err and 'MMD-SIM-0001' in err, err
     assert 'Traceback' not in err
     assert not (tmp_path / 'p.mcap').exists()
 
@@ -449,11 +449,22 @@ def test_logs_of_two_devices_are_refused(session, tmp_path, capsys):
     simulate_to_log(dataclasses.replace(SimulationSpec(
         scenario='random_motion', scenario_params=('duration_s=5',), effects='realistic',
         sample_rate_hz=RATE), seed=2), second, progress=False)
-    assert read_run(session['pose_a']).calibration.terminal.serial == 'TWIN-1'
+    assert read_run(session['pose_a']).calibration.terminal.serial == 'MMD-SIM-0001'
     capsys.readouterr()
     assert main(['analyze', str(session['pose_a']), str(second), '--quiet']) == 2
     err = capsys.readouterr().err
-    assert 'TWIN-1' in err and 'TWIN-2' in err and 'Traceback' not in err, err
+    assert 'MMD-SIM-0001' in err and 'MMD-SIM-0002' in err and 'Traceback' not in err, err
+    # the nodes' simulated terminal of a seed is that twin: its calibrations and mmd
+    # simulate's go together (a model of one is used with the other), another seed's do not
+    from mmd_ros.core.calibration import TerminalBinding, binding_problem
+    from mmd_ros.nodes.terminal import TERMINAL_PARAMS, TerminalConfig, sim_serial_of
+    values = {p.name: p.default for p in TERMINAL_PARAMS}         # the nodes' defaults: seed 1
+    logged = read_run(session['pose_a']).calibration
+    live = TerminalBinding(TerminalConfig.from_values(values).sim_serial, True,
+                           logged.terminal.channels)
+    assert live.serial == 'MMD-SIM-0001' and binding_problem(logged, live) is None
+    assert 'MMD-SIM-0007' in binding_problem(logged, dataclasses.replace(
+        live, serial=sim_serial_of({**values, 'sim_seed': 7})))
 
 
 # -- the realistic twin calibrated from both sides ---------------------------------------------

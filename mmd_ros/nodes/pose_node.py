@@ -45,7 +45,7 @@ from mmd_ros.nodes.params import Param, declare
 from mmd_ros.nodes.qos import DIAGNOSTICS, LATCHED, data_qos
 from mmd_ros.nodes.recorder_stage import RECORDER_PARAMS, RecorderConfig, RecorderStage, raw_writer
 from mmd_ros.nodes.reports import compensation_report, kinematics_report
-from mmd_ros.nodes.terminal import TERMINAL_PARAMS, TerminalConfig, TerminalStage
+from mmd_ros.nodes.terminal import TERMINAL_PARAMS, TerminalConfig, TerminalStage, sim_serial_of
 
 __all__ = ['PoseNode', 'main']
 
@@ -68,7 +68,8 @@ class PoseNode(CalibrationService, Node):
         device = load_device_param(v['device_file'])
         # the simulated terminal has its own default calibration file: a simulation never
         # writes the file a real terminal reads
-        cal_params = calibration_params(device.name, v['sim_serial'] if v['device'] == 'sim' else '')
+        cal_params = calibration_params(device.name,
+                                        sim_serial_of(v) if v['device'] == 'sim' else '')
         v.update(declare(self, cal_params))
         record = v['record']
         if record:

@@ -33,7 +33,7 @@ from mmd_ros.nodes.diagnostics import ERROR, OK, Events, Report
 from mmd_ros.nodes.outlets import Outlet
 from mmd_ros.nodes.params import Param
 from mmd_ros.nodes.sim_commands import SimCommandError, run_commands
-from mmd_ros.twin import SCENARIOS
+from mmd_ros.twin import SCENARIOS, simulated_serial
 from mmd_ros.twin.effects import PRESETS as EFFECT_PRESETS
 
 __all__ = ['TERMINAL_PARAMS', 'TerminalConfig', 'TerminalStage']
@@ -74,7 +74,8 @@ TERMINAL_PARAMS = [
           'bar [s]', low=0.0, high=10.0),
     Param('sim_near_wrap_margin', 0, 'simulation: start every counter this many counts below '
           'the 32-bit wrap; 0 off', low=1, high=2**30, allow_zero=True),
-    Param('sim_serial', 'MMD-SIM-0001', 'simulation: serial number of the simulated terminal'),
+    Param('sim_serial', '', 'simulation: serial number of the simulated terminal; "" the '
+          'twin\'s, MMD-SIM-<sim_seed> (as mmd simulate\'s calibrations name it)'),
     Param('sim_command', '', 'simulation only: operator and fault commands, e.g. "place bar3 '
           'dr5", "mount", "move bar2 3", "unplug", "corrupt 5" (msg_docs/nodes.md)',
           dynamic=True),
@@ -106,7 +107,14 @@ class TerminalConfig:
 
     @classmethod
     def from_values(cls, v: dict[str, Any]) -> TerminalConfig:
-        return cls(**{k: v[k] for k in cls.__dataclass_fields__})
+        return cls(**{k: v[k] for k in cls.__dataclass_fields__
+                      if k != 'sim_serial'}, sim_serial=sim_serial_of(v))
+
+
+def sim_serial_of(v: dict[str, Any]) -> str:
+    """The simulated terminal's serial number: the ``sim_serial`` parameter, or when it is
+    empty the twin's (:func:`~mmd_ros.twin.simulated_serial` of ``sim_seed``)."""
+    return str(v['sim_serial']) or simulated_serial(int(v['sim_seed']))
 
 
 #: (stamps_ns (N,), counts (N, 8), channel status codes (N, 8) or None when all are good)

@@ -21,12 +21,12 @@ from mmd_ros.twin.scenarios import (
 )
 from mmd_ros.twin.thermal import REFERENCE_TEMP_C, AmbientProfile, Ramp
 from mmd_ros.twin.trajectories import MachineErrors, MotionLimits, Trajectory
-from mmd_ros.twin.twin import IsoTargets, Placement, SimulatedRun, TwinDevice
+from mmd_ros.twin.twin import IsoTargets, Placement, SimulatedRun, TwinDevice, simulated_serial
 
 __all__ = [
     'AmbientProfile', 'Bump', 'Effects', 'HOME_POSE', 'Hold', 'IsoLinear', 'IsoRotary',
     'IsoTargets', 'MachineErrors', 'MotionLimits', 'Placement', 'REFERENCE_KINDS',
     'REFERENCE_TEMP_C', 'Ramp', 'RandomMotion', 'SCENARIOS', 'Scenario', 'SimulatedRun',
     'ThermalSoak', 'Trajectory', 'TwinDevice', 'TwinError', 'TwinParameterError', 'WorkspaceError',
-    'bar_legs', 'make_scenario', 'rotation_matrices', 'scenario_from_dict',
+    'bar_legs', 'make_scenario', 'rotation_matrices', 'scenario_from_dict', 'simulated_serial',
 ]

@@ -26,7 +26,7 @@ from mmd_ros.twin.effects import PRESET_AMBIENT, Effects
 from mmd_ros.twin.errors import TwinError, TwinParameterError
 from mmd_ros.twin.scenarios import make_scenario
 from mmd_ros.twin.thermal import AmbientProfile, check_room
-from mmd_ros.twin.twin import TwinDevice
+from mmd_ros.twin.twin import TwinDevice, simulated_serial
 
 __all__ = ['EPOCH_S', 'SimulationSpec', 'ambient_profile', 'run_log', 'simulate_to_log',
            'simulated_terminal', 'spec_inputs']
@@ -120,10 +120,11 @@ def run_log(twin: TwinDevice, calibration: Calibration, run: Any, start_s: float
 
 
 def simulated_terminal(device: DeviceDescription, seed: int) -> TerminalBinding:
-    """The terminal a twin's calibration names: simulated, its serial the twin's seed
-    (``TWIN-<seed>``: the twins of two seeds are two devices, and a log, a calibration or a
-    model of one is refused for the other as another terminal's would be)."""
-    return TerminalBinding(f'TWIN-{int(seed)}', True, channel_roles(device.channels))
+    """The terminal a twin's calibration names: simulated, its serial the twin's
+    (:func:`~mmd_ros.twin.twin.simulated_serial`, ``MMD-SIM-<seed>``, as the nodes' simulated
+    terminal of that seed reports): the twins of two seeds are two devices, and a log, a
+    calibration or a model of one is refused for the other as another terminal's would be."""
+    return TerminalBinding(simulated_serial(seed), True, channel_roles(device.channels))
 
 
 def simulate_to_log(spec: SimulationSpec, out: Path, *, progress: bool = True

@@ -40,7 +40,7 @@ from mmd_ros.twin.scenarios import MAX_DURATION_S, RestingBars, Scenario
 from mmd_ros.twin.thermal import REFERENCE_TEMP_C, AmbientProfile
 
 __all__ = ['MAX_CLOCK_S', 'MAX_SAMPLES', 'MAX_SEED', 'IsoTargets', 'Placement', 'SimulatedRun',
-           'TwinDevice', 'check_clock']
+           'TwinDevice', 'check_clock', 'simulated_serial']
 
 FloatArray = NDArray[np.float64]
 
@@ -56,6 +56,14 @@ MAX_SAMPLES = 1_000_000_000
 MAX_CLOCK_S = 365 * 24 * 3600.0
 #: Largest seed: the twin's random streams are keyed by 64-bit hashes of it.
 MAX_SEED = 2**64 - 1
+
+
+def simulated_serial(seed: int) -> str:
+    """The serial number of the twin of ``seed``'s simulated terminal, ``MMD-SIM-<seed>`` (four
+    digits at least): what `mmd simulate`'s calibrations name and the nodes' simulated terminal
+    reports, so that a model or a calibration of one twin goes with that twin's logs and live
+    stream and is refused for another's."""
+    return f'MMD-SIM-{int(seed):04d}'
 
 
 def check_clock(t_s: float, what: str) -> None:
