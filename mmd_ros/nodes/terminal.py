@@ -36,7 +36,7 @@ from mmd_ros.nodes.sim_commands import SimCommandError, run_commands
 from mmd_ros.twin import SCENARIOS, simulated_serial
 from mmd_ros.twin.effects import PRESETS as EFFECT_PRESETS
 
-__all__ = ['TERMINAL_PARAMS', 'TerminalConfig', 'TerminalStage']
+__all__ = ['TERMINAL_PARAMS', 'TerminalConfig', 'TerminalStage', 'sim_serial_of']
 
 TERMINAL_PARAMS = [
     Param('device', 'sim', 'encoder terminal: "sim" (a simulated terminal streaming the digital '
