@@ -790,9 +790,8 @@ class LengthBudget:
         if temp_sigma and figures.seating_m is None and self.seating_m:
             # a one-sided routine measured no seating: its captures' variance alone sized the
             # change's; each end is a seating of its own too, as the plate states
-            one = capture_var(self.resolution_m, figures.read_noise_m or 0.0,
-                              int(figures.capture_samples or 1))
-            temp_sigma *= math.sqrt(1.0 + self.seating_m ** 2 / one)
+            temp_sigma *= math.sqrt(figures.point_var(self.resolution_m, self.seating_m)
+                                    / figures.point_var(self.resolution_m))
         if temp:
             drift *= math.sqrt(max(temp * temp - temp_sigma ** 2, 0.0)) / abs(temp)
         return drift

@@ -515,6 +515,7 @@ class CalibrationRoutine:
         self._check_names(bar, pair)
         if self.effective_mode(mode) == 're_reference':
             return self._next_re_reference(bar, pair)
+        ways = tuple(APPROACHES) if self.settings.approaches == 2 else ('',)   # (each capture)
         if bar:
             channel = bar
         else:
@@ -524,15 +525,13 @@ class CalibrationRoutine:
             channel = next((c for c in self.bar_channels if c not in self._completed), None)
             if channel is None:
                 return None
-            sides = tuple(APPROACHES) if self.settings.approaches == 2 else ('',)
-            way = next((w for w in sides if w not in self._drifts), None)
+            way = next((w for w in ways if w not in self._drifts), None)
             if way is not None and self.references and not self._completed and not self._points:
                 ref = self.references[0]
                 return Step('drift', ref, self._resting[ref], way)
         if channel in self._needs_zero and not pair:
             return Step('thermal_zero', channel, self._resting[channel])
         done = self._points.get(channel, {})
-        ways = ('short', 'long') if self.settings.approaches == 2 else ('',)
 
         def missing(p: str) -> str | None:
             have = done[p].captures if p in done else {}
