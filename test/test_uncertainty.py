@@ -728,7 +728,7 @@ def test_the_plate_s_stated_seating_stands_for_what_a_one_sided_routine_did_not_
     (``reference_plate.seating_repeatability_nm``, which the simulated plate states) then stands
     for it, in each point's variance. A clean twin whose bars seat within 0.3 um, calibrated
     one-sided: 24 calibrations covered 94.5 % (ratios 0.84-1.24 while the routine read no drift;
-    z 2.13 now: each end of the drift reading is a seating, its change known to +-0.6 °C on
+    z 2.13 now: each end of the drift reading is a seating, its change known to +-0.77 °C on
     this plate, claimed as (dT^2 - u^2)+ where the room held still); without the statement these
     8 covered 52 %, and the budget says what it does not claim. The stated seating sizes the
     drift reading's uncertainty too (the routine measured only its captures' noise): without
@@ -753,7 +753,7 @@ def test_the_plate_s_stated_seating_stands_for_what_a_one_sided_routine_did_not_
     with_it = LengthBudget(stated, one_sided, Model())
     without = LengthBudget(unstated, one_sided, Model())
     assert with_it.point_var_m2 - without.point_var_m2 == pytest.approx(9e-14, rel=1e-9)
-    # the routine's drift, -0.49 °C read through two seatings of 0.3 um (+-0.61 °C): claimed
+    # the routine's drift, -0.49 °C read through two seatings of 0.3 um (+-0.77 °C): claimed
     # from the captures' noise alone (+-0.03 °C) it put 245 nm on a point
     assert one_sided.uncertainty.routine_temp_change_c < -0.3
     assert np.abs(without.drift_m).max() > 100e-9 and not np.any(with_it.drift_m)
